@@ -1,0 +1,17 @@
+"""Replay buffers and transition data."""
+
+from mbrl_delan.data.buffer import (
+    add_transitions,
+    all_transitions,
+    check_finite,
+    episode_transitions,
+    make_replay_buffer,
+)
+
+__all__ = [
+    "add_transitions",
+    "all_transitions",
+    "check_finite",
+    "episode_transitions",
+    "make_replay_buffer",
+]

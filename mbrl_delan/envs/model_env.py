@@ -1,0 +1,241 @@
+"""Planning and imagination inside a learned world model.
+
+(a) `model_objective_factory`: the learned-model counterpart of the MuJoCo oracle, an
+    objective over (N, H, nu) action sequences rolled out in torch.
+(b) `ModelEnv`: a TorchRL `ModelBasedEnvBase` around a WorldModel and a Task.
+
+Particle layout: N samples times P particles form a flat batch of N * P where particle p of
+sample n sits at index n * P + p. An ensemble propagating flat index b with member b % E
+(TSinf) thus gives particle p member p % E for every sample: with P a multiple of E every
+sample is scored by every member equally often.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import Tensor, nn
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs.model_based import ModelBasedEnvBase
+
+from mbrl_delan import keys
+from mbrl_delan.models.base import WorldModel
+from mbrl_delan.planners.base import discounted_masked_return
+from mbrl_delan.systems.system import System
+from mbrl_delan.tasks.base import Task
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Device and dtype a world model computes in."""
+
+    device: torch.device
+    dtype: torch.dtype
+
+
+def model_placement(
+    model: nn.Module, fallback_device: torch.device | str = "cpu",
+    fallback_dtype: torch.dtype = torch.float64,
+) -> Placement:
+    """Device and dtype of the model's first floating parameter or buffer, else the fallback."""
+    tensors = [*model.parameters(), *model.buffers()]
+    first = next((t for t in tensors if t.is_floating_point()), None)
+    if first is None:
+        return Placement(torch.device(fallback_device), fallback_dtype)
+    return Placement(first.device, first.dtype)
+
+
+@contextlib.contextmanager
+def eval_mode(model: nn.Module) -> Iterator[None]:
+    """Run the model in eval mode and restore its previous mode afterwards."""
+    was_training = model.training
+    model.eval()
+    try:
+        yield
+    finally:
+        model.train(was_training)
+
+
+class ModelObjective:
+    """Objective for one start state: returns of actions (N, H, nu) under the world model.
+
+    Returns are the mean over particles of masked, discounted task returns, on the actions'
+    device and in their dtype. (N,)
+    """
+
+    def __init__(
+        self, factory: ModelObjectiveFactory, q0: Tensor, qd0: Tensor
+    ) -> None:
+        self.factory = factory
+        self.q0 = q0  # (nq,) as given
+        self.qd0 = qd0  # (nv,)
+
+    def __call__(self, actions: Tensor) -> Tensor:
+        if actions.ndim != 3:
+            raise ValueError(f"actions must be (N, H, nu), got {tuple(actions.shape)}")
+        f = self.factory
+        place = f.placement(actions.device)
+        n, horizon, _ = actions.shape
+        p = f.particles
+        flat = actions.to(place.device, place.dtype).repeat_interleave(p, dim=0)  # (N*P, H, nu)
+        q = self.q0.to(place.device, place.dtype).expand(n * p, -1)  # (N*P, nq)
+        qd = self.qd0.to(place.device, place.dtype).expand(n * p, -1)  # (N*P, nv)
+        rewards, terminated = [], []
+        with torch.inference_mode(), eval_mode(f.model):
+            for t in range(horizon):
+                a_t = flat[:, t]  # (N*P, nu)
+                nxt = f.model.step(q, qd, a_t, generator=f.generator)
+                q, qd = nxt.q, nxt.qd
+                rewards.append(f.task.reward(q, qd, a_t))  # (N*P,)
+                terminated.append(f.task.terminated(q, qd))  # (N*P,)
+            returns = discounted_masked_return(
+                torch.stack(rewards, dim=-1), torch.stack(terminated, dim=-1), f.discount
+            )  # (N*P,)
+            returns = returns.reshape(n, p).mean(dim=1)  # (N,)
+        dtype = actions.dtype if actions.is_floating_point() else returns.dtype
+        return returns.to(actions.device, dtype)
+
+
+class ModelObjectiveFactory:
+    """(q0 (nq,), qd0 (nv,)) -> `ModelObjective`. See `model_objective_factory`."""
+
+    def __init__(
+        self,
+        model: WorldModel,
+        task: Task,
+        particles: int = 1,
+        discount: float = 1.0,
+        generator: torch.Generator | None = None,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        if particles < 1:
+            raise ValueError(f"particles must be >= 1, got {particles}")
+        if not 0 < discount <= 1:
+            raise ValueError(f"discount must be in (0, 1], got {discount}")
+        self.model = model
+        self.task = task
+        self.particles = particles
+        self.discount = discount
+        self.generator = generator
+        self.dtype = dtype
+
+    def placement(self, fallback_device: torch.device) -> Placement:
+        """Where to compute: the model's device and dtype (or the override dtype)."""
+        place = model_placement(self.model, fallback_device=fallback_device)
+        return Placement(place.device, self.dtype or place.dtype)
+
+    def __call__(self, q0: Tensor, qd0: Tensor) -> ModelObjective:
+        return ModelObjective(self, q0, qd0)
+
+
+def model_objective_factory(
+    model: WorldModel,
+    task: Task,
+    particles: int = 1,
+    discount: float = 1.0,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype | None = None,
+) -> ModelObjectiveFactory:
+    """Objectives over (N, H, nu) action sequences rolled out in the learned world model.
+
+    Args:
+        model: the world model; used in eval mode and under inference mode, on its own
+            device and dtype (a model without floating parameters or buffers computes in
+            float64 on the actions' device).
+        task: reward and termination.
+        particles: P rollouts per sample (flat index n * P + p), returns averaged over them.
+        discount: per-step discount in (0, 1].
+        generator: randomness of stochastic models (on the model's device).
+        dtype: compute dtype override.
+    """
+    return ModelObjectiveFactory(model, task, particles=particles, discount=discount,
+                                 generator=generator, dtype=dtype)
+
+
+class ModelEnv(ModelBasedEnvBase):
+    """A TorchRL env that steps a WorldModel and scores it with a Task.
+
+    Keys: q, qd (observations), action, reward, done, terminated, truncated. `reset` draws
+    `task.initial_state`; truncation is never set here (add a `StepCounter` transform with
+    `max_steps=task.episode_len` for episode limits). The model runs in eval mode and on its
+    own device; the env's dtype is the model's unless given.
+    """
+
+    def __init__(
+        self,
+        model: WorldModel,
+        task: Task,
+        system: System,
+        batch_size: tuple[int, ...] | torch.Size = (),
+        device: torch.device | str | None = None,
+        dtype: torch.dtype | None = None,
+        seed: int = 0,
+    ) -> None:
+        place = model_placement(model, fallback_device=device or "cpu")
+        device = torch.device(device) if device is not None else place.device
+        super().__init__(model, device=device, batch_size=torch.Size(batch_size))
+        self.task = task
+        self.system = system
+        self.state_dtype = dtype or place.dtype
+        self._generator = torch.Generator(device=self.device)
+        self._generator.manual_seed(seed)
+        self._make_specs()
+
+    def _make_specs(self) -> None:
+        bs, dt, sys = self.batch_size, self.state_dtype, self.system
+        self.observation_spec = Composite(
+            {keys.Q: Unbounded((*bs, sys.nq), dtype=dt, device=self.device),
+             keys.QD: Unbounded((*bs, sys.nv), dtype=dt, device=self.device)},
+            shape=bs, device=self.device,
+        )
+        low, high = sys.ctrl_low.to(dt), sys.ctrl_high.to(dt)
+        if bool(torch.isfinite(low).all() and torch.isfinite(high).all()):
+            self.action_spec = Bounded(low.expand(*bs, sys.nu), high.expand(*bs, sys.nu),
+                                       shape=(*bs, sys.nu), dtype=dt, device=self.device)
+        else:
+            self.action_spec = Unbounded((*bs, sys.nu), dtype=dt, device=self.device)
+        self.reward_spec = Unbounded((*bs, 1), dtype=dt, device=self.device)
+        flag = Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device)
+        self.full_done_spec = Composite(
+            {keys.DONE: flag.clone(), keys.TERMINATED: flag.clone(),
+             keys.TRUNCATED: flag.clone()},
+            shape=bs, device=self.device,
+        )
+
+    def _flags(self, terminated: Tensor) -> dict[str, Tensor]:
+        """done / terminated / truncated entries from terminated (*B,) bool."""
+        term = terminated.to(self.device, torch.bool).unsqueeze(-1)
+        return {keys.DONE: term.clone(), keys.TERMINATED: term,
+                keys.TRUNCATED: torch.zeros_like(term)}
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: object) -> TensorDict:
+        state = self.task.initial_state(tuple(self.batch_size), self._generator)
+        q = state.q.to(self.device, self.state_dtype)
+        qd = state.qd.to(self.device, self.state_dtype)
+        not_done = torch.zeros(q.shape[:-1], dtype=torch.bool, device=self.device)
+        return TensorDict({keys.Q: q, keys.QD: qd, **self._flags(not_done)},
+                          batch_size=self.batch_size, device=self.device)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDict:
+        q, qd = tensordict.get(keys.Q), tensordict.get(keys.QD)
+        action = tensordict.get(keys.ACTION)
+        low, high = self.system.ctrl_low, self.system.ctrl_high
+        action = torch.clamp(action, low.to(action), high.to(action))
+        with eval_mode(self.world_model):
+            nxt = self.world_model.step(q, qd, action, generator=self._generator)
+        q1 = nxt.q.to(self.device, self.state_dtype)
+        qd1 = nxt.qd.to(self.device, self.state_dtype)
+        reward = self.task.reward(q1, qd1, action).to(self.state_dtype).unsqueeze(-1)
+        terminated = self.task.terminated(q1, qd1)
+        return TensorDict(
+            {keys.Q: q1, keys.QD: qd1, keys.REWARD: reward, **self._flags(terminated)},
+            batch_size=tensordict.batch_size, device=self.device,
+        )
+
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is not None:
+            self._generator.manual_seed(seed)

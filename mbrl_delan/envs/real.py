@@ -1,0 +1,174 @@
+"""The real environment: a MuJoCo system stepped by MuJoCo, scored by a torch task.
+
+`MujocoTaskEnv` is a plain gymnasium env; `make_real_env` wraps it in TorchRL's `GymEnv`.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import torch
+from torchrl.envs import GymEnv
+
+from mbrl_delan import keys
+from mbrl_delan.envs.registry import ENV_NAMES, EnvParts, make_env_parts
+from mbrl_delan.systems.system import State
+
+log = logging.getLogger(__name__)
+
+ENV_IDS: dict[str, str] = {
+    "pendulum": "mbrl_delan/Pendulum-v0",
+    "cartpole": "mbrl_delan/Cartpole-v0",
+    "acrobot": "mbrl_delan/Acrobot-v0",
+    "arm_reach": "mbrl_delan/ArmReach-v0",
+}
+assert set(ENV_IDS) == set(ENV_NAMES)
+
+
+class MujocoTaskEnv(gym.Env):
+    """Gymnasium env over `make_env_parts(env_name, ...)`.
+
+    Observation: Dict(q=Box(nq), qd=Box(nv)) float32. Action: Box(ctrl_low, ctrl_high) float32,
+    clipped before it is applied for `frame_skip` MuJoCo steps. Reward: task.reward on the
+    reached (float64) state. Truncated after `episode_len` steps.
+
+    `physics_frame_skip` is an alias of `frame_skip` for `make_real_env`: TorchRL's GymEnv
+    consumes a `frame_skip` keyword itself (as action repeat), so it cannot reach this class.
+    """
+
+    metadata: dict[str, Any] = {"render_modes": []}
+
+    def __init__(
+        self,
+        env_name: str,
+        frame_skip: int | None = None,
+        episode_len: int | None = None,
+        *,
+        physics_frame_skip: int | None = None,
+    ) -> None:
+        if frame_skip is not None and physics_frame_skip is not None:
+            raise ValueError("give frame_skip or physics_frame_skip, not both")
+        skip = physics_frame_skip if frame_skip is None else frame_skip
+        self.env_name = env_name
+        self.env_parts: EnvParts = make_env_parts(env_name, skip, episode_len)
+        system = self.env_parts.system
+        self._model = system.mj_model()
+        self._data = mujoco.MjData(self._model)
+        self._low = system.ctrl_low.numpy()
+        self._high = system.ctrl_high.numpy()
+        self._steps = 0
+        inf = np.inf
+        self.observation_space = gym.spaces.Dict(
+            {
+                keys.Q: gym.spaces.Box(-inf, inf, (system.nq,), np.float32),
+                keys.QD: gym.spaces.Box(-inf, inf, (system.nv,), np.float32),
+            }
+        )
+        self.action_space = gym.spaces.Box(
+            self._low.astype(np.float32), self._high.astype(np.float32), dtype=np.float32
+        )
+
+    @property
+    def frame_skip(self) -> int:
+        return self.env_parts.system.frame_skip
+
+    @property
+    def episode_len(self) -> int:
+        return self.env_parts.task.episode_len
+
+    @property
+    def model(self) -> mujoco.MjModel:
+        return self._model
+
+    def get_state(self) -> State:
+        """The exact simulator state, float64, shapes (nq,), (nv,)."""
+        return State(
+            q=torch.from_numpy(self._data.qpos.copy()), qd=torch.from_numpy(self._data.qvel.copy())
+        )
+
+    def set_state(self, state: State) -> None:
+        """Overwrite the simulator state (q (nq,), qd (nv,)); the step counter is kept."""
+        self._data.qpos[:] = state.q.detach().cpu().double().numpy()
+        self._data.qvel[:] = state.qd.detach().cpu().double().numpy()
+        mujoco.mj_forward(self._model, self._data)
+
+    def _obs(self) -> dict[str, np.ndarray]:
+        return {
+            keys.Q: self._data.qpos.astype(np.float32),
+            keys.QD: self._data.qvel.astype(np.float32),
+        }
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        super().reset(seed=seed)
+        generator = torch.Generator().manual_seed(int(self.np_random.integers(2**63 - 1)))
+        state = self.env_parts.task.initial_state((), generator)
+        mujoco.mj_resetData(self._model, self._data)
+        self.set_state(state)
+        self._steps = 0
+        return self._obs(), {}
+
+    def step(
+        self, action: np.ndarray
+    ) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
+        ctrl = np.clip(np.asarray(action, dtype=np.float64).reshape(-1), self._low, self._high)
+        self._data.ctrl[:] = ctrl
+        mujoco.mj_step(self._model, self._data, nstep=self.frame_skip)
+        self._steps += 1
+        state = self.get_state()
+        task = self.env_parts.task
+        reward = float(task.reward(state.q, state.qd, torch.from_numpy(ctrl)))
+        terminated = bool(task.terminated(state.q, state.qd))
+        truncated = self._steps >= task.episode_len
+        return self._obs(), reward, terminated, truncated, {}
+
+
+def register_envs() -> None:
+    """Register the gymnasium ids in `ENV_IDS` (idempotent)."""
+    for name, env_id in ENV_IDS.items():
+        if env_id not in gym.registry:
+            gym.register(
+                id=env_id,
+                entry_point="mbrl_delan.envs.real:MujocoTaskEnv",
+                kwargs={"env_name": name},
+            )
+
+
+def make_real_env(
+    name: str,
+    device: str = "cpu",
+    seed: int | None = None,
+    frame_skip: int | None = None,
+    episode_len: int | None = None,
+    **kwargs: Any,
+) -> GymEnv:
+    """TorchRL `GymEnv` over `MujocoTaskEnv(name, frame_skip, episode_len)`.
+
+    Keys: `q`, `qd` (float32 observations), `action`, `reward`, `done`, `terminated`,
+    `truncated`. `frame_skip` is the number of MuJoCo steps per control step (not TorchRL's
+    action repeat); extra `kwargs` go to `GymEnv`. Use `env_parts_of(env)` for the system and
+    task.
+    """
+    if name not in ENV_IDS:
+        raise ValueError(f"unknown env name {name!r}; valid choices: {', '.join(ENV_NAMES)}")
+    register_envs()
+    env = GymEnv(
+        ENV_IDS[name],
+        device=device,
+        physics_frame_skip=frame_skip,
+        episode_len=episode_len,
+        **kwargs,
+    )
+    if seed is not None:
+        env.set_seed(seed)
+    return env
+
+
+def env_parts_of(env: GymEnv) -> EnvParts:
+    """The `EnvParts` (system, task) of an env made by `make_real_env`."""
+    return env._env.unwrapped.env_parts

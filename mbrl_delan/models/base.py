@@ -1,0 +1,41 @@
+"""The world-model contract shared by DeLaN and the ensemble."""
+
+from __future__ import annotations
+
+import abc
+from dataclasses import dataclass, field
+
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor, nn
+
+from mbrl_delan.systems.system import State
+
+
+@dataclass
+class LossOutput:
+    """A training loss and the scalar metrics that explain it."""
+
+    loss: Tensor  # () differentiable
+    metrics: dict[str, float] = field(default_factory=dict)
+
+
+class WorldModel(nn.Module, abc.ABC):
+    """Predicts the state one control step ahead.
+
+    `step` is batched over any leading dims. For ensembles, particle b of a flat batch is
+    propagated by member b % E under TSinf; callers lay particles out so that works.
+    """
+
+    @abc.abstractmethod
+    def step(
+        self, q: Tensor, qd: Tensor, action: Tensor, generator: torch.Generator | None = None
+    ) -> State:
+        """(..., nq), (..., nv), (..., nu) -> State((..., nq), (..., nv))."""
+
+    @abc.abstractmethod
+    def loss(self, batch: TensorDictBase) -> LossOutput:
+        """Training loss on a batch with keys q, qd, action, ("next", "q"), ("next", "qd")."""
+
+    def fit_normalization(self, data: TensorDictBase) -> None:  # noqa: B027
+        """Set input/output statistics from the training data (before each refit)."""

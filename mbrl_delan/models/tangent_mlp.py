@@ -1,0 +1,70 @@
+"""An MLP that carries one tangent forward and one cotangent back, by hand.
+
+DeLaN needs the network's derivative along the velocity (a jvp) and a gradient with respect
+to q (a vjp). Writing both out per layer keeps the cost at a few network passes whatever
+the number of DoF, needs no autograd at planning time (so it runs under
+`torch.inference_mode`), and stays differentiable by ordinary autograd for training.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+ACTIVATIONS = ("softplus", "tanh")
+
+
+def _activate(name: str, z: Tensor) -> tuple[Tensor, Tensor]:
+    """Activation value and its derivative at z."""
+    if name == "softplus":
+        return F.softplus(z), torch.sigmoid(z)
+    y = torch.tanh(z)
+    return y, 1.0 - y * y
+
+
+@dataclass
+class MLPPass:
+    """The values kept from a forward pass for the backward (vjp) pass."""
+
+    out: Tensor  # (..., out)
+    d_out: Tensor | None  # (..., out) tangent of the output, when a tangent was given
+    slopes: list[Tensor]  # activation derivatives per hidden layer, (..., hidden)
+
+
+class TangentMLP(nn.Module):
+    """x -> out through `layers` hidden layers of width `hidden`."""
+
+    def __init__(
+        self, n_in: int, n_out: int, hidden: int, layers: int, activation: str = "softplus"
+    ) -> None:
+        super().__init__()
+        if activation not in ACTIVATIONS:
+            raise ValueError(f"activation must be one of {ACTIVATIONS}, got {activation!r}")
+        if layers < 1 or hidden < 1:
+            raise ValueError(f"need layers >= 1 and hidden >= 1, got {layers=} {hidden=}")
+        sizes = [n_in] + [hidden] * layers
+        self.hidden = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:], strict=True))
+        self.head = nn.Linear(hidden, n_out)
+        self.activation = activation
+
+    def forward(self, x: Tensor, dx: Tensor | None = None) -> MLPPass:
+        """x: (..., n_in); dx: optional tangent (..., n_in)."""
+        slopes = []
+        for layer in self.hidden:
+            z = layer(x)
+            x, slope = _activate(self.activation, z)
+            if dx is not None:
+                dx = slope * (dx @ layer.weight.T)
+            slopes.append(slope)
+        d_out = None if dx is None else dx @ self.head.weight.T
+        return MLPPass(out=self.head(x), d_out=d_out, slopes=slopes)
+
+    def vjp(self, fwd: MLPPass, cotangent: Tensor) -> Tensor:
+        """(d out / d x)^T cotangent: (..., n_out) -> (..., n_in)."""
+        g = cotangent @ self.head.weight
+        for layer, slope in zip(reversed(self.hidden), reversed(fwd.slopes), strict=True):
+            g = (g * slope) @ layer.weight
+        return g

@@ -1,0 +1,32 @@
+"""Sampling planners (CEM, MPPI; iCEM to come), their TorchRL policy wrapper and the oracle."""
+
+from mbrl_delan.planners.base import (
+    Objective,
+    ObjectiveFactory,
+    PlanResult,
+    SamplingDistribution,
+    SamplingPlanner,
+)
+from mbrl_delan.planners.cem import CEMPlanner
+from mbrl_delan.planners.mppi import MPPIPlanner, mppi_weights
+from mbrl_delan.planners.oracle import (
+    MujocoObjective,
+    MujocoObjectiveFactory,
+    mujoco_objective_factory,
+)
+from mbrl_delan.planners.policy import PlannerPolicy
+
+__all__ = [
+    "CEMPlanner",
+    "MPPIPlanner",
+    "MujocoObjective",
+    "MujocoObjectiveFactory",
+    "Objective",
+    "ObjectiveFactory",
+    "PlanResult",
+    "PlannerPolicy",
+    "SamplingDistribution",
+    "SamplingPlanner",
+    "mppi_weights",
+    "mujoco_objective_factory",
+]

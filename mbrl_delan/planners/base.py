@@ -1,0 +1,273 @@
+"""Batched functional sampling planners: the contract and the shared machinery.
+
+A planner sees only an objective, a callable mapping a batch of action sequences to their
+returns, `(N, H, nu) -> (N,)`, and improves a sampling distribution over a few iterations.
+Subclasses implement `_initial_distribution`, `_sample` and `_update`; iCEM will override
+`_sample` (colored noise, kept elites) without touching the loop in `plan`.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+Objective = Callable[[Tensor], Tensor]  # actions (N, H, nu) -> returns (N,)
+ObjectiveFactory = Callable[[Tensor, Tensor], Objective]  # (q0 (nq,), qd0 (nv,)) -> Objective
+
+SHIFT_FILLS = ("repeat", "zero")
+
+
+@dataclass
+class PlanResult:
+    """What one call of `plan` found."""
+
+    mean: Tensor  # (H, nu) final mean of the sampling distribution, within bounds
+    std: Tensor  # (H, nu) final spread of the sampling distribution
+    best_actions: Tensor  # (H, nu) the best sequence sampled in any iteration
+    best_return: Tensor  # () its return
+    iteration_best: Tensor  # (iterations,) best sampled return per iteration
+
+    @property
+    def first_action(self) -> Tensor:
+        """The action to execute now: the first step of the mean. (nu,)"""
+        return self.mean[0]
+
+
+@dataclass
+class SamplingDistribution:
+    """State of the sampling distribution between iterations."""
+
+    mean: Tensor  # (H, nu)
+    std: Tensor  # (H, nu)
+
+
+def as_bound(value: Tensor | Sequence[float] | float, name: str) -> Tensor:
+    """A 1-D float64 CPU tensor from an action bound given as a tensor, list or scalar."""
+    bound = torch.as_tensor(value, dtype=torch.float64).detach().cpu().reshape(-1)
+    if bound.numel() == 0:
+        raise ValueError(f"{name} must have at least one element, got {value!r}")
+    if torch.isnan(bound).any():
+        raise ValueError(f"{name} must not contain NaN, got {bound.tolist()}")
+    return bound
+
+
+def require(condition: bool, message: str) -> None:
+    """Raise ValueError(message) when a constructor argument is invalid."""
+    if not condition:
+        raise ValueError(message)
+
+
+def clean_returns(returns: Tensor, num_samples: int) -> Tensor:
+    """Check the objective's output and map NaN to -inf and +inf to the largest float. (N,)"""
+    if returns.shape != (num_samples,):
+        raise ValueError(
+            f"objective must return shape ({num_samples},), got {tuple(returns.shape)}"
+        )
+    if not returns.is_floating_point():
+        returns = returns.double()
+    big = torch.finfo(returns.dtype).max
+    return torch.nan_to_num(returns, nan=-math.inf, posinf=big, neginf=-math.inf)
+
+
+def discounted_masked_return(
+    rewards: Tensor, terminated: Tensor, discount: float = 1.0
+) -> Tensor:
+    """sum_t discount^t r_t, with rewards after the first terminated step set to zero.
+
+    The reward of the step that reaches a terminal state counts; later ones do not.
+    rewards: (..., H), terminated: (..., H) bool of the reached states -> (...).
+    """
+    horizon = rewards.shape[-1]
+    # ended_before_t: an earlier step already reached a terminal state (exclusive cumsum)
+    term = terminated.to(torch.int32)
+    ended_before = (torch.cumsum(term, dim=-1) - term) > 0
+    rewards = torch.where(ended_before, torch.zeros_like(rewards), rewards)
+    powers = discount ** torch.arange(horizon, device=rewards.device, dtype=rewards.dtype)
+    return (rewards * powers).sum(dim=-1)
+
+
+class SamplingPlanner(abc.ABC):
+    """Shared loop, bounds, validation and warm-start shifting of the sampling planners.
+
+    Args:
+        horizon: planning horizon H in control steps (>= 1).
+        action_low, action_high: bounds of each action dimension, shape (nu,); may be
+            infinite. Every sampled sequence is clamped into them.
+        num_samples: sequences N evaluated per iteration (>= 1).
+        iterations: refinement iterations per `plan` call (>= 1).
+        init_std: standard deviation of the first iteration, a scalar or (nu,). None means
+            a quarter of the action range where it is finite and 1 elsewhere.
+        shift_fill: how `shift` fills the freed last step: "repeat" the last action or
+            "zero" (zero clamped into the bounds).
+        dtype: floating dtype of the plans `initial_mean` makes.
+    """
+
+    def __init__(
+        self,
+        horizon: int,
+        action_low: Tensor | Sequence[float] | float,
+        action_high: Tensor | Sequence[float] | float,
+        num_samples: int,
+        iterations: int,
+        init_std: float | Sequence[float] | None = None,
+        shift_fill: str = "repeat",
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        require(horizon >= 1, f"horizon must be >= 1, got {horizon}")
+        require(num_samples >= 1, f"num_samples must be >= 1, got {num_samples}")
+        require(iterations >= 1, f"iterations must be >= 1, got {iterations}")
+        require(shift_fill in SHIFT_FILLS, f"shift_fill must be one of {SHIFT_FILLS}, got "
+                f"{shift_fill!r}")
+        require(dtype.is_floating_point, f"dtype must be a floating dtype, got {dtype}")
+        low, high = as_bound(action_low, "action_low"), as_bound(action_high, "action_high")
+        require(low.shape == high.shape, f"action_low and action_high differ in shape: "
+                f"{tuple(low.shape)} vs {tuple(high.shape)}")
+        require(bool((low <= high).all()), f"action_low must be <= action_high, got "
+                f"{low.tolist()} > {high.tolist()}")
+        self.horizon = horizon
+        self.num_samples = num_samples
+        self.iterations = iterations
+        self.shift_fill = shift_fill
+        self.dtype = dtype
+        self.action_low = low  # (nu,) float64 CPU
+        self.action_high = high  # (nu,)
+        self.init_std = self._make_init_std(init_std)  # (nu,)
+        self._bounds_cache: dict[tuple[torch.device, torch.dtype], tuple[Tensor, Tensor]] = {}
+
+    @property
+    def action_dim(self) -> int:
+        return self.action_low.numel()
+
+    def _make_init_std(self, init_std: float | Sequence[float] | None) -> Tensor:
+        if init_std is None:
+            width = self.action_high - self.action_low
+            return torch.where(torch.isfinite(width) & (width > 0), width / 4, 1.0)
+        std = torch.as_tensor(init_std, dtype=torch.float64).reshape(-1).expand(self.action_dim)
+        require(bool((std > 0).all()) and bool(torch.isfinite(std).all()),
+                f"init_std must be finite and > 0, got {init_std!r}")
+        return std.clone()
+
+    # ------------------------------------------------------------------ helpers
+    def bounds(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        """Action bounds on `like`'s device and dtype (cached). -> ((nu,), (nu,))"""
+        key = (like.device, like.dtype)
+        if key not in self._bounds_cache:
+            with torch.inference_mode(False):  # normal tensors, usable in and out of it
+                self._bounds_cache[key] = (self.action_low.to(like.device, like.dtype),
+                                           self.action_high.to(like.device, like.dtype))
+        return self._bounds_cache[key]
+
+    def clamp(self, actions: Tensor) -> Tensor:
+        """Clamp actions (..., nu) into the bounds."""
+        low, high = self.bounds(actions)
+        return torch.clamp(actions, low, high)
+
+    def initial_mean(
+        self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
+    ) -> Tensor:
+        """The cold-start plan: zero actions clamped into the bounds. (H, nu)"""
+        zeros = torch.zeros(self.horizon, self.action_dim, device=device,
+                            dtype=dtype or self.dtype)
+        return self.clamp(zeros)
+
+    def shift(self, mean: Tensor, steps: int = 1) -> Tensor:
+        """Warm start: drop the first `steps` actions and fill the end per `shift_fill`.
+
+        mean: (H, nu) -> (H, nu).
+        """
+        require(steps >= 0, f"steps must be >= 0, got {steps}")
+        self._check_mean(mean)
+        if steps == 0:
+            return mean.clone()
+        kept = mean[min(steps, self.horizon):]
+        n_fill = self.horizon - kept.shape[0]
+        if self.shift_fill == "repeat":
+            fill = mean[-1:].expand(n_fill, -1)
+        else:
+            fill = self.clamp(torch.zeros(n_fill, self.action_dim, device=mean.device,
+                                          dtype=mean.dtype))
+        return torch.cat([kept, fill], dim=0)
+
+    def _check_mean(self, mean: Tensor) -> None:
+        expected = (self.horizon, self.action_dim)
+        if tuple(mean.shape) != expected:
+            raise ValueError(f"plan mean must have shape {expected}, got {tuple(mean.shape)}")
+        if not mean.is_floating_point():
+            raise ValueError(f"plan mean must be floating point, got {mean.dtype}")
+
+    # ------------------------------------------------------------------ the loop
+    def plan(
+        self,
+        objective: Objective,
+        init_mean: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> PlanResult:
+        """Optimise the action sequence for `objective`.
+
+        Args:
+            objective: actions (N, H, nu) -> returns (N,); higher is better. NaN counts as
+                -inf.
+            init_mean: (H, nu) warm start; its device and dtype are the planner's for this
+                call. None: `initial_mean` on the generator's device.
+            generator: source of all randomness (on the planning device).
+        """
+        with torch.inference_mode():
+            if init_mean is None:
+                device = generator.device if generator is not None else None
+                init_mean = self.initial_mean(device=device)
+            self._check_mean(init_mean)
+            dist = self._initial_distribution(self.clamp(init_mean))
+            best_actions, best_return = dist.mean, None
+            iteration_best = []
+            for _ in range(self.iterations):
+                samples = self.clamp(self._sample(dist, generator))  # (N, H, nu)
+                returns = clean_returns(objective(samples), samples.shape[0])  # (N,)
+                dist = self._update(dist, samples, returns)
+                best_actions, best_return, it_best = self._track_best(
+                    samples, returns, best_actions, best_return)
+                iteration_best.append(it_best)
+            return PlanResult(
+                mean=self.clamp(dist.mean),
+                std=dist.std,
+                best_actions=best_actions,
+                best_return=best_return,
+                iteration_best=torch.stack(iteration_best),
+            )
+
+    @staticmethod
+    def _track_best(
+        samples: Tensor, returns: Tensor, best_actions: Tensor, best_return: Tensor | None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Keep the best sequence seen so far, without a host sync."""
+        idx = torch.argmax(returns)
+        it_best = returns[idx]
+        if best_return is None:
+            return samples[idx], it_best, it_best
+        better = it_best > best_return
+        return (torch.where(better, samples[idx], best_actions),
+                torch.where(better, it_best, best_return), it_best)
+
+    def _noise(self, dist: SamplingDistribution, generator: torch.Generator | None,
+               num: int) -> Tensor:
+        """White Gaussian noise (num, H, nu) on the distribution's device. iCEM overrides."""
+        return torch.randn((num, *dist.mean.shape), generator=generator,
+                           device=dist.mean.device, dtype=dist.mean.dtype)
+
+    def _sample(self, dist: SamplingDistribution, generator: torch.Generator | None) -> Tensor:
+        """Draw N sequences (N, H, nu) around the distribution; the loop clamps them."""
+        return dist.mean + dist.std * self._noise(dist, generator, self.num_samples)
+
+    @abc.abstractmethod
+    def _initial_distribution(self, mean: Tensor) -> SamplingDistribution:
+        """Sampling distribution of the first iteration around `mean` (H, nu)."""
+
+    @abc.abstractmethod
+    def _update(
+        self, dist: SamplingDistribution, samples: Tensor, returns: Tensor
+    ) -> SamplingDistribution:
+        """New distribution from samples (N, H, nu) and their cleaned returns (N,)."""

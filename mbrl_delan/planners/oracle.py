@@ -1,0 +1,164 @@
+"""The oracle objective: returns of action sequences under MuJoCo's true dynamics.
+
+Rolls out a batch of open-loop action sequences with `mujoco.rollout` (multi-threaded,
+MjData reused across calls), holds each control for `system.frame_skip` MuJoCo steps, and
+scores the reached states with the task's torch reward. This is the upper bound every
+learned-model result is compared with.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+import torch
+from mujoco import rollout as mj_rollout
+from torch import Tensor
+
+from mbrl_delan.planners.base import discounted_masked_return
+from mbrl_delan.systems.system import State, System
+from mbrl_delan.tasks.base import Task
+
+FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+QPOS = int(mujoco.mjtState.mjSTATE_QPOS)
+QVEL = int(mujoco.mjtState.mjSTATE_QVEL)
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def _state_offset(model: mujoco.MjModel, component: int) -> int:
+    """Offset of one mjtState component inside a FULLPHYSICS state vector."""
+    lower = FULLPHYSICS & (component - 1)
+    return mujoco.mj_stateSize(model, lower)
+
+
+@dataclass
+class OracleRollout:
+    """States reached by a batch of rollouts and the controls actually applied."""
+
+    states: State  # q (N, H, nq), qd (N, H, nv), float64, after each control step
+    actions: Tensor  # (N, H, nu) float64, clipped to the control range
+
+
+class MujocoObjectiveFactory:
+    """Builds oracle objectives for start states; owns the MjModel, MjData and threads.
+
+    Use as `factory(q0, qd0)(actions)`. Call `close()` (or use `with`) to stop the thread
+    pool early; it is also closed when the factory is garbage-collected.
+    """
+
+    def __init__(
+        self, system: System, task: Task, nthread: int | None = None, discount: float = 1.0
+    ) -> None:
+        if nthread is None:
+            nthread = min(available_cpus(), 8)
+        if nthread < 1:
+            raise ValueError(f"nthread must be >= 1, got {nthread}")
+        if not 0 < discount <= 1:
+            raise ValueError(f"discount must be in (0, 1], got {discount}")
+        self.system = system
+        self.task = task
+        self.discount = discount
+        self.model = system.mj_model()
+        n_data = nthread if nthread > 1 else 1
+        self.datas = [mujoco.MjData(self.model) for _ in range(n_data)]
+        self._template = mujoco.MjData(self.model)
+        self._pool = mj_rollout.Rollout(nthread=nthread if nthread > 1 else 0)
+        self.nstate = mujoco.mj_stateSize(self.model, FULLPHYSICS)
+        self.qpos_at = _state_offset(self.model, QPOS)
+        self.qvel_at = _state_offset(self.model, QVEL)
+        self.ctrl_low = system.ctrl_low.numpy()
+        self.ctrl_high = system.ctrl_high.numpy()
+
+    def __call__(self, q0: Tensor, qd0: Tensor) -> MujocoObjective:
+        return MujocoObjective(self, self.initial_state(q0, qd0))
+
+    def __enter__(self) -> MujocoObjectiveFactory:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
+
+    def __del__(self) -> None:
+        self.close()
+
+    def initial_state(self, q0: Tensor, qd0: Tensor) -> np.ndarray:
+        """FULLPHYSICS state vector at time 0 with qpos=q0, qvel=qd0. (nstate,)"""
+        data = self._template
+        mujoco.mj_resetData(self.model, data)
+        data.qpos[:] = q0.detach().to("cpu", torch.float64).numpy()
+        data.qvel[:] = qd0.detach().to("cpu", torch.float64).numpy()
+        data.time = 0.0
+        state = np.empty(self.nstate, dtype=np.float64)
+        mujoco.mj_getState(self.model, data, state, FULLPHYSICS)
+        return state
+
+    def rollout(self, initial_state: np.ndarray, actions: Tensor) -> OracleRollout:
+        """Roll out actions (N, H, nu) from one FULLPHYSICS state. -> OracleRollout"""
+        if self._pool is None:
+            raise RuntimeError("MujocoObjectiveFactory was closed")
+        if actions.ndim != 3 or actions.shape[-1] != self.system.nu:
+            raise ValueError(f"actions must be (N, H, nu={self.system.nu}), got "
+                             f"{tuple(actions.shape)}")
+        ctrl = np.clip(actions.detach().to("cpu", torch.float64).numpy(),
+                       self.ctrl_low, self.ctrl_high)  # (N, H, nu)
+        skip = self.system.frame_skip
+        control = np.ascontiguousarray(np.repeat(ctrl, skip, axis=1))  # (N, H*skip, nu)
+        n, nstep = control.shape[0], control.shape[1]
+        init = np.ascontiguousarray(np.broadcast_to(initial_state, (n, self.nstate)))
+        out = np.empty((n, nstep, self.nstate), dtype=np.float64)
+        self._pool.rollout(self.model, self.datas, init, control, state=out)
+        reached = out[:, skip - 1 :: skip]  # (N, H, nstate)
+        q = reached[..., self.qpos_at : self.qpos_at + self.model.nq]
+        qd = reached[..., self.qvel_at : self.qvel_at + self.model.nv]
+        return OracleRollout(
+            states=State(q=torch.from_numpy(np.ascontiguousarray(q)),
+                         qd=torch.from_numpy(np.ascontiguousarray(qd))),
+            actions=torch.from_numpy(ctrl),
+        )
+
+    def returns(self, initial_state: np.ndarray, actions: Tensor) -> Tensor:
+        """Masked, discounted task returns of actions (N, H, nu), float64 on CPU. -> (N,)"""
+        result = self.rollout(initial_state, actions)
+        q, qd = result.states.q, result.states.qd
+        rewards = self.task.reward(q, qd, result.actions)  # (N, H)
+        terminated = self.task.terminated(q, qd)  # (N, H)
+        return discounted_masked_return(rewards.to(torch.float64), terminated, self.discount)
+
+
+class MujocoObjective:
+    """Objective for one start state: actions (N, H, nu) -> returns (N,) on their device."""
+
+    def __init__(self, factory: MujocoObjectiveFactory, initial_state: np.ndarray) -> None:
+        self.factory = factory
+        self.initial_state = initial_state  # (nstate,) FULLPHYSICS
+
+    def rollout(self, actions: Tensor) -> OracleRollout:
+        return self.factory.rollout(self.initial_state, actions)
+
+    def __call__(self, actions: Tensor) -> Tensor:
+        returns = self.factory.returns(self.initial_state, actions)
+        dtype = actions.dtype if actions.is_floating_point() else torch.float64
+        return returns.to(device=actions.device, dtype=dtype)
+
+
+def mujoco_objective_factory(
+    system: System, task: Task, nthread: int | None = None, discount: float = 1.0
+) -> MujocoObjectiveFactory:
+    """The oracle: (q0 (nq,), qd0 (nv,)) -> objective over (N, H, nu) actions, true dynamics.
+
+    nthread: MuJoCo rollout threads (None: up to 8, bounded by the CPU count).
+    """
+    return MujocoObjectiveFactory(system, task, nthread=nthread, discount=discount)

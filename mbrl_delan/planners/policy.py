@@ -1,0 +1,132 @@
+"""A sampling planner as a TorchRL policy: TensorDict with q, qd in, action out."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import Tensor
+
+from mbrl_delan import keys
+from mbrl_delan.planners.base import ObjectiveFactory, PlanResult, SamplingPlanner
+
+log = logging.getLogger(__name__)
+
+
+class PlannerPolicy(TensorDictModuleBase):
+    """Receding-horizon control with a sampling planner.
+
+    Every `replan_every` control steps it builds an objective for the current state with
+    `objective_factory(q, qd)` and plans, warm-started from the previous plan shifted by the
+    steps executed since; in between it executes the stored plan open loop.
+
+    Call `reset()` at the start of each episode (it is also called automatically when the
+    input carries TorchRL's `step_count` equal to 0). `state_dict()` holds the current plan,
+    the step counter and the generator state, so a checkpointed run resumes identically.
+
+    Args:
+        planner: the optimiser (CEM, MPPI, ...).
+        objective_factory: (q0 (nq,), qd0 (nv,)) -> objective over (N, H, nu) actions.
+        replan_every: control steps between plans (1 = MPC), 1 <= replan_every <= horizon.
+        seed: seed of the policy's own generator.
+        device: where plans are sampled (the objective receives actions there).
+        action_dtype: dtype of the written action; None uses the dtype of q.
+    """
+
+    def __init__(
+        self,
+        planner: SamplingPlanner,
+        objective_factory: ObjectiveFactory,
+        replan_every: int = 1,
+        seed: int = 0,
+        device: torch.device | str = "cpu",
+        action_dtype: torch.dtype | None = None,
+    ) -> None:
+        super().__init__()
+        if not 1 <= replan_every <= planner.horizon:
+            raise ValueError(
+                f"replan_every must be in [1, horizon={planner.horizon}], got {replan_every}"
+            )
+        self.in_keys = [keys.Q, keys.QD]
+        self.out_keys = [keys.ACTION]
+        self.planner = planner
+        self.objective_factory = objective_factory
+        self.replan_every = replan_every
+        self.plan_device = torch.device(device)
+        self.action_dtype = action_dtype
+        self.generator = torch.Generator(device=self.plan_device)
+        self.generator.manual_seed(seed)
+        self._plan: Tensor | None = None  # (H, nu) the plan being executed
+        self._steps_since_plan = 0
+        self.last_result: PlanResult | None = None
+
+    def reset(self) -> None:
+        """Forget the plan (start of an episode); the generator keeps its stream."""
+        self._plan = None
+        self._steps_since_plan = 0
+        self.last_result = None
+
+    @property
+    def plan_mean(self) -> Tensor | None:
+        """The plan being executed, (H, nu), or None before the first step."""
+        return self._plan
+
+    def act(self, q: Tensor, qd: Tensor) -> Tensor:
+        """The action for state (q (nq,), qd (nv,)), replanning when due. -> (nu,)"""
+        if self._plan is None or self._steps_since_plan >= self.replan_every:
+            self._replan(q, qd)
+        action = self._plan[self._steps_since_plan]
+        self._steps_since_plan += 1
+        return action
+
+    def _replan(self, q: Tensor, qd: Tensor) -> None:
+        if self._plan is None:
+            init = self.planner.initial_mean(device=self.plan_device)
+        else:
+            init = self.planner.shift(self._plan, self._steps_since_plan)
+        objective = self.objective_factory(q, qd)
+        result = self.planner.plan(objective, init, self.generator)
+        if log.isEnabledFor(logging.DEBUG):  # float() syncs with the device
+            log.debug("planned: best return %.4g", float(result.best_return))
+        self.last_result = result
+        self._plan = result.mean
+        self._steps_since_plan = 0
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        q, qd = tensordict.get(keys.Q), tensordict.get(keys.QD)
+        if q.ndim != 1 or qd.ndim != 1:
+            raise ValueError(
+                f"PlannerPolicy needs unbatched q (nq,) and qd (nv,), got {tuple(q.shape)} "
+                f"and {tuple(qd.shape)}"
+            )
+        if self._episode_starts(tensordict):
+            self.reset()
+        action = self.act(q, qd)
+        device = tensordict.device if tensordict.device is not None else q.device
+        dtype = self.action_dtype or q.dtype
+        tensordict.set(keys.ACTION, action.to(device=device, dtype=dtype).clone())
+        return tensordict
+
+    @staticmethod
+    def _episode_starts(tensordict: TensorDictBase) -> bool:
+        step_count = tensordict.get(keys.STEP_COUNT, None)
+        return step_count is not None and int(step_count.reshape(-1)[0]) == 0
+
+    # ---------------------------------------------------------------- checkpointing
+    def get_extra_state(self) -> dict[str, Any]:
+        plan = None if self._plan is None else self._plan.clone()
+        return {
+            "plan": plan,
+            "steps_since_plan": self._steps_since_plan,
+            "generator_state": self.generator.get_state().clone(),
+        }
+
+    def set_extra_state(self, state: dict[str, Any]) -> None:
+        plan = state["plan"]
+        self._plan = None if plan is None else plan.to(self.plan_device).clone()
+        self._steps_since_plan = int(state["steps_since_plan"])
+        self.generator.set_state(state["generator_state"].cpu())
+        self.last_result = None

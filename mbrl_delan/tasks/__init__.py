@@ -1,0 +1,16 @@
+"""Tasks: reward, termination and initial states as torch functions (no simulator calls)."""
+
+from mbrl_delan.tasks.acrobot import AcrobotSwingup
+from mbrl_delan.tasks.arm_reach import ArmReach, planar_chain_points
+from mbrl_delan.tasks.base import Task
+from mbrl_delan.tasks.cartpole import CartpoleSwingup
+from mbrl_delan.tasks.pendulum import PendulumSwingup
+
+__all__ = [
+    "AcrobotSwingup",
+    "ArmReach",
+    "CartpoleSwingup",
+    "PendulumSwingup",
+    "Task",
+    "planar_chain_points",
+]

@@ -1,0 +1,211 @@
+"""`python -m mbrl_delan.train`: model-based RL with a learned world model and a sampling planner.
+
+Builds the parts from the Hydra config, runs the loop of `training/loop.py`, checkpoints
+every round (atomically) and writes `metrics.jsonl`, `summary.json` and plots in the run dir.
+`resume=<run dir>` continues a stopped run from its last checkpoint with its saved config.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+import hydra
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from mbrl_delan.config import (
+    DTYPES,
+    ConfigError,
+    build_model,
+    build_planner,
+    check_device,
+    validate_train_config,
+)
+from mbrl_delan.data.buffer import make_replay_buffer
+from mbrl_delan.envs.model_env import model_objective_factory
+from mbrl_delan.envs.real import make_real_env
+from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.planners.oracle import mujoco_objective_factory
+from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.training.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from mbrl_delan.training.fit import FitConfig, TrainingDivergedError
+from mbrl_delan.training.loop import MBRLLoop
+from mbrl_delan.training.plots import plot_run
+from mbrl_delan.training.recorder import METRICS_FILE, Recorder, read_metrics
+
+log = logging.getLogger("mbrl_delan.train")
+
+CHECKPOINT = "checkpoint.pt"
+RUN_CONFIG = "config.yaml"
+
+OmegaConf.register_new_resolver("run_dir_or", lambda resume, default: resume or default,
+                                replace=True)
+
+
+def _policy(planner_cfg: DictConfig, planner: Any, factory: Any, seed: int,
+            device: torch.device) -> PlannerPolicy:
+    return PlannerPolicy(planner, factory, replan_every=planner_cfg.replan_every, seed=seed,
+                         device=device, action_dtype=torch.float32)
+
+
+def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]:
+    """The MBRL loop and the oracle policy (same planner over MuJoCo's true dynamics)."""
+    device, dtype = check_device(cfg.device), DTYPES[cfg.dtype]
+    parts = make_env_parts(cfg.env.name, cfg.env.frame_skip, cfg.env.episode_len)
+    system, task = parts.system, parts.task
+    env_kw = dict(frame_skip=cfg.env.frame_skip, episode_len=cfg.env.episode_len)
+    env = make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
+    eval_env = make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
+    model = build_model(cfg.model, system).to(device=device, dtype=dtype)
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.model.lr,
+                                 weight_decay=cfg.model.weight_decay)
+    model_gen = torch.Generator(device=device).manual_seed(cfg.seed + 3)
+    factory = model_objective_factory(model, task, particles=cfg.model.particles,
+                                      discount=cfg.planner.discount, generator=model_gen)
+    policy = _policy(cfg.planner, build_planner(cfg.planner, system, dtype), factory,
+                     cfg.seed, device)
+    oracle_factory = mujoco_objective_factory(system, task, discount=cfg.planner.discount)
+    oracle = _policy(cfg.planner, build_planner(cfg.planner, system, torch.float64),
+                     oracle_factory, cfg.seed, torch.device("cpu"))
+    memmap = str(run_dir / "buffer") if cfg.buffer.memmap else None
+    buffer = make_replay_buffer(cfg.buffer.capacity, memmap_dir=memmap)
+    fit_cfg = FitConfig(**OmegaConf.to_container(cfg.fit))
+    loop = MBRLLoop(env, eval_env, system, task.episode_len, model, optimizer, policy, buffer,
+                    fit_cfg, seed=cfg.seed, error_horizon=cfg.planner.horizon)
+    return loop, oracle
+
+
+def _save(run_dir: Path, loop: MBRLLoop, extra: dict[str, Any]) -> None:
+    state = {"loop": loop.state_dict(), "rng": rng_state(), **extra}
+    save_checkpoint(run_dir / CHECKPOINT, state)
+
+
+def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | None]:
+    """The config and run dir to use, and the checkpoint when resuming."""
+    if cfg.resume is None:
+        run_dir = Path(HydraConfig.get().runtime.output_dir)
+        return cfg, run_dir, None
+    run_dir = Path(cfg.resume)
+    saved = run_dir / RUN_CONFIG
+    if not saved.is_file():
+        raise ConfigError(f"resume={cfg.resume!r}: no {RUN_CONFIG} in that folder, so it is not "
+                          "a run dir of mbrl_delan.train")
+    run_cfg = OmegaConf.load(saved)
+    run_cfg.resume = str(run_dir)
+    ckpt = run_dir / CHECKPOINT
+    state = load_checkpoint(ckpt, weights_only=False) if ckpt.exists() else None
+    return run_cfg, run_dir, state
+
+
+def train(cfg: DictConfig) -> dict[str, Any]:
+    """Run (or resume) one training run; returns its summary."""
+    cfg, run_dir, state = _resolve_run(cfg)
+    validate_train_config(cfg)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if state is None:
+        OmegaConf.save(cfg, run_dir / RUN_CONFIG, resolve=True)
+    loop, oracle = build_loop(cfg, run_dir)
+    extra: dict[str, Any] = {"oracle_returns": None, "warmup_done": False}
+    if state is not None:
+        loop.load_state_dict(state["loop"])
+        set_rng_state(state["rng"])
+        extra = {k: state[k] for k in extra}
+        log.info("resumed %s at iteration %d (%d env steps)", run_dir,
+                 loop.counters.iteration, loop.counters.env_steps)
+    recorder = Recorder(run_dir, cfg.logger.wandb, cfg.logger.project, cfg.logger.group,
+                        OmegaConf.to_container(cfg, resolve=True),
+                        resume_iteration=loop.counters.iteration if state else None)
+    try:
+        _run(cfg, run_dir, loop, oracle, recorder, extra)
+    finally:
+        recorder.finish()
+    summary = _summary(cfg, run_dir, loop, extra)
+    recorder.write_summary(summary)
+    plot_run(run_dir)
+    _print_summary(run_dir, summary)
+    return summary
+
+
+def _run(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, oracle: PlannerPolicy,
+         recorder: Recorder, extra: dict[str, Any]) -> None:
+    budget = cfg.budget
+    if extra["oracle_returns"] is None:
+        log.info("evaluating the oracle planner on MuJoCo's dynamics (%d episodes)",
+                 budget.oracle_episodes)
+        extra["oracle_returns"] = loop.evaluate(oracle, budget.oracle_episodes).returns
+        _save(run_dir, loop, extra)
+    oracle_mean = _mean(extra["oracle_returns"])
+    if not extra["warmup_done"]:
+        loop.collect_random(budget.random_episodes)
+        loop.fit()
+        extra["warmup_done"] = True
+        _save(run_dir, loop, extra)
+    bar = tqdm(total=budget.iterations, initial=loop.counters.iteration, desc="mbrl",
+               unit="iter", disable=None)
+    while loop.counters.iteration < budget.iterations:
+        k = loop.counters.iteration + 1
+        due = k % budget.eval_every == 0 or k == budget.iterations
+        metrics = loop.iterate(budget.eval_episodes if due else 0)
+        metrics["oracle_return_mean"] = oracle_mean
+        recorder.log(metrics, loop.counters.iteration)
+        _save(run_dir, loop, extra)
+        bar.update(1)
+        bar.set_postfix(steps=metrics["env_steps"], ret=f"{metrics['train_return']:.1f}",
+                        oracle=f"{oracle_mean:.1f}")
+    bar.close()
+
+
+def _mean(values: list[float]) -> float:
+    return float(torch.tensor(values, dtype=torch.float64).mean()) if values else float("nan")
+
+
+def _summary(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, extra: dict[str, Any]
+             ) -> dict[str, Any]:
+    records = [r for r in read_metrics(run_dir / METRICS_FILE) if "eval_return_mean" in r]
+    last = records[-1] if records else {}
+    oracle = extra["oracle_returns"] or []
+    oracle_mean = _mean(oracle)
+    eval_mean = last.get("eval_return_mean", float("nan"))
+    return {
+        "env": cfg.env.name, "model": cfg.model.name, "planner": cfg.planner.name,
+        "seed": cfg.seed, "device": cfg.device,
+        "env_steps": loop.counters.env_steps, "episodes": loop.counters.episodes,
+        "iterations": loop.counters.iteration, "wall_time_s": loop.counters.wall_time_s,
+        "eval_return_mean": eval_mean, "eval_return_std": last.get("eval_return_std"),
+        "oracle_return_mean": oracle_mean,
+        "oracle_return_std": float(torch.tensor(oracle).std(unbiased=False)) if oracle else None,
+        "fraction_of_oracle": eval_mean / oracle_mean if oracle_mean else None,
+    }
+
+
+def _print_summary(run_dir: Path, s: dict[str, Any]) -> None:
+    log.info("run dir: %s", run_dir)
+    log.info("%s / %s / %s, seed %s: eval return %.2f +- %.2f, oracle %.2f (fraction %.3f), "
+             "%d env steps, %.0f s", s["env"], s["model"], s["planner"], s["seed"],
+             s["eval_return_mean"], s["eval_return_std"] or 0.0, s["oracle_return_mean"],
+             s["fraction_of_oracle"] or float("nan"), s["env_steps"], s["wall_time_s"])
+
+
+@hydra.main(version_base="1.3", config_path="../configs", config_name="config")
+def main(cfg: DictConfig) -> float | None:
+    try:
+        summary = train(cfg)
+    except ConfigError as err:
+        log.error("config error: %s", err)
+        sys.exit(2)
+    except TrainingDivergedError as err:
+        log.error("training diverged: %s (the last good checkpoint is kept)", err)
+        sys.exit(1)
+    return summary["eval_return_mean"]
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,219 @@
+"""Crash-safe checkpoints and random-number-generator state.
+
+``save_checkpoint`` never leaves a half-written file under the checkpoint's name: the new
+content goes to a temporary file in the same folder, is flushed and fsynced, and then takes the
+name with ``os.replace`` (atomic on POSIX and Windows). The previous checkpoint stays readable as
+``<name>.prev`` until the new one is in place.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import pickle
+import random
+import shutil
+import uuid
+import warnings
+import zipfile
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+import torch
+
+log = logging.getLogger(__name__)
+
+PREV_SUFFIX = ".prev"
+
+# What torch.load raises on a truncated or otherwise damaged file.
+_UNREADABLE = (RuntimeError, EOFError, pickle.UnpicklingError, ValueError, zipfile.BadZipFile)
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint file exists but cannot be read (and no readable ``.prev`` exists)."""
+
+
+def prev_path(path: str | Path) -> Path:
+    """Where the previous version of checkpoint ``path`` is kept."""
+    path = Path(path)
+    return path.with_name(path.name + PREV_SUFFIX)
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (POSIX only; a no-op where dirs cannot be opened)."""
+    if os.name != "posix":
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _keep_previous(path: Path) -> None:
+    """Make ``<path>.prev`` a complete copy of ``path`` while ``path`` stays in place."""
+    prev = prev_path(path)
+    tmp_prev = prev.with_name(f".{prev.name}.{os.getpid()}.tmp")
+    try:
+        os.link(path, tmp_prev)  # free, and path keeps its name throughout
+    except OSError:
+        shutil.copyfile(path, tmp_prev)  # file systems without hard links
+    try:
+        os.replace(tmp_prev, prev)
+    finally:
+        tmp_prev.unlink(missing_ok=True)
+
+
+def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None], keep_prev: bool) -> None:
+    """Write a file atomically: ``write(f)`` fills a temp file that then replaces ``path``.
+
+    Args:
+        path: destination; its folder is created if needed.
+        write: called with a binary file object open for writing.
+        keep_prev: keep the current content of ``path`` as ``<path>.prev``.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    # os.open with mode 0o666 honours the umask (mkstemp would make the file owner-only)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        if keep_prev and path.exists():
+            _keep_previous(path)
+        os.replace(tmp, path)
+        _fsync_dir(path.parent)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
+    """Save ``state`` with ``torch.save`` atomically, keeping the previous file as ``.prev``.
+
+    To load with ``weights_only=True`` (the default of ``load_checkpoint``) the state should
+    hold only tensors, plain Python containers and scalars (``rng_state()`` output qualifies).
+    """
+    atomic_write(path, lambda f: torch.save(state, f), keep_prev=True)
+    log.debug("saved checkpoint %s", path)
+
+
+def _load(path: Path, map_location: str | torch.device | None, weights_only: bool) -> dict:
+    state = torch.load(path, map_location=map_location, weights_only=weights_only)
+    if not isinstance(state, dict):
+        raise CheckpointError(f"checkpoint {path} holds a {type(state).__name__}, not a dict")
+    return state
+
+
+def load_checkpoint(
+    path: str | Path,
+    map_location: str | torch.device | None = "cpu",
+    weights_only: bool = True,
+) -> dict[str, Any]:
+    """Load a checkpoint written by ``save_checkpoint``.
+
+    Falls back to ``<path>.prev`` with a warning when ``path`` is unreadable.
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        CheckpointError: neither ``path`` nor its ``.prev`` can be read.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint file {path} does not exist")
+    try:
+        return _load(path, map_location, weights_only)
+    except _UNREADABLE as err:
+        main_error = err
+    prev = prev_path(path)
+    if not prev.is_file():
+        raise CheckpointError(
+            f"cannot read checkpoint {path} ({main_error}) and no previous version {prev} exists"
+        ) from main_error
+    try:
+        state = _load(prev, map_location, weights_only)
+    except _UNREADABLE as err:
+        raise CheckpointError(
+            f"cannot read checkpoint {path} ({main_error}) nor its previous version {prev} ({err})"
+        ) from err
+    log.warning("checkpoint %s is unreadable (%s); loaded the previous one %s", path, main_error,
+                prev)
+    return state
+
+
+def _numpy_state() -> dict[str, Any]:
+    name, key, pos, has_gauss, cached = np.random.get_state(legacy=True)
+    return {
+        "name": name,
+        "key": torch.from_numpy(key.astype(np.int64)),
+        "pos": int(pos),
+        "has_gauss": int(has_gauss),
+        "cached_gaussian": float(cached),
+    }
+
+
+def _set_numpy_state(state: Mapping[str, Any]) -> None:
+    key = state["key"].numpy().astype(np.uint32)
+    np.random.set_state(
+        (state["name"], key, state["pos"], state["has_gauss"], state["cached_gaussian"])
+    )
+
+
+def rng_state(generators: Mapping[str, torch.Generator] | None = None) -> dict[str, Any]:
+    """Snapshot of every random number generator a run uses.
+
+    Args:
+        generators: named ``torch.Generator`` objects (e.g. the planner's, the fit's) whose
+            states are included.
+
+    Returns:
+        A dict of tensors and plain Python values (loadable with ``weights_only=True``).
+    """
+    cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_available() else None
+    return {
+        "torch": torch.get_rng_state(),
+        "cuda": cuda,
+        "numpy": _numpy_state(),
+        "python": random.getstate(),
+        "generators": {name: g.get_state() for name, g in (generators or {}).items()},
+    }
+
+
+def _set_cuda_state(states: list[torch.Tensor] | None) -> None:
+    if states is None:
+        return
+    if not torch.cuda.is_available():
+        warnings.warn("checkpoint has CUDA RNG states but CUDA is unavailable; they are ignored",
+                      stacklevel=3)
+        return
+    if len(states) != torch.cuda.device_count():
+        warnings.warn(
+            f"checkpoint has {len(states)} CUDA RNG states for {torch.cuda.device_count()} "
+            "devices; restoring the common ones",
+            stacklevel=3,
+        )
+    for device, state in enumerate(states[: torch.cuda.device_count()]):
+        torch.cuda.set_rng_state(state, device)
+
+
+def set_rng_state(
+    state: Mapping[str, Any], generators: Mapping[str, torch.Generator] | None = None
+) -> None:
+    """Restore a snapshot made by ``rng_state``.
+
+    Raises ``KeyError`` when a generator in ``generators`` has no saved state.
+    """
+    torch.set_rng_state(state["torch"])
+    _set_cuda_state(state.get("cuda"))
+    _set_numpy_state(state["numpy"])
+    version, internal, gauss = state["python"]
+    random.setstate((version, tuple(internal), gauss))
+    saved = state.get("generators", {})
+    for name, generator in (generators or {}).items():
+        if name not in saved:
+            raise KeyError(f"no saved state for generator {name!r}; saved: {sorted(saved)}")
+        generator.set_state(saved[name])

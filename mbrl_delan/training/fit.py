@@ -1,0 +1,278 @@
+"""Fitting a world model on a dataset of transitions.
+
+Epochs of shuffled minibatches, a random validation split, early stopping on the validation
+loss, best-weights restoring, gradient clipping and a loud failure on NaN/inf.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor
+
+from mbrl_delan.models.base import WorldModel
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class FitConfig:
+    """How ``fit_model`` trains.
+
+    Attributes:
+        batch_size: transitions per minibatch (training and validation).
+        max_epochs: upper bound on the number of epochs.
+        val_fraction: share of the data held out for validation, in [0, 1).
+        min_val_size: fewest validation transitions worth a split; with fewer (or with
+            ``val_fraction == 0``) the model is validated on the training data.
+        patience: epochs without improvement before stopping; ``None`` never stops early.
+        min_delta: a validation loss counts as an improvement when it is below the best so far
+            by more than this (absolute) amount.
+        max_grad_norm: gradients are clipped to this global L2 norm; ``None`` does not clip.
+        max_batches_per_epoch: cap on optimizer steps per epoch (for large buffers); ``None``
+            goes through all training data once per epoch.
+    """
+
+    batch_size: int = 256
+    max_epochs: int = 100
+    val_fraction: float = 0.1
+    min_val_size: int = 1
+    patience: int | None = 10
+    min_delta: float = 0.0
+    max_grad_norm: float | None = 10.0
+    max_batches_per_epoch: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.batch_size <= 0 or self.max_epochs <= 0:
+            raise ValueError("batch_size and max_epochs must be positive")
+        if not 0.0 <= self.val_fraction < 1.0:
+            raise ValueError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
+        if self.patience is not None and self.patience <= 0:
+            raise ValueError(f"patience must be positive or None, got {self.patience}")
+
+
+@dataclass
+class FitReport:
+    """What happened during ``fit_model``. Epochs are counted from 0.
+
+    Attributes:
+        train_loss: mean training loss per epoch.
+        val_loss: mean validation loss per epoch (after that epoch's updates).
+        best_epoch: epoch whose weights were restored (lowest validation loss); -1 if none.
+        best_val_loss: its validation loss.
+        epochs_run: number of completed epochs.
+        stopped_early: training stopped because of ``patience``.
+        validated_on_train: the data were too few for a split and validation used train data.
+        n_train: training transitions.
+        n_val: validation transitions.
+        metrics: ``LossOutput.metrics`` of the restored weights, averaged over validation data.
+    """
+
+    train_loss: list[float] = field(default_factory=list)
+    val_loss: list[float] = field(default_factory=list)
+    best_epoch: int = -1
+    best_val_loss: float = math.inf
+    epochs_run: int = 0
+    stopped_early: bool = False
+    validated_on_train: bool = False
+    n_train: int = 0
+    n_val: int = 0
+    metrics: dict[str, float] = field(default_factory=dict)
+
+
+class TrainingDivergedError(RuntimeError):
+    """The loss or gradient became NaN/inf. The model holds its last good weights again.
+
+    Attributes:
+        epoch: epoch (from 0) in which it happened.
+        metric: name of the offending quantity ("train_loss", "grad_norm", "val_loss", ...).
+        value: its value.
+        report: the fit report up to the last completed epoch.
+    """
+
+    def __init__(self, epoch: int, metric: str, value: float, report: FitReport, detail: str):
+        self.epoch = epoch
+        self.metric = metric
+        self.value = value
+        self.report = report
+        super().__init__(
+            f"training diverged in epoch {epoch} (counted from 0): {metric} = {value}{detail}. "
+            f"Weights restored from epoch {report.best_epoch} "
+            f"({'initial weights' if report.best_epoch < 0 else 'best validation loss'})."
+        )
+
+
+class _Diverged(Exception):
+    """Internal signal carrying the offending quantity up to ``fit_model``."""
+
+    def __init__(self, metric: str, value: float, detail: str = ""):
+        super().__init__(metric)
+        self.metric = metric
+        self.value = value
+        self.detail = detail
+
+
+@dataclass
+class _Snapshot:
+    model: dict[str, Tensor]
+    optimizer: dict[str, Any]
+
+
+def _snapshot(model: WorldModel, optimizer: torch.optim.Optimizer) -> _Snapshot:
+    weights = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    return _Snapshot(weights, copy.deepcopy(optimizer.state_dict()))
+
+
+def _split(
+    n: int, cfg: FitConfig, generator: torch.Generator
+) -> tuple[Tensor, Tensor, bool]:
+    """Random train / validation indices (CPU int64); the bool says val == train."""
+    perm = torch.randperm(n, generator=generator, device=generator.device).cpu()
+    n_val = int(round(cfg.val_fraction * n))
+    if n_val < max(cfg.min_val_size, 1) or n - n_val < 1:
+        return perm, perm, True
+    return perm[n_val:], perm[:n_val], False
+
+
+def _batches(
+    n: int, batch_size: int, generator: torch.Generator | None, max_batches: int | None
+) -> Iterator[Tensor]:
+    """Index tensors of minibatches; shuffled when a generator is given."""
+    if generator is None:
+        order = torch.arange(n)
+    else:
+        order = torch.randperm(n, generator=generator, device=generator.device).cpu()
+    for i, start in enumerate(range(0, n, batch_size)):
+        if max_batches is not None and i >= max_batches:
+            return
+        yield order[start : start + batch_size]
+
+
+def _nonfinite_metrics(metrics: dict[str, float]) -> str:
+    bad = {k: v for k, v in metrics.items() if not math.isfinite(v)}
+    return f" (non-finite metrics: {bad})" if bad else ""
+
+
+def _train_epoch(
+    model: WorldModel,
+    optimizer: torch.optim.Optimizer,
+    data: TensorDictBase,
+    cfg: FitConfig,
+    generator: torch.Generator,
+) -> float:
+    """One pass of optimizer steps; returns the sample-weighted mean loss."""
+    model.train()
+    params = [p for p in model.parameters() if p.requires_grad]
+    max_norm = math.inf if cfg.max_grad_norm is None else cfg.max_grad_norm
+    total, count = 0.0, 0
+    for idx in _batches(data.shape[0], cfg.batch_size, generator, cfg.max_batches_per_epoch):
+        out = model.loss(data[idx])
+        loss_value = float(out.loss.detach())
+        if not math.isfinite(loss_value):
+            raise _Diverged("train_loss", loss_value, _nonfinite_metrics(out.metrics))
+        optimizer.zero_grad(set_to_none=True)
+        out.loss.backward()
+        grad_norm = float(torch.nn.utils.clip_grad_norm_(params, max_norm))
+        if not math.isfinite(grad_norm):
+            raise _Diverged("grad_norm", grad_norm)
+        optimizer.step()
+        total += loss_value * len(idx)
+        count += len(idx)
+    return total / max(count, 1)
+
+
+def _evaluate(
+    model: WorldModel, data: TensorDictBase, batch_size: int
+) -> tuple[float, dict[str, float]]:
+    """Sample-weighted mean loss and metrics, without optimizer steps.
+
+    Autograd stays on: some models differentiate inside their forward pass.
+    """
+    model.eval()
+    total, count = 0.0, 0
+    sums: dict[str, float] = {}
+    with torch.enable_grad():
+        for idx in _batches(data.shape[0], batch_size, None, None):
+            out = model.loss(data[idx])
+            n = len(idx)
+            total += float(out.loss.detach()) * n
+            count += n
+            for name, value in out.metrics.items():
+                sums[name] = sums.get(name, 0.0) + float(value) * n
+    model.zero_grad(set_to_none=True)
+    return total / count, {k: v / count for k, v in sums.items()}
+
+
+def _check_val(loss: float, metrics: dict[str, float]) -> None:
+    if not math.isfinite(loss):
+        raise _Diverged("val_loss", loss, _nonfinite_metrics(metrics))
+
+
+def fit_model(
+    model: WorldModel,
+    optimizer: torch.optim.Optimizer,
+    data: TensorDictBase,
+    cfg: FitConfig,
+    generator: torch.Generator,
+) -> FitReport:
+    """Train ``model`` on transitions ``data`` (batch shape (N,)) and keep its best weights.
+
+    Calls ``model.fit_normalization`` on the training part, then runs up to ``cfg.max_epochs``
+    epochs of shuffled minibatches (shuffling and the split use ``generator`` only). After
+    every epoch the validation loss decides the best weights, which are restored at the end.
+
+    Raises:
+        TrainingDivergedError: a loss or gradient norm became NaN/inf. The model (and the
+            optimizer's state) are first restored to the best weights so far, or to the
+            initial ones when no epoch completed.
+        ValueError: ``data`` is empty.
+    """
+    if data.batch_dims != 1 or data.shape[0] == 0:
+        raise ValueError(f"fit_model needs a non-empty flat batch (N,), got {data.batch_size}")
+    was_training = model.training
+    train_idx, val_idx, on_train = _split(data.shape[0], cfg, generator)
+    train_data = data[train_idx]
+    val_data = train_data if on_train else data[val_idx]
+    report = FitReport(validated_on_train=on_train, n_train=len(train_idx), n_val=len(val_idx))
+    if on_train:
+        log.warning(
+            "only %d transitions: too few for a validation split (val_fraction=%s); "
+            "validating on the training data", data.shape[0], cfg.val_fraction
+        )
+    model.fit_normalization(train_data)
+    best = _snapshot(model, optimizer)
+    epoch = 0
+    try:
+        for epoch in range(cfg.max_epochs):
+            train_loss = _train_epoch(model, optimizer, train_data, cfg, generator)
+            val_loss, metrics = _evaluate(model, val_data, cfg.batch_size)
+            _check_val(val_loss, metrics)
+            report.train_loss.append(train_loss)
+            report.val_loss.append(val_loss)
+            report.epochs_run = epoch + 1
+            if val_loss < report.best_val_loss - cfg.min_delta:
+                report.best_epoch, report.best_val_loss, report.metrics = epoch, val_loss, metrics
+                best = _snapshot(model, optimizer)
+            elif cfg.patience is not None and epoch - report.best_epoch >= cfg.patience:
+                report.stopped_early = True
+                break
+    except _Diverged as err:
+        model.load_state_dict(best.model)
+        optimizer.load_state_dict(best.optimizer)
+        model.train(was_training)
+        raise TrainingDivergedError(epoch, err.metric, err.value, report, err.detail) from None
+    model.load_state_dict(best.model)
+    model.train(was_training)
+    log.info(
+        "fit: %d epochs%s, best epoch %d, val loss %.4g (%d train / %d val transitions)",
+        report.epochs_run, " (stopped early)" if report.stopped_early else "",
+        report.best_epoch, report.best_val_loss, report.n_train, report.n_val,
+    )
+    return report

@@ -1,0 +1,218 @@
+"""The model-based RL loop: collect with the planner, refit the world model, evaluate.
+
+Everything here takes built parts (envs, model, policies, buffer); only `train.py` reads
+configs. Episode resets are seeded from the episode index, so a resumed run draws the same
+initial states as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import Tensor
+from torchrl.data import TensorDictReplayBuffer
+from torchrl.envs import EnvBase
+
+from mbrl_delan import keys
+from mbrl_delan.data.buffer import add_transitions, all_transitions, episode_transitions
+from mbrl_delan.models.base import WorldModel
+from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.systems.posarith import differentiate_pos
+from mbrl_delan.systems.system import System
+from mbrl_delan.training.fit import FitConfig, FitReport, fit_model
+
+log = logging.getLogger(__name__)
+
+EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes use seeds disjoint from training ones
+
+
+class UniformPolicy(TensorDictModuleBase):
+    """Uniformly random actions within the control range, from its own generator."""
+
+    def __init__(self, low: Tensor, high: Tensor, seed: int) -> None:
+        super().__init__()
+        self.in_keys, self.out_keys = [keys.Q], [keys.ACTION]
+        self.low, self.high = low.float(), high.float()
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        u = torch.rand(self.low.shape, generator=self.generator)
+        action = self.low + (self.high - self.low) * u
+        return tensordict.set(keys.ACTION, action.to(tensordict.get(keys.Q).dtype))
+
+
+def run_episode(env: EnvBase, policy: TensorDictModuleBase, seed: int, max_steps: int) -> TensorDict:
+    """One episode from a reset seeded with `seed`. -> rollout TensorDict (T,)."""
+    env.set_seed(seed)
+    if isinstance(policy, PlannerPolicy):
+        policy.reset()
+    with torch.inference_mode():
+        return env.rollout(max_steps, policy=policy, break_when_any_done=True)
+
+
+def episode_return(rollout: TensorDictBase) -> float:
+    return float(rollout.get(keys.NEXT_REWARD).sum())
+
+
+@dataclass
+class ModelError:
+    """Normalised prediction error of a world model on an episode it was not trained on."""
+
+    one_step: float
+    multi_step: float
+    horizon: int
+
+
+@torch.no_grad()
+def model_error(model: WorldModel, system: System, episode: TensorDictBase, horizon: int) -> ModelError:
+    """RMS of the state error, per DoF divided by the episode's state std, after 1 and H steps.
+
+    e_k = [dq_k / std(q), dqd_k / std(qd)] with dq = q_pred (-) q_true in velocity space;
+    error = sqrt(mean over starts, DoFs of e^2). The H-step error rolls the model open loop
+    on the episode's own actions from every start t with t + H <= T.
+    """
+    param = next(model.parameters())
+    q, qd = episode[keys.Q].to(param), episode[keys.QD].to(param)  # (T, nq), (T, nv)
+    action = episode[keys.ACTION].to(param)
+    q_next, qd_next = episode[keys.NEXT_Q].to(param), episode[keys.NEXT_QD].to(param)
+    q_scale = q_next.std(0).clamp_min(1e-3)
+    qd_scale = qd_next.std(0).clamp_min(1e-3)
+
+    def rms(q_pred: Tensor, qd_pred: Tensor, q_true: Tensor, qd_true: Tensor) -> float:
+        e_q = differentiate_pos(system.layout, q_true, q_pred, 1.0) / q_scale
+        e_qd = (qd_pred - qd_true) / qd_scale
+        return float(torch.cat([e_q, e_qd], -1).pow(2).mean().sqrt())
+
+    model.eval()
+    one = model.step(q, qd, action)
+    h = max(1, min(horizon, q.shape[0]))
+    starts = torch.arange(q.shape[0] - h + 1)
+    state_q, state_qd = q[starts], qd[starts]
+    for k in range(h):
+        pred = model.step(state_q, state_qd, action[starts + k])
+        state_q, state_qd = pred.q, pred.qd
+    end = starts + h - 1
+    return ModelError(
+        one_step=rms(one.q, one.qd, q_next, qd_next),
+        multi_step=rms(state_q, state_qd, q_next[end], qd_next[end]),
+        horizon=h,
+    )
+
+
+@dataclass
+class LoopCounters:
+    iteration: int = 0
+    episodes: int = 0
+    env_steps: int = 0
+    wall_time_s: float = 0.0
+
+
+@dataclass
+class Evaluation:
+    returns: list[float] = field(default_factory=list)
+
+    @property
+    def mean(self) -> float:
+        return float(torch.tensor(self.returns).mean()) if self.returns else float("nan")
+
+    @property
+    def std(self) -> float:
+        return float(torch.tensor(self.returns).std(unbiased=False)) if self.returns else float("nan")
+
+
+class MBRLLoop:
+    """Collect -> buffer -> fit -> plan, with evaluation and model-error diagnostics."""
+
+    def __init__(
+        self,
+        env: EnvBase,
+        eval_env: EnvBase,
+        system: System,
+        episode_len: int,
+        model: WorldModel,
+        optimizer: torch.optim.Optimizer,
+        policy: PlannerPolicy,
+        buffer: TensorDictReplayBuffer,
+        fit_config: FitConfig,
+        seed: int,
+        error_horizon: int,
+    ) -> None:
+        self.env, self.eval_env, self.system = env, eval_env, system
+        self.episode_len = episode_len
+        self.model, self.optimizer, self.policy, self.buffer = model, optimizer, policy, buffer
+        self.fit_config, self.seed, self.error_horizon = fit_config, seed, error_horizon
+        self.fit_generator = torch.Generator().manual_seed(seed + 1)
+        self.random_policy = UniformPolicy(system.ctrl_low, system.ctrl_high, seed + 2)
+        self.counters = LoopCounters()
+
+    def _collect(self, policy: TensorDictModuleBase) -> TensorDict:
+        rollout = run_episode(self.env, policy, self.seed * 10_000 + self.counters.episodes,
+                              self.episode_len)
+        transitions = episode_transitions(rollout, first_episode=self.counters.episodes)
+        add_transitions(self.buffer, transitions)
+        self.counters.episodes += 1
+        self.counters.env_steps += transitions.shape[0]
+        return rollout
+
+    def collect_random(self, episodes: int) -> None:
+        for _ in range(episodes):
+            self._collect(self.random_policy)
+
+    def fit(self) -> FitReport:
+        data = all_transitions(self.buffer).to(next(self.model.parameters()).device)
+        return fit_model(self.model, self.optimizer, data, self.fit_config, self.fit_generator)
+
+    def evaluate(self, policy: TensorDictModuleBase, episodes: int) -> Evaluation:
+        seeds = [EVAL_SEED_OFFSET + self.seed * 100 + i for i in range(episodes)]
+        return Evaluation([episode_return(run_episode(self.eval_env, policy, s, self.episode_len))
+                           for s in seeds])
+
+    def iterate(self, eval_episodes: int) -> dict[str, Any]:
+        """One round: collect an on-policy episode, score the model on it, refit, evaluate."""
+        start = time.perf_counter()
+        rollout = self._collect(self.policy)
+        err = model_error(self.model, self.system, rollout, self.error_horizon)
+        report = self.fit()
+        metrics: dict[str, Any] = {
+            "train_return": episode_return(rollout),
+            "model_error_1step": err.one_step,
+            "model_error_hstep": err.multi_step,
+            "model_error_horizon": err.horizon,
+            "fit_epochs": report.epochs_run,
+            "fit_train_loss": report.train_loss[-1] if report.train_loss else float("nan"),
+            "fit_val_loss": report.best_val_loss,
+        }
+        if eval_episodes > 0:
+            ev = self.evaluate(self.policy, eval_episodes)
+            metrics.update(eval_return_mean=ev.mean, eval_return_std=ev.std)
+        self.counters.iteration += 1
+        self.counters.wall_time_s += time.perf_counter() - start
+        metrics.update(env_steps=self.counters.env_steps, episodes=self.counters.episodes,
+                       wall_time_s=self.counters.wall_time_s)
+        return metrics
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "policy": self.policy.state_dict(),
+            "buffer": self.buffer.state_dict(),
+            "counters": vars(self.counters).copy(),
+            "fit_generator": self.fit_generator.get_state(),
+            "random_generator": self.random_policy.generator.get_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.policy.load_state_dict(state["policy"])
+        self.buffer.load_state_dict(state["buffer"])
+        self.counters = LoopCounters(**state["counters"])
+        self.fit_generator.set_state(state["fit_generator"])
+        self.random_policy.generator.set_state(state["random_generator"])

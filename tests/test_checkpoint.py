@@ -1,0 +1,254 @@
+"""Checkpoints, RNG state, run records (metrics.jsonl, summary.json, wandb) and plots."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import random
+import sys
+import types
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from mbrl_delan.data import all_transitions, make_replay_buffer
+from mbrl_delan.training import (
+    CheckpointError,
+    Recorder,
+    load_checkpoint,
+    read_metrics,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
+from mbrl_delan.training.checkpoint import prev_path
+from mbrl_delan.training.plots import plot_run
+
+# --- checkpoints -------------------------------------------------------------------------
+
+
+def test_save_load_round_trip_keeps_previous(tmp_path):
+    path = tmp_path / "ckpt.pt"
+    save_checkpoint(path, {"iteration": 1, "w": torch.ones(3)})
+    assert not prev_path(path).exists()
+    save_checkpoint(path, {"iteration": 2, "w": torch.zeros(3)})
+    assert load_checkpoint(path)["iteration"] == 2
+    assert load_checkpoint(prev_path(path))["iteration"] == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pt", "ckpt.pt.prev"]
+
+
+def test_crash_before_replace_leaves_previous_checkpoint(tmp_path, monkeypatch):
+    path = tmp_path / "ckpt.pt"
+    save_checkpoint(path, {"iteration": 1})
+    save_checkpoint(path, {"iteration": 2})
+
+    def crash(src, dst):
+        raise OSError("simulated crash before the rename")
+
+    monkeypatch.setattr(os, "replace", crash)
+    with pytest.raises(OSError, match="simulated crash"):
+        save_checkpoint(path, {"iteration": 3})
+    monkeypatch.undo()
+    assert load_checkpoint(path)["iteration"] == 2
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]  # temp cleaned up
+
+
+def test_crash_at_final_replace_keeps_main_and_prev(tmp_path, monkeypatch):
+    path = tmp_path / "ckpt.pt"
+    save_checkpoint(path, {"iteration": 1})
+    real_replace = os.replace
+
+    def crash_on_main(src, dst):
+        if os.fspath(dst) == os.fspath(path):
+            raise OSError("simulated crash")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", crash_on_main)
+    with pytest.raises(OSError):
+        save_checkpoint(path, {"iteration": 2})
+    monkeypatch.undo()
+    assert load_checkpoint(path)["iteration"] == 1
+    assert load_checkpoint(prev_path(path))["iteration"] == 1
+
+
+def test_corrupt_checkpoint_falls_back_to_prev(tmp_path, caplog):
+    path = tmp_path / "ckpt.pt"
+    save_checkpoint(path, {"iteration": 1})
+    save_checkpoint(path, {"iteration": 2})
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])  # a torn write
+    with caplog.at_level(logging.WARNING):
+        state = load_checkpoint(path)
+    assert state["iteration"] == 1
+    assert "unreadable" in caplog.text and "ckpt.pt" in caplog.text
+
+
+def test_missing_and_unreadable_checkpoints_name_the_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.pt"):
+        load_checkpoint(tmp_path / "nope.pt")
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="bad.pt"):
+        load_checkpoint(bad)
+
+
+def test_buffer_state_in_checkpoint(tmp_path):
+    buffer = make_replay_buffer(5)
+    buffer.extend(TensorDict({"q": torch.arange(7.0).unsqueeze(-1)}, [7]))
+    path = tmp_path / "ckpt.pt"
+    save_checkpoint(path, {"buffer": buffer.state_dict(), "rng": rng_state()})
+    restored = make_replay_buffer(5)
+    restored.load_state_dict(load_checkpoint(path)["buffer"])
+    assert torch.equal(all_transitions(restored)["q"].squeeze(-1), torch.tensor([2.0, 3, 4, 5, 6]))
+    assert restored.writer.state_dict() == buffer.writer.state_dict()
+
+
+# --- RNG state ---------------------------------------------------------------------------
+
+
+def _draw(generator: torch.Generator) -> tuple:
+    return (
+        torch.rand(3).tolist(),
+        np.random.rand(3).tolist(),
+        np.random.randn(1).tolist(),
+        [random.random() for _ in range(3)],
+        torch.rand(3, generator=generator).tolist(),
+    )
+
+
+def test_rng_round_trip(tmp_path):
+    gen = torch.Generator().manual_seed(5)
+    np.random.randn(1)  # leaves a cached gaussian in numpy's state
+    path = tmp_path / "rng.pt"
+    save_checkpoint(path, {"rng": rng_state({"planner": gen})})
+    first = _draw(gen)
+    _draw(gen)
+    set_rng_state(load_checkpoint(path)["rng"], {"planner": gen})
+    assert _draw(gen) == first
+
+
+def test_rng_missing_generator_is_an_error():
+    state = rng_state()
+    with pytest.raises(KeyError, match="fit"):
+        set_rng_state(state, {"fit": torch.Generator()})
+
+
+# --- recorder ----------------------------------------------------------------------------
+
+
+def _recorder(run_dir, resume=None, use_wandb=False):
+    return Recorder(run_dir, use_wandb, "test", None, {"seed": 0}, resume_iteration=resume)
+
+
+def test_metrics_jsonl_and_resume_truncation(tmp_path):
+    with _recorder(tmp_path) as rec:
+        for it in range(5):
+            rec.log({"env_steps": 100 * it, "loss": torch.tensor(1.0 / (it + 1))}, iteration=it)
+        rec.log({"bad": float("nan")}, iteration=5)
+    records = read_metrics(tmp_path / "metrics.jsonl")
+    assert [r["iteration"] for r in records] == [0, 1, 2, 3, 4, 5]
+    assert records[2]["loss"] == pytest.approx(1 / 3) and records[5]["bad"] is None
+    with open(tmp_path / "metrics.jsonl", "a") as f:
+        f.write('{"iteration": 6, "env_st')  # torn last line from a crash
+
+    with _recorder(tmp_path, resume=3) as rec:  # checkpoint was taken at iteration 3
+        rec.log({"env_steps": 400}, iteration=4)
+    records = read_metrics(tmp_path / "metrics.jsonl")
+    assert [r["iteration"] for r in records] == [0, 1, 2, 3, 4]
+    assert records[-1] == {"iteration": 4, "env_steps": 400}
+    lines = (tmp_path / "metrics.jsonl").read_text().splitlines()
+    assert all(json.loads(line) for line in lines)
+
+    _recorder(tmp_path).finish()  # not a resume: a fresh file
+    assert read_metrics(tmp_path / "metrics.jsonl") == []
+
+
+def test_summary_is_written_atomically(tmp_path):
+    rec = _recorder(tmp_path)
+    rec.write_summary({"env": "pendulum", "eval_return_mean": np.float32(1.5), "x": float("inf")})
+    rec.finish()
+    rec.finish()
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary == {"env": "pendulum", "eval_return_mean": 1.5, "x": None}
+    assert [p.name for p in tmp_path.iterdir() if "summary" in p.name] == ["summary.json"]
+
+
+class _FakeRun:
+    def __init__(self, **kwargs):
+        self.kwargs = kwargs
+        self.id = "abc123"
+        self.logged: list = []
+        self.summary: dict = {}
+        self.finished = False
+
+    def log(self, data, step):
+        self.logged.append((step, data))
+
+    def finish(self):
+        self.finished = True
+
+
+def test_wandb_offline_by_default(tmp_path, monkeypatch):
+    runs = []
+    fake = types.ModuleType("wandb")
+    fake.init = lambda **kw: runs.append(_FakeRun(**kw)) or runs[-1]
+    monkeypatch.setitem(sys.modules, "wandb", fake)
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    rec = Recorder(tmp_path, True, "proj", "grp", {"lr": 0.1})
+    rec.log({"loss": 1.0, "name": "x"}, iteration=3)
+    rec.write_summary({"env_steps": 10})
+    rec.finish()
+    (run,) = runs
+    assert run.kwargs["mode"] == "offline" and run.kwargs["dir"] == str(tmp_path)
+    assert (run.kwargs["project"], run.kwargs["group"]) == ("proj", "grp")
+    assert run.logged == [(3, {"iteration": 3, "loss": 1.0})]
+    assert run.summary == {"env_steps": 10} and run.finished
+
+    monkeypatch.setenv("WANDB_MODE", "disabled")
+    Recorder(tmp_path, True, "proj", None, {}, resume_iteration=3).finish()
+    assert runs[-1].kwargs["mode"] == "disabled"
+    assert runs[-1].kwargs["id"] == "abc123"  # resumed runs continue the same wandb run
+
+
+def test_wandb_failure_warns_and_continues(tmp_path, monkeypatch, caplog):
+    fake = types.ModuleType("wandb")
+
+    def broken_init(**kwargs):
+        raise RuntimeError("no wandb service")
+
+    fake.init = broken_init
+    monkeypatch.setitem(sys.modules, "wandb", fake)
+    with caplog.at_level(logging.WARNING):
+        rec = Recorder(tmp_path, True, "proj", None, {})
+    assert not rec.wandb_active and "no wandb service" in caplog.text
+    rec.log({"loss": 1.0}, iteration=0)
+    rec.finish()
+    assert read_metrics(tmp_path / "metrics.jsonl") == [{"iteration": 0, "loss": 1.0}]
+
+
+# --- plots -------------------------------------------------------------------------------
+
+
+def test_plots_from_small_metrics(tmp_path):
+    with _recorder(tmp_path) as rec:
+        for it in range(6):
+            record = {"env_steps": 200 * (it + 1), "train_return": 10.0 * it}
+            if it % 2 == 1:
+                record |= {"eval_return_mean": 12.0 * it, "eval_return_std": 2.0,
+                           "oracle_return_mean": 80.0, "model_error_1step": 0.1 / (it + 1),
+                           "model_error_hstep": 1.0 / (it + 1)}
+            rec.log(record, iteration=it)
+    paths = plot_run(tmp_path)
+    assert sorted(p.name for p in paths) == ["model_error.png", "returns.png"]
+    for p in paths:
+        assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_plots_skip_missing_metrics(tmp_path):
+    with _recorder(tmp_path) as rec:
+        rec.log({"env_steps": 100, "train_return": 1.0}, iteration=0)
+    assert [p.name for p in plot_run(tmp_path)] == ["returns.png"]
+    assert plot_run(tmp_path / "empty") == []

@@ -1,0 +1,170 @@
+"""DeLaN's structure: SPD mass matrix, exact Coriolis terms, energy, inverse/forward duality."""
+
+import pytest
+import torch
+
+from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.integrators import integrate
+from mbrl_delan.systems.system import HINGE, SLIDE, JointLayout
+
+
+
+@pytest.fixture(autouse=True)
+def float64():
+    """These tests compare with exact derivatives: run them in float64, then restore."""
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(previous)
+
+
+def layout(n: int, slide_first: bool = False) -> JointLayout:
+    types = tuple(SLIDE if (slide_first and i == 0) else HINGE for i in range(n))
+    return JointLayout(types=types, qpos_adr=tuple(range(n)), dof_adr=tuple(range(n)),
+                       limited=(False,) * n)
+
+
+def model(n: int = 3, nu: int | None = None, seed: int = 0, **kw) -> DeLaN:
+    torch.manual_seed(seed)
+    nu = n if nu is None else nu
+    B = torch.randn(n, nu)
+    m = DeLaN(layout(n, slide_first=True), B, control_dt=0.01, hidden=32, layers=2, **kw)
+    with torch.no_grad():  # random biases too, so no symmetry of the initialisation helps
+        for layer in m.modules():
+            if isinstance(layer, torch.nn.Linear):
+                layer.bias.normal_(0.0, 0.5)
+    return m.double()
+
+
+def random_state(n: int, batch: int = 64, scale: float = 2.0):
+    g = torch.Generator().manual_seed(1)
+    return scale * torch.randn(batch, n, generator=g), scale * torch.randn(batch, n, generator=g)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_mass_matrix_symmetric_positive_definite(seed: int) -> None:
+    """Random weights (independent initialisations) and random inputs: M is SPD."""
+    torch.manual_seed(seed)
+    m = DeLaN(layout(6, slide_first=True), torch.eye(6), control_dt=0.01).double()
+    q, qd = random_state(6, batch=512, scale=10.0)
+    t = m.terms(q, qd)
+    M, L = t.mass_matrix, t.cholesky
+    assert torch.allclose(M, M.transpose(-1, -2), atol=1e-12)
+    assert torch.linalg.eigvalsh(M).min() > 0.0
+    factor, info = torch.linalg.cholesky_ex(M)
+    assert (info == 0).all()
+    torch.testing.assert_close(factor, L)
+
+
+def test_cholesky_diagonal_floor_holds_for_extreme_weights() -> None:
+    """Whatever the weights, diag(L) >= shift and L is lower-triangular, so M = L L^T is PD."""
+    m = model(4)
+    with torch.no_grad():
+        for p in m.parameters():
+            p.mul_(50.0)
+    q, qd = random_state(4, batch=256, scale=5.0)
+    L = m.terms(q, qd).cholesky
+    assert torch.equal(L, torch.tril(L))
+    assert torch.diagonal(L, dim1=-2, dim2=-1).min() >= m.dynamics.mass.diag_shift
+
+
+def reference_terms(m: DeLaN, q, qd):
+    """Coriolis and gravity by autograd over the full Jacobian of M(q) (the naive way)."""
+    def mass(qi):
+        return m.terms(qi, torch.zeros_like(qi)).mass_matrix
+
+    def potential(qi):
+        return m.terms(qi, torch.zeros_like(qi)).potential_energy
+
+    cs, gs = [], []
+    for qi, vi in zip(q, qd, strict=True):
+        dM = torch.autograd.functional.jacobian(mass, qi)  # (n, n, n): dM_ij / dq_k
+        m_dot = dM @ vi
+        grad_kin = torch.einsum("i,ijk,j->k", vi, dM, vi)
+        cs.append(m_dot @ vi - 0.5 * grad_kin)
+        gs.append(torch.autograd.functional.jacobian(potential, qi))
+    return torch.stack(cs), torch.stack(gs)
+
+
+def test_coriolis_and_gravity_match_autograd() -> None:
+    m = model(3)
+    q, qd = random_state(3, batch=8)
+    t = m.terms(q, qd)
+    c_ref, g_ref = reference_terms(m, q, qd)
+    torch.testing.assert_close(t.coriolis, c_ref, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(t.gravity, g_ref, rtol=1e-9, atol=1e-10)
+
+
+def test_coriolis_is_quadratic_in_velocity_and_power_neutral() -> None:
+    """c(q, k qd) = k^2 c(q, qd), and qd^T (c - 1/2 Mdot qd) = 0 (skew symmetry of Mdot - 2C)."""
+    torch.manual_seed(0)
+    m = DeLaN(layout(3), torch.eye(3), control_dt=0.01).double()
+    q, qd = random_state(3)
+    c1 = m.terms(q, qd).coriolis
+    c3 = m.terms(q, 3.0 * qd).coriolis
+    torch.testing.assert_close(c3, 9.0 * c1)
+    # d/dt T = qd^T M qdd + 1/2 qd^T Mdot qd; with M qdd = -c (no other forces) dT/dt must be 0.
+    dt = 1e-6
+    t0 = m.terms(q, qd)
+    qdd = torch.linalg.solve(t0.mass_matrix, -t0.coriolis.unsqueeze(-1)).squeeze(-1)
+    t_plus = m.terms(q + dt * qd, qd + dt * qdd).kinetic_energy
+    t_minus = m.terms(q - dt * qd, qd - dt * qdd).kinetic_energy
+    power_scale = (qd * t0.coriolis).abs().sum(-1)  # size of each term that must cancel
+    assert (((t_plus - t_minus) / (2 * dt)).abs() / power_scale).max() < 1e-5
+
+
+def test_forward_of_inverse_is_identity() -> None:
+    m = model(4)
+    q, qd = random_state(4)
+    qdd = torch.randn_like(q)
+    tau = m.dynamics.inverse_dynamics(q, qd, qdd)
+    torch.testing.assert_close(m.dynamics.forward_dynamics(q, qd, tau), qdd, rtol=1e-8, atol=1e-8)
+    tau2 = m.dynamics.inverse_dynamics(q, qd, m.dynamics.forward_dynamics(q, qd, tau))
+    torch.testing.assert_close(tau2, tau, rtol=1e-8, atol=1e-8)
+
+
+def test_energy_conserved_in_passive_rk4_rollout() -> None:
+    m = model(2, dissipation=False)
+    q, qd = random_state(2, batch=16, scale=1.0)
+    zero_tau = torch.zeros_like(qd)
+
+    def energy(q_, qd_):
+        t = m.terms(q_, qd_)
+        return t.kinetic_energy + t.potential_energy
+
+    def accel(q_, qd_):
+        return m.dynamics.forward_dynamics(q_, qd_, zero_tau)
+
+    e0 = energy(q, qd)
+    for _ in range(1000):
+        s = integrate(m.layout, accel, q, qd, dt=1e-3, method="rk4")
+        q, qd = s.q, s.qd
+    drift = (energy(q, qd) - e0).abs() / (e0.abs() + m.terms(q, qd).kinetic_energy.abs())
+    assert drift.max() < 1e-6
+
+
+def test_dissipation_never_adds_energy() -> None:
+    m = model(3)
+    with torch.no_grad():
+        m.dynamics.dissipation.raw_viscous.normal_()
+        m.dynamics.dissipation.raw_coulomb.normal_()
+    _, qd = random_state(3, batch=512, scale=3.0)
+    power = (qd * m.dynamics.dissipation(qd)).sum(-1)
+    assert power.min() >= 0.0
+    assert power.max() > 0.0
+
+
+def test_runs_without_autograd() -> None:
+    """Planning runs under inference_mode: the derivatives are explicit, not autograd."""
+    m = model(3)
+    q, qd = random_state(3)
+    with torch.inference_mode():
+        s = m.step(q, qd, torch.zeros(q.shape[0], 3))
+    assert torch.isfinite(s.q).all() and torch.isfinite(s.qd).all()
+
+
+def test_bad_arguments_are_named() -> None:
+    with pytest.raises(ValueError, match="integrator"):
+        DeLaN(layout(2), torch.eye(2), 0.01, integrator="leapfrog")
+    with pytest.raises(ValueError, match="diag_shift"):
+        DeLaN(layout(2), torch.eye(2), 0.01, diag_shift=0.0)
