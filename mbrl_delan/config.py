@@ -58,24 +58,44 @@ def validate_train_config(cfg: DictConfig) -> None:
     _choice("planner.name", cfg.planner.name, PLANNER_NAMES)
     _choice("dtype", cfg.dtype, tuple(DTYPES))
     check_device(cfg.device)
-    for path in ("planner.horizon", "planner.num_samples", "planner.iterations",
-                 "planner.replan_every", "budget.iterations", "budget.eval_every",
-                 "model.particles", "buffer.capacity", "fit.batch_size", "fit.max_epochs"):
+    for path in (
+        "planner.horizon",
+        "planner.num_samples",
+        "planner.iterations",
+        "planner.replan_every",
+        "budget.iterations",
+        "budget.eval_every",
+        "model.particles",
+        "buffer.capacity",
+        "fit.batch_size",
+        "fit.max_epochs",
+    ):
         _at_least(path, _get(cfg, path), 1)
-    for path in ("budget.random_episodes", "budget.eval_episodes", "budget.oracle_episodes"):
+    for path in (
+        "budget.random_episodes",
+        "budget.eval_episodes",
+        "budget.final_eval_episodes",
+        "budget.oracle_episodes",
+    ):
         _at_least(path, _get(cfg, path), 0)
     if cfg.budget.random_episodes == 0:
         raise ConfigError("budget.random_episodes=0 is not valid: the first fit needs data (>= 1)")
     if cfg.planner.replan_every > cfg.planner.horizon:
-        raise ConfigError(f"planner.replan_every={cfg.planner.replan_every} is not valid; it "
-                          f"must be <= planner.horizon={cfg.planner.horizon}")
+        raise ConfigError(
+            f"planner.replan_every={cfg.planner.replan_every} is not valid; it "
+            f"must be <= planner.horizon={cfg.planner.horizon}"
+        )
     if not 0 < cfg.planner.discount <= 1:
         raise ConfigError(f"planner.discount={cfg.planner.discount} is not valid; use (0, 1]")
-    if cfg.model.name == "ensemble" and cfg.model.propagation == "tsinf" and (
-        cfg.model.particles % cfg.model.ensemble_size
+    if (
+        cfg.model.name == "ensemble"
+        and cfg.model.propagation == "tsinf"
+        and (cfg.model.particles % cfg.model.ensemble_size)
     ):
-        raise ConfigError(f"model.particles={cfg.model.particles} is not valid with tsinf: it "
-                          f"must be a multiple of model.ensemble_size={cfg.model.ensemble_size}")
+        raise ConfigError(
+            f"model.particles={cfg.model.particles} is not valid with tsinf: it "
+            f"must be a multiple of model.ensemble_size={cfg.model.ensemble_size}"
+        )
 
 
 def _get(cfg: DictConfig, path: str) -> Any:
@@ -89,24 +109,47 @@ def build_model(cfg: DictConfig, system: System) -> WorldModel:
     """The world model named by `cfg.name`, with the system's layout and actuation."""
     if cfg.name == "delan":
         return DeLaN(
-            layout=system.layout, actuation=system.actuation.float(),
-            control_dt=system.control_dt, hidden=cfg.hidden, layers=cfg.layers,
-            activation=cfg.activation, diag_shift=cfg.diag_shift, integrator=cfg.integrator,
-            substeps=cfg.substeps, loss=cfg.loss, dissipation=cfg.dissipation,
+            layout=system.layout,
+            actuation=system.actuation.float(),
+            control_dt=system.control_dt,
+            hidden=cfg.hidden,
+            layers=cfg.layers,
+            activation=cfg.activation,
+            diag_shift=cfg.diag_shift,
+            integrator=cfg.integrator,
+            substeps=cfg.substeps,
+            loss=cfg.loss,
+            dissipation=cfg.dissipation,
             coulomb=cfg.coulomb,
         )
     return GaussianEnsemble(
-        layout=system.layout, nu=system.nu, control_dt=system.control_dt,
-        ensemble_size=cfg.ensemble_size, hidden=cfg.hidden, layers=cfg.layers,
-        activation=cfg.activation, propagation=cfg.propagation,
+        layout=system.layout,
+        nu=system.nu,
+        control_dt=system.control_dt,
+        ensemble_size=cfg.ensemble_size,
+        hidden=cfg.hidden,
+        layers=cfg.layers,
+        activation=cfg.activation,
+        propagation=cfg.propagation,
     )
 
 
 def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPlanner:
     """CEM or MPPI over the system's control range."""
-    common = dict(horizon=cfg.horizon, action_low=system.ctrl_low, action_high=system.ctrl_high,
-                  num_samples=cfg.num_samples, iterations=cfg.iterations, dtype=dtype)
+    common = dict(
+        horizon=cfg.horizon,
+        action_low=system.ctrl_low,
+        action_high=system.ctrl_high,
+        num_samples=cfg.num_samples,
+        iterations=cfg.iterations,
+        dtype=dtype,
+    )
     if cfg.name == "cem":
-        return CEMPlanner(num_elites=cfg.num_elites, init_std=cfg.init_std,
-                          min_std=cfg.min_std, momentum=cfg.momentum, **common)
+        return CEMPlanner(
+            num_elites=cfg.num_elites,
+            init_std=cfg.init_std,
+            min_std=cfg.min_std,
+            momentum=cfg.momentum,
+            **common,
+        )
     return MPPIPlanner(temperature=cfg.temperature, noise_std=cfg.noise_std, **common)

@@ -32,7 +32,12 @@ from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
-from mbrl_delan.training.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from mbrl_delan.training.checkpoint import (
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from mbrl_delan.training.fit import FitConfig, TrainingDivergedError
 from mbrl_delan.training.loop import MBRLLoop
 from mbrl_delan.training.plots import plot_run
@@ -43,14 +48,22 @@ log = logging.getLogger("mbrl_delan.train")
 CHECKPOINT = "checkpoint.pt"
 RUN_CONFIG = "config.yaml"
 
-OmegaConf.register_new_resolver("run_dir_or", lambda resume, default: resume or default,
-                                replace=True)
+OmegaConf.register_new_resolver(
+    "run_dir_or", lambda resume, default: resume or default, replace=True
+)
 
 
-def _policy(planner_cfg: DictConfig, planner: Any, factory: Any, seed: int,
-            device: torch.device) -> PlannerPolicy:
-    return PlannerPolicy(planner, factory, replan_every=planner_cfg.replan_every, seed=seed,
-                         device=device, action_dtype=torch.float32)
+def _policy(
+    planner_cfg: DictConfig, planner: Any, factory: Any, seed: int, device: torch.device
+) -> PlannerPolicy:
+    return PlannerPolicy(
+        planner,
+        factory,
+        replan_every=planner_cfg.replan_every,
+        seed=seed,
+        device=device,
+        action_dtype=torch.float32,
+    )
 
 
 def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]:
@@ -62,21 +75,44 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
     env = make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
     eval_env = make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
     model = build_model(cfg.model, system).to(device=device, dtype=dtype)
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.model.lr,
-                                 weight_decay=cfg.model.weight_decay)
+    optimizer = torch.optim.Adam(
+        model.parameters(), lr=cfg.model.lr, weight_decay=cfg.model.weight_decay
+    )
     model_gen = torch.Generator(device=device).manual_seed(cfg.seed + 3)
-    factory = model_objective_factory(model, task, particles=cfg.model.particles,
-                                      discount=cfg.planner.discount, generator=model_gen)
-    policy = _policy(cfg.planner, build_planner(cfg.planner, system, dtype), factory,
-                     cfg.seed, device)
+    factory = model_objective_factory(
+        model,
+        task,
+        particles=cfg.model.particles,
+        discount=cfg.planner.discount,
+        generator=model_gen,
+    )
+    policy = _policy(
+        cfg.planner, build_planner(cfg.planner, system, dtype), factory, cfg.seed, device
+    )
     oracle_factory = mujoco_objective_factory(system, task, discount=cfg.planner.discount)
-    oracle = _policy(cfg.planner, build_planner(cfg.planner, system, torch.float64),
-                     oracle_factory, cfg.seed, torch.device("cpu"))
+    oracle = _policy(
+        cfg.planner,
+        build_planner(cfg.planner, system, torch.float64),
+        oracle_factory,
+        cfg.seed,
+        torch.device("cpu"),
+    )
     memmap = str(run_dir / "buffer") if cfg.buffer.memmap else None
     buffer = make_replay_buffer(cfg.buffer.capacity, memmap_dir=memmap)
     fit_cfg = FitConfig(**OmegaConf.to_container(cfg.fit))
-    loop = MBRLLoop(env, eval_env, system, task.episode_len, model, optimizer, policy, buffer,
-                    fit_cfg, seed=cfg.seed, error_horizon=cfg.planner.horizon)
+    loop = MBRLLoop(
+        env,
+        eval_env,
+        system,
+        task.episode_len,
+        model,
+        optimizer,
+        policy,
+        buffer,
+        fit_cfg,
+        seed=cfg.seed,
+        error_horizon=cfg.planner.horizon,
+    )
     return loop, oracle
 
 
@@ -93,8 +129,10 @@ def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | No
     run_dir = Path(cfg.resume)
     saved = run_dir / RUN_CONFIG
     if not saved.is_file():
-        raise ConfigError(f"resume={cfg.resume!r}: no {RUN_CONFIG} in that folder, so it is not "
-                          "a run dir of mbrl_delan.train")
+        raise ConfigError(
+            f"resume={cfg.resume!r}: no {RUN_CONFIG} in that folder, so it is not "
+            "a run dir of mbrl_delan.train"
+        )
     run_cfg = OmegaConf.load(saved)
     run_cfg.resume = str(run_dir)
     ckpt = run_dir / CHECKPOINT
@@ -118,11 +156,20 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         loop.load_state_dict(state["loop"])
         set_rng_state(state["rng"])
         extra = {k: state[k] for k in extra}
-        log.info("resumed %s at iteration %d (%d env steps)", run_dir,
-                 loop.counters.iteration, loop.counters.env_steps)
-    recorder = Recorder(run_dir, cfg.logger.wandb, cfg.logger.project, cfg.logger.group,
-                        OmegaConf.to_container(cfg, resolve=True),
-                        resume_iteration=loop.counters.iteration if state else None)
+        log.info(
+            "resumed %s at iteration %d (%d env steps)",
+            run_dir,
+            loop.counters.iteration,
+            loop.counters.env_steps,
+        )
+    recorder = Recorder(
+        run_dir,
+        cfg.logger.wandb,
+        cfg.logger.project,
+        cfg.logger.group,
+        OmegaConf.to_container(cfg, resolve=True),
+        resume_iteration=loop.counters.iteration if state else None,
+    )
     try:
         _run(cfg, run_dir, loop, oracle, recorder, extra)
     finally:
@@ -134,32 +181,50 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     return summary
 
 
-def _run(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, oracle: PlannerPolicy,
-         recorder: Recorder, extra: dict[str, Any]) -> None:
+def _run(
+    cfg: DictConfig,
+    run_dir: Path,
+    loop: MBRLLoop,
+    oracle: PlannerPolicy,
+    recorder: Recorder,
+    extra: dict[str, Any],
+) -> None:
     budget = cfg.budget
     if extra["oracle_returns"] is None:
-        log.info("evaluating the oracle planner on MuJoCo's dynamics (%d episodes)",
-                 budget.oracle_episodes)
-        extra["oracle_returns"] = loop.evaluate(oracle, budget.oracle_episodes).returns
+        log.info(
+            "evaluating the oracle planner on MuJoCo's dynamics (%d episodes)",
+            budget.oracle_episodes,
+        )
+        with loop.timed():
+            extra["oracle_returns"] = loop.evaluate(oracle, budget.oracle_episodes).returns
         _save(run_dir, loop, extra)
     oracle_mean = _mean(extra["oracle_returns"])
     if not extra["warmup_done"]:
-        loop.collect_random(budget.random_episodes)
-        loop.fit()
+        with loop.timed():
+            loop.collect_random(budget.random_episodes)
+            loop.fit()
         extra["warmup_done"] = True
         _save(run_dir, loop, extra)
-    bar = tqdm(total=budget.iterations, initial=loop.counters.iteration, desc="mbrl",
-               unit="iter", disable=None)
+    bar = tqdm(
+        total=budget.iterations,
+        initial=loop.counters.iteration,
+        desc="mbrl",
+        unit="iter",
+        disable=None,
+    )
     while loop.counters.iteration < budget.iterations:
         k = loop.counters.iteration + 1
-        due = k % budget.eval_every == 0 or k == budget.iterations
-        metrics = loop.iterate(budget.eval_episodes if due else 0)
+        episodes = budget.eval_episodes if k % budget.eval_every == 0 else 0
+        metrics = loop.iterate(budget.final_eval_episodes if k == budget.iterations else episodes)
         metrics["oracle_return_mean"] = oracle_mean
         recorder.log(metrics, loop.counters.iteration)
         _save(run_dir, loop, extra)
         bar.update(1)
-        bar.set_postfix(steps=metrics["env_steps"], ret=f"{metrics['train_return']:.1f}",
-                        oracle=f"{oracle_mean:.1f}")
+        bar.set_postfix(
+            steps=metrics["env_steps"],
+            ret=f"{metrics['train_return']:.1f}",
+            oracle=f"{oracle_mean:.1f}",
+        )
     bar.close()
 
 
@@ -167,19 +232,26 @@ def _mean(values: list[float]) -> float:
     return float(torch.tensor(values, dtype=torch.float64).mean()) if values else float("nan")
 
 
-def _summary(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, extra: dict[str, Any]
-             ) -> dict[str, Any]:
+def _summary(
+    cfg: DictConfig, run_dir: Path, loop: MBRLLoop, extra: dict[str, Any]
+) -> dict[str, Any]:
     records = [r for r in read_metrics(run_dir / METRICS_FILE) if "eval_return_mean" in r]
     last = records[-1] if records else {}
     oracle = extra["oracle_returns"] or []
     oracle_mean = _mean(oracle)
     eval_mean = last.get("eval_return_mean", float("nan"))
     return {
-        "env": cfg.env.name, "model": cfg.model.name, "planner": cfg.planner.name,
-        "seed": cfg.seed, "device": cfg.device,
-        "env_steps": loop.counters.env_steps, "episodes": loop.counters.episodes,
-        "iterations": loop.counters.iteration, "wall_time_s": loop.counters.wall_time_s,
-        "eval_return_mean": eval_mean, "eval_return_std": last.get("eval_return_std"),
+        "env": cfg.env.name,
+        "model": cfg.model.name,
+        "planner": cfg.planner.name,
+        "seed": cfg.seed,
+        "device": cfg.device,
+        "env_steps": loop.counters.env_steps,
+        "episodes": loop.counters.episodes,
+        "iterations": loop.counters.iteration,
+        "wall_time_s": loop.counters.wall_time_s,
+        "eval_return_mean": eval_mean,
+        "eval_return_std": last.get("eval_return_std"),
         "oracle_return_mean": oracle_mean,
         "oracle_return_std": float(torch.tensor(oracle).std(unbiased=False)) if oracle else None,
         "fraction_of_oracle": eval_mean / oracle_mean if oracle_mean else None,
@@ -188,10 +260,20 @@ def _summary(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, extra: dict[str, An
 
 def _print_summary(run_dir: Path, s: dict[str, Any]) -> None:
     log.info("run dir: %s", run_dir)
-    log.info("%s / %s / %s, seed %s: eval return %.2f +- %.2f, oracle %.2f (fraction %.3f), "
-             "%d env steps, %.0f s", s["env"], s["model"], s["planner"], s["seed"],
-             s["eval_return_mean"], s["eval_return_std"] or 0.0, s["oracle_return_mean"],
-             s["fraction_of_oracle"] or float("nan"), s["env_steps"], s["wall_time_s"])
+    log.info(
+        "%s / %s / %s, seed %s: eval return %.2f +- %.2f, oracle %.2f (fraction %.3f), "
+        "%d env steps, %.0f s",
+        s["env"],
+        s["model"],
+        s["planner"],
+        s["seed"],
+        s["eval_return_mean"],
+        s["eval_return_std"] or 0.0,
+        s["oracle_return_mean"],
+        s["fraction_of_oracle"] or float("nan"),
+        s["env_steps"],
+        s["wall_time_s"],
+    )
 
 
 @hydra.main(version_base="1.3", config_path="../configs", config_name="config")

@@ -8,7 +8,6 @@ from mbrl_delan.models.integrators import integrate
 from mbrl_delan.systems.system import HINGE, SLIDE, JointLayout
 
 
-
 @pytest.fixture(autouse=True)
 def float64():
     """These tests compare with exact derivatives: run them in float64, then restore."""
@@ -20,8 +19,9 @@ def float64():
 
 def layout(n: int, slide_first: bool = False) -> JointLayout:
     types = tuple(SLIDE if (slide_first and i == 0) else HINGE for i in range(n))
-    return JointLayout(types=types, qpos_adr=tuple(range(n)), dof_adr=tuple(range(n)),
-                       limited=(False,) * n)
+    return JointLayout(
+        types=types, qpos_adr=tuple(range(n)), dof_adr=tuple(range(n)), limited=(False,) * n
+    )
 
 
 def model(n: int = 3, nu: int | None = None, seed: int = 0, **kw) -> DeLaN:
@@ -65,11 +65,12 @@ def test_cholesky_diagonal_floor_holds_for_extreme_weights() -> None:
     q, qd = random_state(4, batch=256, scale=5.0)
     L = m.terms(q, qd).cholesky
     assert torch.equal(L, torch.tril(L))
-    assert torch.diagonal(L, dim1=-2, dim2=-1).min() >= m.dynamics.mass.diag_shift
+    assert torch.diagonal(L, dim1=-2, dim2=-1).min() >= m.dynamics.field.diag_shift
 
 
 def reference_terms(m: DeLaN, q, qd):
     """Coriolis and gravity by autograd over the full Jacobian of M(q) (the naive way)."""
+
     def mass(qi):
         return m.terms(qi, torch.zeros_like(qi)).mass_matrix
 

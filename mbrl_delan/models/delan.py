@@ -12,8 +12,8 @@
   qd^T d >= 0 always (dissipative).
 - Forward dynamics qdd = M^-1 (B a - c - g - d) by two triangular solves with L.
 
-The mass and potential parts are swappable fields (`CholeskyField`, `PotentialField`), so
-the same equations run on networks and, in tests, on closed-form models of known systems.
+L and V come from a swappable `MechanicsField`: a network with one trunk and two heads, or,
+in tests, closed-form models of known systems, so the same equations serve both.
 """
 
 from __future__ import annotations
@@ -39,18 +39,16 @@ LOSSES = ("forward", "inverse", "both")
 
 
 @dataclass
-class CholeskyJet:
-    """L(q), its derivative along qd, and the pullback of a cotangent on L to velocity space."""
+class MechanicsJet:
+    """L(q), V(q), the derivative of L along qd, and the pullback of cotangents to velocity space.
+
+    `pullback(dL, dV)` returns (dL/dq)^T dL + (dV/dq)^T dV: one reverse pass for both.
+    """
 
     L: Tensor  # (..., n, n) lower-triangular, positive diagonal
     L_dot: Tensor  # (..., n, n) dL/dt = dL/dq [qd]
-    pullback: Callable[[Tensor], Tensor]  # cotangent on L (..., n, n) -> (..., n)
-
-
-@dataclass
-class PotentialJet:
     potential_energy: Tensor  # (...)
-    gravity: Tensor  # dV/dq, (..., n)
+    pullback: Callable[[Tensor, Tensor], Tensor]  # (..., n, n), (...) -> (..., n)
 
 
 @dataclass
@@ -71,29 +69,37 @@ class LagrangianTerms:
         return self.coriolis + self.gravity + self.dissipation
 
 
-class CholeskyField(nn.Module, abc.ABC):
+class MechanicsField(nn.Module, abc.ABC):
+    """Supplies L(q) and V(q) with the derivatives the Lagrangian equations need."""
+
     @abc.abstractmethod
-    def jet(self, q: Tensor, qd: Tensor) -> CholeskyJet: ...
+    def jet(self, q: Tensor, qd: Tensor) -> MechanicsJet: ...
 
 
-class PotentialField(nn.Module, abc.ABC):
-    @abc.abstractmethod
-    def jet(self, q: Tensor) -> PotentialJet: ...
+class LagrangianNetwork(MechanicsField):
+    """One MLP trunk on features of q with two linear heads.
 
-
-class CholeskyNetwork(CholeskyField):
-    """L(q) from an MLP on features of q: n diagonal entries (softplus + shift) and n(n-1)/2 below."""
+    The L head gives n diagonal entries (softplus + shift, so diag(L) > 0) and n(n-1)/2
+    entries below the diagonal; the V head gives the potential energy.
+    """
 
     def __init__(
-        self, features: QFeatures, n: int, hidden: int, layers: int, activation: str,
+        self,
+        features: QFeatures,
+        n: int,
+        hidden: int,
+        layers: int,
+        activation: str,
         diag_shift: float,
     ) -> None:
         super().__init__()
         if diag_shift <= 0:
-            raise ValueError(f"diag_shift must be > 0 so M stays positive definite, got {diag_shift}")
+            raise ValueError(
+                f"diag_shift must be > 0 so M stays positive definite, got {diag_shift}"
+            )
         self.features, self.n, self.diag_shift = features, n, diag_shift
         n_off = n * (n - 1) // 2
-        self.mlp = TangentMLP(features.n_features, n + n_off, hidden, layers, activation)
+        self.trunk = TangentMLP(features.n_features, n + n_off + 1, hidden, layers, activation)
         rows, cols = torch.tril_indices(n, n, -1)
         gather = torch.full((n * n,), n + n_off, dtype=torch.long)  # default: the zero slot
         gather[torch.arange(n) * (n + 1)] = torch.arange(n)
@@ -107,36 +113,21 @@ class CholeskyNetwork(CholeskyField):
         flat = torch.cat([diag, off, diag.new_zeros(diag.shape[:-1] + (1,))], dim=-1)
         return flat[..., self.gather].unflatten(-1, (self.n, self.n))
 
-    def jet(self, q: Tensor, qd: Tensor) -> CholeskyJet:
+    def jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
         n = self.n
-        fwd = self.mlp(self.features(q), self.features.jvp(q, qd))
-        raw_diag, off = fwd.out[..., :n], fwd.out[..., n:]
+        fwd = self.trunk(self.features(q), self.features.jvp(q, qd))
+        raw_diag, off = fwd.out[..., :n], fwd.out[..., n:-1]
         slope = torch.sigmoid(raw_diag)
         L = self._assemble(F.softplus(raw_diag) + self.diag_shift, off)
-        L_dot = self._assemble(slope * fwd.d_out[..., :n], fwd.d_out[..., n:])
+        L_dot = self._assemble(slope * fwd.d_out[..., :n], fwd.d_out[..., n:-1])
 
-        def pullback(cotangent: Tensor) -> Tensor:
-            d_diag = torch.diagonal(cotangent, dim1=-2, dim2=-1) * slope
-            d_off = cotangent[..., self.rows, self.cols]
-            d_features = self.mlp.vjp(fwd, torch.cat([d_diag, d_off], dim=-1))
-            return self.features.vjp(q, d_features)
+        def pullback(d_L: Tensor, d_V: Tensor) -> Tensor:
+            d_diag = torch.diagonal(d_L, dim1=-2, dim2=-1) * slope
+            d_off = d_L[..., self.rows, self.cols]
+            d_out = torch.cat([d_diag, d_off, d_V.unsqueeze(-1)], dim=-1)
+            return self.features.vjp(q, self.trunk.vjp(fwd, d_out))
 
-        return CholeskyJet(L=L, L_dot=L_dot, pullback=pullback)
-
-
-class PotentialNetwork(PotentialField):
-    """V(q) from an MLP on features of q; g = dV/dq by one cotangent pass."""
-
-    def __init__(self, features: QFeatures, hidden: int, layers: int, activation: str) -> None:
-        super().__init__()
-        self.features = features
-        self.mlp = TangentMLP(features.n_features, 1, hidden, layers, activation)
-
-    def jet(self, q: Tensor) -> PotentialJet:
-        fwd = self.mlp(self.features(q))
-        ones = torch.ones_like(fwd.out)
-        gravity = self.features.vjp(q, self.mlp.vjp(fwd, ones))
-        return PotentialJet(potential_energy=fwd.out.squeeze(-1), gravity=gravity)
+        return MechanicsJet(L=L, L_dot=L_dot, potential_energy=fwd.out[..., -1], pullback=pullback)
 
 
 class Dissipation(nn.Module):
@@ -161,46 +152,62 @@ class Dissipation(nn.Module):
 
 
 class LagrangianDynamics(nn.Module):
-    """The DeLaN equations over any mass and potential fields."""
+    """The DeLaN equations over any mechanics field (network or closed form)."""
 
     def __init__(
-        self, mass: CholeskyField, potential: PotentialField, dissipation: Dissipation | None,
-        actuation: Tensor,
+        self, field: MechanicsField, dissipation: Dissipation | None, actuation: Tensor
     ) -> None:
         super().__init__()
-        self.mass, self.potential, self.dissipation = mass, potential, dissipation
+        self.field, self.dissipation = field, dissipation
         self.register_buffer("actuation", actuation.clone())  # B, (n, nu)
 
+    @staticmethod
+    def _velocity_products(jet: MechanicsJet, qd: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """w = L^T qd, Mdot qd = Ldot w + L Ldot^T qd, and the cotangent qd w^T."""
+        w = (jet.L.transpose(-1, -2) @ qd.unsqueeze(-1)).squeeze(-1)
+        w_dot = (jet.L_dot.transpose(-1, -2) @ qd.unsqueeze(-1)).squeeze(-1)
+        m_dot_qd = (jet.L_dot @ w.unsqueeze(-1) + jet.L @ w_dot.unsqueeze(-1)).squeeze(-1)
+        return w, m_dot_qd, qd.unsqueeze(-1) * w.unsqueeze(-2)
+
+    def _dissipation(self, qd: Tensor) -> Tensor:
+        return torch.zeros_like(qd) if self.dissipation is None else self.dissipation(qd)
+
     def terms(self, q: Tensor, qd: Tensor) -> LagrangianTerms:
-        """All terms at (q, qd): (..., nq), (..., n)."""
-        jet = self.mass.jet(q, qd)
-        L, L_dot = jet.L, jet.L_dot
-        w = (L.transpose(-1, -2) @ qd.unsqueeze(-1)).squeeze(-1)  # L^T qd
-        w_dot = (L_dot.transpose(-1, -2) @ qd.unsqueeze(-1)).squeeze(-1)  # Ldot^T qd
-        m_dot_qd = (L_dot @ w.unsqueeze(-1) + L @ w_dot.unsqueeze(-1)).squeeze(-1)
-        half_grad_kinetic = jet.pullback(qd.unsqueeze(-1) * w.unsqueeze(-2))  # 1/2 d(qd^T M qd)/dq
-        pot = self.potential.jet(q)
-        diss = torch.zeros_like(qd) if self.dissipation is None else self.dissipation(qd)
+        """All terms at (q, qd): (..., nq), (..., n). Two reverse passes (c and g apart)."""
+        jet = self.field.jet(q, qd)
+        w, m_dot_qd, kinetic_cotangent = self._velocity_products(jet, qd)
+        zero_v = torch.zeros_like(jet.potential_energy)
+        half_grad_kinetic = jet.pullback(kinetic_cotangent, zero_v)  # 1/2 d(qd^T M qd)/dq
+        gravity = jet.pullback(torch.zeros_like(jet.L), torch.ones_like(zero_v))
         return LagrangianTerms(
-            mass_matrix=L @ L.transpose(-1, -2),
-            cholesky=L,
+            mass_matrix=jet.L @ jet.L.transpose(-1, -2),
+            cholesky=jet.L,
             coriolis=m_dot_qd - half_grad_kinetic,
-            gravity=pot.gravity,
-            dissipation=diss,
+            gravity=gravity,
+            dissipation=self._dissipation(qd),
             kinetic_energy=0.5 * (w * w).sum(-1),
-            potential_energy=pot.potential_energy,
+            potential_energy=jet.potential_energy,
         )
+
+    def _bias_and_cholesky(self, q: Tensor, qd: Tensor) -> tuple[Tensor, Tensor]:
+        """c + g + d with one reverse pass (the pullback is linear), and L."""
+        jet = self.field.jet(q, qd)
+        _, m_dot_qd, kinetic_cotangent = self._velocity_products(jet, qd)
+        coriolis_gravity = m_dot_qd + jet.pullback(
+            -kinetic_cotangent, torch.ones_like(jet.potential_energy)
+        )
+        return coriolis_gravity + self._dissipation(qd), jet.L
 
     def inverse_dynamics(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
         """Generalized force tau = M qdd + c + g + d. (..., n)"""
-        t = self.terms(q, qd)
-        return (t.mass_matrix @ qdd.unsqueeze(-1)).squeeze(-1) + t.bias
+        bias, L = self._bias_and_cholesky(q, qd)
+        m_qdd = L @ (L.transpose(-1, -2) @ qdd.unsqueeze(-1))
+        return m_qdd.squeeze(-1) + bias
 
     def forward_dynamics(self, q: Tensor, qd: Tensor, tau: Tensor) -> Tensor:
         """qdd = M^-1 (tau - c - g - d) by two triangular solves with L. (..., n)"""
-        t = self.terms(q, qd)
-        rhs = (tau - t.bias).unsqueeze(-1)
-        return torch.cholesky_solve(rhs, t.cholesky).squeeze(-1)
+        bias, L = self._bias_and_cholesky(q, qd)
+        return torch.cholesky_solve((tau - bias).unsqueeze(-1), L).squeeze(-1)
 
     def generalized_force(self, action: Tensor) -> Tensor:
         """tau = B a: (..., nu) -> (..., n)."""
@@ -249,8 +256,7 @@ class DeLaN(WorldModel):
         self.layout, self.control_dt = layout, control_dt
         self.integrator, self.substeps, self.loss_kind = integrator, substeps, loss
         self.dynamics = LagrangianDynamics(
-            mass=CholeskyNetwork(features, n, hidden, layers, activation, diag_shift),
-            potential=PotentialNetwork(features, hidden, layers, activation),
+            field=LagrangianNetwork(features, n, hidden, layers, activation, diag_shift),
             dissipation=Dissipation(n, coulomb=coulomb) if dissipation else None,
             actuation=actuation.to(torch.get_default_dtype()),
         )
@@ -261,7 +267,7 @@ class DeLaN(WorldModel):
         return self.dynamics.terms(q, qd)
 
     def acceleration(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
-        """Forward dynamics under actuator controls: (..., nq), (..., nv), (..., nu) -> (..., nv)."""
+        """Forward dynamics under controls: (..., nq), (..., nv), (..., nu) -> (..., nv)."""
         return self.dynamics.forward_dynamics(q, qd, self.dynamics.generalized_force(action))
 
     def step(
@@ -272,15 +278,11 @@ class DeLaN(WorldModel):
         def accel(q_: Tensor, qd_: Tensor) -> Tensor:
             return self.dynamics.forward_dynamics(q_, qd_, tau)
 
-        return integrate(
-            self.layout, accel, q, qd, self.control_dt, self.integrator, self.substeps
-        )
+        return integrate(self.layout, accel, q, qd, self.control_dt, self.integrator, self.substeps)
 
     @torch.no_grad()
     def fit_normalization(self, data: TensorDictBase) -> None:
-        q, qd, q_next, qd_next = (
-            data[k] for k in (keys.Q, keys.QD, keys.NEXT_Q, keys.NEXT_QD)
-        )
+        q, qd, q_next, qd_next = (data[k] for k in (keys.Q, keys.QD, keys.NEXT_Q, keys.NEXT_QD))
         tau = self.dynamics.generalized_force(data[keys.ACTION].to(self.q_scale.dtype))
         self.q_scale.copy_(_scale(differentiate_pos(self.layout, q, q_next, 1.0)))
         self.qd_scale.copy_(_scale(qd_next - qd))

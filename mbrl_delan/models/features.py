@@ -42,7 +42,11 @@ class QFeatures(nn.Module):
         """(d phi / dq)^T cotangent: (..., nf) -> (..., nv)."""
         k = self.periodic.numel()
         qp = q[..., self.periodic]
-        c_sin, c_cos, c_plain = cotangent[..., :k], cotangent[..., k : 2 * k], cotangent[..., 2 * k :]
+        c_sin, c_cos, c_plain = (
+            cotangent[..., :k],
+            cotangent[..., k : 2 * k],
+            cotangent[..., 2 * k :],
+        )
         out = torch.zeros_like(q)
         out[..., self.periodic] = torch.cos(qp) * c_sin - torch.sin(qp) * c_cos
         out[..., self.plain] = c_plain

@@ -46,7 +46,9 @@ class TangentMLP(nn.Module):
         if layers < 1 or hidden < 1:
             raise ValueError(f"need layers >= 1 and hidden >= 1, got {layers=} {hidden=}")
         sizes = [n_in] + [hidden] * layers
-        self.hidden = nn.ModuleList(nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:], strict=True))
+        self.hidden = nn.ModuleList(
+            nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:], strict=True)
+        )
         self.head = nn.Linear(hidden, n_out)
         self.activation = activation
 

@@ -30,4 +30,4 @@ class Task(abc.ABC):
 
     @abc.abstractmethod
     def initial_state(self, batch_shape: tuple[int, ...], generator: torch.Generator) -> State:
-        """Sample initial states, float64 on the generator's device. -> State((*B, nq), (*B, nv))."""
+        """Initial states, float64 on the generator's device: State((*B, nq), (*B, nv))."""

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -47,7 +49,9 @@ class UniformPolicy(TensorDictModuleBase):
         return tensordict.set(keys.ACTION, action.to(tensordict.get(keys.Q).dtype))
 
 
-def run_episode(env: EnvBase, policy: TensorDictModuleBase, seed: int, max_steps: int) -> TensorDict:
+def run_episode(
+    env: EnvBase, policy: TensorDictModuleBase, seed: int, max_steps: int
+) -> TensorDict:
     """One episode from a reset seeded with `seed`. -> rollout TensorDict (T,)."""
     env.set_seed(seed)
     if isinstance(policy, PlannerPolicy):
@@ -70,7 +74,9 @@ class ModelError:
 
 
 @torch.no_grad()
-def model_error(model: WorldModel, system: System, episode: TensorDictBase, horizon: int) -> ModelError:
+def model_error(
+    model: WorldModel, system: System, episode: TensorDictBase, horizon: int
+) -> ModelError:
     """RMS of the state error, per DoF divided by the episode's state std, after 1 and H steps.
 
     e_k = [dq_k / std(q), dqd_k / std(qd)] with dq = q_pred (-) q_true in velocity space;
@@ -123,7 +129,9 @@ class Evaluation:
 
     @property
     def std(self) -> float:
-        return float(torch.tensor(self.returns).std(unbiased=False)) if self.returns else float("nan")
+        return (
+            float(torch.tensor(self.returns).std(unbiased=False)) if self.returns else float("nan")
+        )
 
 
 class MBRLLoop:
@@ -151,9 +159,19 @@ class MBRLLoop:
         self.random_policy = UniformPolicy(system.ctrl_low, system.ctrl_high, seed + 2)
         self.counters = LoopCounters()
 
+    @contextmanager
+    def timed(self) -> Iterator[None]:
+        """Count the enclosed work in `counters.wall_time_s` (which survives resumes)."""
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.counters.wall_time_s += time.perf_counter() - start
+
     def _collect(self, policy: TensorDictModuleBase) -> TensorDict:
-        rollout = run_episode(self.env, policy, self.seed * 10_000 + self.counters.episodes,
-                              self.episode_len)
+        rollout = run_episode(
+            self.env, policy, self.seed * 10_000 + self.counters.episodes, self.episode_len
+        )
         transitions = episode_transitions(rollout, first_episode=self.counters.episodes)
         add_transitions(self.buffer, transitions)
         self.counters.episodes += 1
@@ -170,12 +188,23 @@ class MBRLLoop:
 
     def evaluate(self, policy: TensorDictModuleBase, episodes: int) -> Evaluation:
         seeds = [EVAL_SEED_OFFSET + self.seed * 100 + i for i in range(episodes)]
-        return Evaluation([episode_return(run_episode(self.eval_env, policy, s, self.episode_len))
-                           for s in seeds])
+        return Evaluation(
+            [episode_return(run_episode(self.eval_env, policy, s, self.episode_len)) for s in seeds]
+        )
 
     def iterate(self, eval_episodes: int) -> dict[str, Any]:
         """One round: collect an on-policy episode, score the model on it, refit, evaluate."""
-        start = time.perf_counter()
+        with self.timed():
+            metrics = self._round(eval_episodes)
+        self.counters.iteration += 1
+        metrics.update(
+            env_steps=self.counters.env_steps,
+            episodes=self.counters.episodes,
+            wall_time_s=self.counters.wall_time_s,
+        )
+        return metrics
+
+    def _round(self, eval_episodes: int) -> dict[str, Any]:
         rollout = self._collect(self.policy)
         err = model_error(self.model, self.system, rollout, self.error_horizon)
         report = self.fit()
@@ -191,10 +220,6 @@ class MBRLLoop:
         if eval_episodes > 0:
             ev = self.evaluate(self.policy, eval_episodes)
             metrics.update(eval_return_mean=ev.mean, eval_return_std=ev.std)
-        self.counters.iteration += 1
-        self.counters.wall_time_s += time.perf_counter() - start
-        metrics.update(env_steps=self.counters.env_steps, episodes=self.counters.episodes,
-                       wall_time_s=self.counters.wall_time_s)
         return metrics
 
     def state_dict(self) -> dict[str, Any]:

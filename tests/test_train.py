@@ -1,0 +1,130 @@
+"""End to end: `python -m mbrl_delan.train` on a tiny budget, SIGKILL + resume, config errors."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from mbrl_delan.training.checkpoint import load_checkpoint
+
+TINY = [
+    "logger=none",
+    "threads=1",
+    "env.episode_len=15",
+    "env.horizon=5",
+    "planner.num_samples=32",
+    "planner.iterations=1",
+    "budget.eval_episodes=1",
+    "budget.oracle_episodes=1",
+    "budget.final_eval_episodes=1",
+    "budget.eval_every=1",
+    "fit.max_epochs=5",
+    "model.hidden=16",
+]
+
+
+def train(
+    run_dir: Path, *overrides: str, wait: bool = True
+) -> subprocess.Popen | subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "mbrl_delan.train", *TINY, f"hydra.run.dir={run_dir}", *overrides]
+    env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONUNBUFFERED": "1"}
+    if wait:
+        return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+
+
+def records(run_dir: Path) -> list[dict]:
+    return [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> Path:
+    run_dir = tmp_path_factory.mktemp("run") / "full"
+    out = train(run_dir, "budget.iterations=3")
+    assert out.returncode == 0, out.stdout + out.stderr
+    return run_dir
+
+
+def test_tiny_training_run_writes_everything(finished_run: Path) -> None:
+    summary = json.loads((finished_run / "summary.json").read_text())
+    for key in (
+        "env",
+        "model",
+        "planner",
+        "seed",
+        "env_steps",
+        "wall_time_s",
+        "eval_return_mean",
+        "eval_return_std",
+        "oracle_return_mean",
+    ):
+        assert key in summary, key
+    assert summary["env"] == "pendulum" and summary["model"] == "delan"
+    assert summary["env_steps"] == 4 * 15  # one random episode + three on-policy ones
+    recs = records(finished_run)
+    assert [r["iteration"] for r in recs] == [1, 2, 3]
+    assert all(0.0 <= r["eval_return_mean"] <= 15.0 for r in recs)  # rewards lie in [0, 1]
+    assert all(r["model_error_1step"] >= 0.0 for r in recs)
+    for name in ("returns.png", "model_error.png", "checkpoint.pt", "config.yaml"):
+        assert (finished_run / name).is_file(), name
+
+
+def test_sigkill_then_resume_continues_identically(finished_run: Path, tmp_path: Path) -> None:
+    """A run killed mid-way and resumed matches the uninterrupted run record for record."""
+    run_dir = tmp_path / "killed"
+    proc = train(run_dir, "budget.iterations=3", wait=False)
+    deadline = time.time() + 300
+    try:
+        while time.time() < deadline:
+            metrics = run_dir / "metrics.jsonl"
+            if metrics.is_file() and len(metrics.read_text().splitlines()) >= 2:
+                break
+            assert proc.poll() is None, "the run ended before it could be killed"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait()
+    state = load_checkpoint(run_dir / "checkpoint.pt", weights_only=False)
+    done = state["loop"]["counters"]["iteration"]
+    assert 1 <= done < 3, f"killed after iteration {done}"
+    out = train(run_dir, f"resume={run_dir}", wait=False)
+    assert out.wait(timeout=600) == 0
+    resumed, reference = records(run_dir), records(finished_run)
+    assert [r["iteration"] for r in resumed] == [1, 2, 3]
+    for a, b in zip(resumed, reference, strict=True):
+        assert a["env_steps"] == b["env_steps"]
+        assert a["train_return"] == pytest.approx(b["train_return"], rel=1e-6, abs=1e-9)
+        assert a["eval_return_mean"] == pytest.approx(b["eval_return_mean"], rel=1e-6, abs=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [
+        ("planner.horizon=-5", "planner.horizon=-5"),
+        ("model.name=transformer", "choose one of: delan, ensemble"),
+        ("env.name=moon", "choose one of: pendulum, cartpole, acrobot, arm_reach"),
+        ("device=tpu", "device='tpu'"),
+    ],
+)
+def test_bad_config_value_fails_at_start_naming_it(
+    override: str, expected: str, tmp_path: Path
+) -> None:
+    out = train(tmp_path / "bad", override)
+    assert out.returncode == 2
+    assert expected in out.stdout + out.stderr
+    assert "Traceback" not in out.stdout + out.stderr
+    assert not (tmp_path / "bad" / "checkpoint.pt").exists()
+
+
+def test_unknown_config_group_option_lists_choices(tmp_path: Path) -> None:
+    out = train(tmp_path / "bad", "planner=random_shooting")
+    assert out.returncode != 0
+    text = out.stdout + out.stderr
+    assert "random_shooting" in text and "cem" in text and "mppi" in text
