@@ -26,13 +26,14 @@ from mbrl_delan.config import (
     check_device,
     validate_train_config,
 )
-from mbrl_delan.data.buffer import make_replay_buffer
+from mbrl_delan.data.buffer import NonFiniteDataError, make_replay_buffer
 from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.training.checkpoint import (
+    CheckpointError,
     load_checkpoint,
     rng_state,
     save_checkpoint,
@@ -112,6 +113,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         fit_cfg,
         seed=cfg.seed,
         error_horizon=cfg.planner.horizon,
+        model_generator=model_gen,
     )
     return loop, oracle
 
@@ -261,7 +263,7 @@ def _summary(
 def _print_summary(run_dir: Path, s: dict[str, Any]) -> None:
     log.info("run dir: %s", run_dir)
     log.info(
-        "%s / %s / %s, seed %s: eval return %.2f +- %.2f, oracle %.2f (fraction %.3f), "
+        "%s / %s / %s, seed %s: eval return %.4g +- %.2g, oracle %.4g (fraction %.3f), "
         "%d env steps, %.0f s",
         s["env"],
         s["model"],
@@ -286,6 +288,12 @@ def main(cfg: DictConfig) -> float | None:
     except TrainingDivergedError as err:
         log.error("training diverged: %s (the last good checkpoint is kept)", err)
         sys.exit(1)
+    except NonFiniteDataError as err:
+        log.error("bad data: %s (not added to the buffer; the last checkpoint is kept)", err)
+        sys.exit(1)
+    except (CheckpointError, FileNotFoundError) as err:
+        log.error("cannot resume: %s", err)
+        sys.exit(2)
     return summary["eval_return_mean"]
 
 

@@ -58,3 +58,15 @@ def arm2_coriolis(q: Tensor, qd: Tensor) -> Tensor:
     h = m2 * l1 * lc2 * torch.sin(q[..., 1])
     qd1, qd2 = qd[..., 0], qd[..., 1]
     return torch.stack((-h * (2 * qd1 * qd2 + qd2.square()), h * qd1.square()), dim=-1)
+
+
+def pendulum_potential(q: Tensor) -> Tensor:
+    """(..., 1) -> (...): V = -m g l cos q (zero at the pivot's height)."""
+    return -PENDULUM_MASS * GRAVITY * PENDULUM_LENGTH * torch.cos(q[..., 0])
+
+
+def arm2_potential(q: Tensor) -> Tensor:
+    """(..., 2) -> (...): V = -g (m1 lc1 cos q1 + m2 (l1 cos q1 + lc2 cos q12))."""
+    m1, m2, l1, lc1, lc2, _, _, g = _arm2_params()
+    c1, c12 = torch.cos(q[..., 0]), torch.cos(q[..., 0] + q[..., 1])
+    return -g * (m1 * lc1 * c1 + m2 * (l1 * c1 + lc2 * c12))

@@ -111,6 +111,7 @@ def test_sigkill_then_resume_continues_identically(finished_run: Path, tmp_path:
         ("model.name=transformer", "choose one of: delan, ensemble"),
         ("env.name=moon", "choose one of: pendulum, cartpole, acrobot, arm_reach"),
         ("device=tpu", "device='tpu'"),
+        ("resume=/nonexistent/run", "no config.yaml in that folder"),
     ],
 )
 def test_bad_config_value_fails_at_start_naming_it(

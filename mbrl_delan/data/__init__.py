@@ -1,6 +1,7 @@
 """Replay buffers and transition data."""
 
 from mbrl_delan.data.buffer import (
+    NonFiniteDataError,
     add_transitions,
     all_transitions,
     check_finite,
@@ -9,6 +10,7 @@ from mbrl_delan.data.buffer import (
 )
 
 __all__ = [
+    "NonFiniteDataError",
     "add_transitions",
     "all_transitions",
     "check_finite",

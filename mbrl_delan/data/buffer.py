@@ -129,8 +129,12 @@ def episode_transitions(rollout_td: TensorDictBase, first_episode: int = 0) -> T
     return out.reshape(-1).clone()
 
 
+class NonFiniteDataError(ValueError):
+    """Data holds NaN or inf; the message names the key, the first bad index and the source."""
+
+
 def check_finite(td: TensorDictBase, where: str) -> None:
-    """Raise ``ValueError`` naming the key and first bad index if any float entry is NaN/inf.
+    """Raise ``NonFiniteDataError`` naming the key and first bad index on any NaN/inf entry.
 
     Args:
         td: any TensorDict; non-floating entries are ignored.
@@ -144,7 +148,7 @@ def check_finite(td: TensorDictBase, where: str) -> None:
         if not bool(bad.any()):
             continue
         first = tuple(int(i) for i in torch.nonzero(bad)[0])
-        raise ValueError(
+        raise NonFiniteDataError(
             f"non-finite value {value[first].item()} in key {key!r} at index {first} "
             f"({int(bad.sum())} of {value.numel()} entries bad) in {where}"
         )

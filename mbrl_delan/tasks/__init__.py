@@ -1,7 +1,7 @@
 """Tasks: reward, termination and initial states as torch functions (no simulator calls)."""
 
 from mbrl_delan.tasks.acrobot import AcrobotSwingup
-from mbrl_delan.tasks.arm_reach import ArmReach, planar_chain_points
+from mbrl_delan.tasks.arm_reach import ArmReach
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.cartpole import CartpoleSwingup
 from mbrl_delan.tasks.pendulum import PendulumSwingup
@@ -12,5 +12,4 @@ __all__ = [
     "CartpoleSwingup",
     "PendulumSwingup",
     "Task",
-    "planar_chain_points",
 ]

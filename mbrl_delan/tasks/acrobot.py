@@ -7,14 +7,10 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from mbrl_delan.systems.kinematics import planar_chain_points
 from mbrl_delan.systems.system import State
-from mbrl_delan.tasks.arm_reach import (
-    control_factor,
-    noisy_rest_state,
-    planar_chain_points,
-    velocity_factor,
-)
 from mbrl_delan.tasks.base import Task
+from mbrl_delan.tasks.common import control_factor, noisy_rest_state, velocity_factor
 
 # acrobot.xml: uniform links, COM at mid-link
 ACROBOT_LINK_LENGTHS = (1.0, 1.0)  # m

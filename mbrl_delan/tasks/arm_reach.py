@@ -1,9 +1,4 @@
-"""Reaching with a planar n-link arm (arm2 by default), plus the planar-chain kinematics
-and reward factors the other tasks share.
-
-Planar chains here live in the x-z plane, hang down at q = 0 and swing towards +x for
-positive angles (MuJoCo hinge axes -y); joint angles are relative to the parent link.
-"""
+"""Reaching with a planar n-link arm (arm2 by default)."""
 
 from __future__ import annotations
 
@@ -12,8 +7,10 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from mbrl_delan.systems.kinematics import planar_chain_points
 from mbrl_delan.systems.system import State
 from mbrl_delan.tasks.base import Task
+from mbrl_delan.tasks.common import control_factor, noisy_rest_state, velocity_factor
 
 GRAVITY = 9.81  # m/s^2, MuJoCo's default
 
@@ -28,47 +25,6 @@ ARM3_LINK_LENGTHS = (0.4, 0.35, 0.25)  # m
 ARM3_MASSES = (1.0, 0.8, 0.5)  # kg
 ARM3_GEARS = (25.0, 12.0, 4.0)  # N m per unit control
 ARM3_DAMPING = (0.1, 0.1, 0.05)  # N m s / rad
-
-
-def planar_chain_points(q: Tensor, link_lengths: Sequence[float]) -> Tensor:
-    """Tip of every link of a planar chain hanging from the origin.
-
-    q: (..., n) relative joint angles -> (..., n, 2) tip positions (x, z) in the world frame.
-    """
-    theta = torch.cumsum(q, dim=-1)  # absolute link angles from the downward vertical
-    x = torch.zeros_like(q[..., 0])
-    z = torch.zeros_like(q[..., 0])
-    points = []
-    for i, length in enumerate(link_lengths):
-        x = x + length * torch.sin(theta[..., i])
-        z = z - length * torch.cos(theta[..., i])
-        points.append(torch.stack((x, z), dim=-1))
-    return torch.stack(points, dim=-2)
-
-
-def control_factor(action: Tensor, weight: float) -> Tensor:
-    """exp(-weight * mean(action^2)) in (0, 1], 1 at zero action. (..., nu) -> (...)."""
-    return torch.exp(-weight * action.square().mean(dim=-1))
-
-
-def velocity_factor(qd: Tensor, weight: float) -> Tensor:
-    """exp(-weight * mean(qd^2)) in (0, 1], 1 at rest. (..., nv) -> (...)."""
-    return torch.exp(-weight * qd.square().mean(dim=-1))
-
-
-def noisy_rest_state(
-    nq: int,
-    batch_shape: tuple[int, ...],
-    generator: torch.Generator,
-    q_noise: float,
-    qd_noise: float,
-) -> State:
-    """q = 0 (hanging down, at rest) plus Gaussian noise, float64 on the generator's device."""
-    shape = (*batch_shape, nq)
-    kwargs = {"generator": generator, "dtype": torch.float64, "device": generator.device}
-    q = q_noise * torch.randn(shape, **kwargs)
-    qd = qd_noise * torch.randn(shape, **kwargs)
-    return State(q=q, qd=qd)
 
 
 class ArmReach(Task):

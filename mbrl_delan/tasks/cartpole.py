@@ -6,8 +6,8 @@ import torch
 from torch import Tensor
 
 from mbrl_delan.systems.system import State
-from mbrl_delan.tasks.arm_reach import control_factor, noisy_rest_state, velocity_factor
 from mbrl_delan.tasks.base import Task
+from mbrl_delan.tasks.common import control_factor, noisy_rest_state, velocity_factor
 from mbrl_delan.tasks.pendulum import upright
 
 # cartpole.xml

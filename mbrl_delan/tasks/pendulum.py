@@ -5,14 +5,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from mbrl_delan.systems.kinematics import planar_chain_points
 from mbrl_delan.systems.system import State
-from mbrl_delan.tasks.arm_reach import (
-    control_factor,
-    noisy_rest_state,
-    planar_chain_points,
-    velocity_factor,
-)
 from mbrl_delan.tasks.base import Task
+from mbrl_delan.tasks.common import control_factor, noisy_rest_state, velocity_factor
 
 # pendulum.xml: a bob on a massless rod
 PENDULUM_LENGTH = 1.0  # m, pivot to bob (COM)

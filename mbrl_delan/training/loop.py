@@ -150,6 +150,7 @@ class MBRLLoop:
         fit_config: FitConfig,
         seed: int,
         error_horizon: int,
+        model_generator: torch.Generator | None = None,
     ) -> None:
         self.env, self.eval_env, self.system = env, eval_env, system
         self.episode_len = episode_len
@@ -157,6 +158,7 @@ class MBRLLoop:
         self.fit_config, self.seed, self.error_horizon = fit_config, seed, error_horizon
         self.fit_generator = torch.Generator().manual_seed(seed + 1)
         self.random_policy = UniformPolicy(system.ctrl_low, system.ctrl_high, seed + 2)
+        self.model_generator = model_generator  # randomness of stochastic models in planning
         self.counters = LoopCounters()
 
     @contextmanager
@@ -231,6 +233,9 @@ class MBRLLoop:
             "counters": vars(self.counters).copy(),
             "fit_generator": self.fit_generator.get_state(),
             "random_generator": self.random_policy.generator.get_state(),
+            "model_generator": None
+            if self.model_generator is None
+            else self.model_generator.get_state(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -241,3 +246,5 @@ class MBRLLoop:
         self.counters = LoopCounters(**state["counters"])
         self.fit_generator.set_state(state["fit_generator"])
         self.random_policy.generator.set_state(state["random_generator"])
+        if self.model_generator is not None and state.get("model_generator") is not None:
+            self.model_generator.set_state(state["model_generator"])

@@ -1,0 +1,117 @@
+"""DeLaN's equations on closed-form M(q) and V(q) reproduce MuJoCo's own dynamics.
+
+The `MechanicsField` here is exact (L = chol(M) of the textbook mass matrix, V the textbook
+potential, derivatives by torch.func), so any mismatch with MuJoCo's `qfrc_bias` and
+`mj_inverse` would be an error in the Lagrangian equations (Coriolis assembly, signs, pullback).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from closed_form import (
+    arm2_gravity,
+    arm2_mass_matrix,
+    arm2_potential,
+    pendulum_mass_matrix,
+    pendulum_potential,
+)
+from torch import Tensor
+
+from mbrl_delan.models.delan import Dissipation, LagrangianDynamics, MechanicsField, MechanicsJet
+from mbrl_delan.systems.system import load_system
+
+
+class ExactField(MechanicsField):
+    def __init__(
+        self, mass_matrix: Callable[[Tensor], Tensor], potential: Callable[[Tensor], Tensor]
+    ):
+        super().__init__()
+        self.mass_matrix, self.potential = mass_matrix, potential
+
+    def _cholesky(self, q: Tensor) -> Tensor:
+        return torch.linalg.cholesky(self.mass_matrix(q))
+
+    def jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
+        L, L_dot = torch.func.jvp(self._cholesky, (q,), (qd,))
+        both = lambda x: (self._cholesky(x), self.potential(x))  # noqa: E731
+        (_, V), vjp = torch.func.vjp(both, q)
+        return MechanicsJet(
+            L=L, L_dot=L_dot, potential_energy=V, pullback=lambda d_L, d_V: vjp((d_L, d_V))[0]
+        )
+
+
+SYSTEMS = {
+    "pendulum": (pendulum_mass_matrix, pendulum_potential),
+    "arm2": (arm2_mass_matrix, arm2_potential),
+}
+
+
+def exact_dynamics(name: str) -> tuple[LagrangianDynamics, mujoco.MjModel]:
+    system = load_system(name)
+    dissipation = Dissipation(system.nv, coulomb=False).double()
+    with torch.no_grad():  # softplus^-1 of the MJCF damping: exactly MuJoCo's viscous term
+        dissipation.raw_viscous.copy_(torch.log(torch.expm1(system.damping)))
+    dynamics = LagrangianDynamics(ExactField(*SYSTEMS[name]), dissipation, system.actuation)
+    return dynamics, system.mj_model()
+
+
+def random_states(nv: int, n: int = 32) -> tuple[Tensor, Tensor, Tensor]:
+    g = torch.Generator().manual_seed(7)
+    return tuple(3.0 * torch.randn(n, nv, generator=g, dtype=torch.float64) for _ in range(3))
+
+
+@pytest.mark.parametrize("name", sorted(SYSTEMS))
+def test_bias_force_equals_mujoco_qfrc_bias(name: str) -> None:
+    dynamics, model = exact_dynamics(name)
+    data = mujoco.MjData(model)
+    q, qd, _ = random_states(model.nv)
+    terms = dynamics.terms(q, qd)
+    for i in range(q.shape[0]):
+        data.qpos[:], data.qvel[:] = q[i].numpy(), qd[i].numpy()
+        mujoco.mj_forward(model, data)
+        full = np.zeros((model.nv, model.nv))
+        mujoco.mj_fullM(model, data, full)
+        np.testing.assert_allclose(terms.mass_matrix[i].numpy(), full, rtol=1e-10, atol=1e-12)
+        c_plus_g = (terms.coriolis + terms.gravity)[i].numpy()
+        np.testing.assert_allclose(c_plus_g, data.qfrc_bias, rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.parametrize("name", sorted(SYSTEMS))
+def test_inverse_dynamics_equals_mj_inverse(name: str) -> None:
+    """tau = M qdd + c + g + D qd equals MuJoCo's qfrc_inverse (damping included)."""
+    dynamics, model = exact_dynamics(name)
+    data = mujoco.MjData(model)
+    q, qd, qdd = random_states(model.nv)
+    with torch.no_grad():
+        tau = dynamics.inverse_dynamics(q, qd, qdd)
+    for i in range(q.shape[0]):
+        data.qpos[:], data.qvel[:], data.qacc[:] = q[i].numpy(), qd[i].numpy(), qdd[i].numpy()
+        mujoco.mj_inverse(model, data)
+        np.testing.assert_allclose(tau[i].numpy(), data.qfrc_inverse, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", sorted(SYSTEMS))
+def test_forward_dynamics_equals_mujoco_qacc(name: str) -> None:
+    """qdd = M^-1 (B a - c - g - d) by Cholesky solves equals MuJoCo's forward dynamics."""
+    dynamics, model = exact_dynamics(name)
+    data = mujoco.MjData(model)
+    q, qd, _ = random_states(model.nv)
+    action = torch.rand(q.shape[0], model.nu, dtype=torch.float64) * 2 - 1
+    with torch.no_grad():
+        qdd = dynamics.forward_dynamics(q, qd, dynamics.generalized_force(action))
+    for i in range(q.shape[0]):
+        data.qpos[:], data.qvel[:], data.ctrl[:] = q[i].numpy(), qd[i].numpy(), action[i].numpy()
+        mujoco.mj_forward(model, data)
+        np.testing.assert_allclose(qdd[i].numpy(), data.qacc, rtol=1e-8, atol=1e-9)
+
+
+def test_closed_form_gravity_is_the_potential_gradient() -> None:
+    """The closed-form arm's g(q) equals dV/dq of its potential (guards the test's own inputs)."""
+    q, _, _ = random_states(2)
+    grad = torch.func.vmap(torch.func.grad(arm2_potential))(q)
+    torch.testing.assert_close(grad, arm2_gravity(q))
