@@ -17,11 +17,12 @@ from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.ensemble import GaussianEnsemble
 from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.cem import CEMPlanner
+from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.systems.system import System
 
 MODEL_NAMES = ("delan", "ensemble")
-PLANNER_NAMES = ("cem", "mppi")
+PLANNER_NAMES = ("cem", "icem", "mppi")
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
@@ -135,7 +136,7 @@ def build_model(cfg: DictConfig, system: System) -> WorldModel:
 
 
 def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPlanner:
-    """CEM or MPPI over the system's control range."""
+    """CEM, iCEM or MPPI over the system's control range."""
     common = dict(
         horizon=cfg.horizon,
         action_low=system.ctrl_low,
@@ -150,6 +151,19 @@ def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> Sampli
             init_std=cfg.init_std,
             min_std=cfg.min_std,
             momentum=cfg.momentum,
+            **common,
+        )
+    if cfg.name == "icem":
+        return ICEMPlanner(
+            num_elites=cfg.num_elites,
+            beta=cfg.beta,
+            decay=cfg.decay,
+            min_samples=cfg.get("min_samples"),
+            keep_elites=cfg.keep_elites,
+            init_std=cfg.init_std,
+            min_std=cfg.min_std,
+            momentum=cfg.momentum,
+            return_best=cfg.get("return_best", False),
             **common,
         )
     return MPPIPlanner(temperature=cfg.temperature, noise_std=cfg.noise_std, **common)

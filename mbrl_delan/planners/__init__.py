@@ -1,4 +1,4 @@
-"""Sampling planners (CEM, MPPI; iCEM to come), their TorchRL policy wrapper and the oracle."""
+"""Sampling planners (CEM, iCEM, MPPI), their TorchRL policy wrapper and the oracle."""
 
 from mbrl_delan.planners.base import (
     Objective,
@@ -8,6 +8,7 @@ from mbrl_delan.planners.base import (
     SamplingPlanner,
 )
 from mbrl_delan.planners.cem import CEMPlanner
+from mbrl_delan.planners.icem import ICEMPlanner, ICEMPlanResult, colored_noise
 from mbrl_delan.planners.mppi import MPPIPlanner, mppi_weights
 from mbrl_delan.planners.oracle import (
     MujocoObjective,
@@ -18,6 +19,8 @@ from mbrl_delan.planners.policy import PlannerPolicy
 
 __all__ = [
     "CEMPlanner",
+    "ICEMPlanResult",
+    "ICEMPlanner",
     "MPPIPlanner",
     "MujocoObjective",
     "MujocoObjectiveFactory",
@@ -27,6 +30,7 @@ __all__ = [
     "PlannerPolicy",
     "SamplingDistribution",
     "SamplingPlanner",
+    "colored_noise",
     "mppi_weights",
     "mujoco_objective_factory",
 ]

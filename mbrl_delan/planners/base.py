@@ -74,9 +74,7 @@ def clean_returns(returns: Tensor, num_samples: int) -> Tensor:
     return torch.nan_to_num(returns, nan=-math.inf, posinf=big, neginf=-math.inf)
 
 
-def discounted_masked_return(
-    rewards: Tensor, terminated: Tensor, discount: float = 1.0
-) -> Tensor:
+def discounted_masked_return(rewards: Tensor, terminated: Tensor, discount: float = 1.0) -> Tensor:
     """sum_t discount^t r_t, with rewards after the first terminated step set to zero.
 
     The reward of the step that reaches a terminal state counts; later ones do not.
@@ -121,14 +119,21 @@ class SamplingPlanner(abc.ABC):
         require(horizon >= 1, f"horizon must be >= 1, got {horizon}")
         require(num_samples >= 1, f"num_samples must be >= 1, got {num_samples}")
         require(iterations >= 1, f"iterations must be >= 1, got {iterations}")
-        require(shift_fill in SHIFT_FILLS, f"shift_fill must be one of {SHIFT_FILLS}, got "
-                f"{shift_fill!r}")
+        require(
+            shift_fill in SHIFT_FILLS,
+            f"shift_fill must be one of {SHIFT_FILLS}, got {shift_fill!r}",
+        )
         require(dtype.is_floating_point, f"dtype must be a floating dtype, got {dtype}")
         low, high = as_bound(action_low, "action_low"), as_bound(action_high, "action_high")
-        require(low.shape == high.shape, f"action_low and action_high differ in shape: "
-                f"{tuple(low.shape)} vs {tuple(high.shape)}")
-        require(bool((low <= high).all()), f"action_low must be <= action_high, got "
-                f"{low.tolist()} > {high.tolist()}")
+        require(
+            low.shape == high.shape,
+            f"action_low and action_high differ in shape: "
+            f"{tuple(low.shape)} vs {tuple(high.shape)}",
+        )
+        require(
+            bool((low <= high).all()),
+            f"action_low must be <= action_high, got {low.tolist()} > {high.tolist()}",
+        )
         self.horizon = horizon
         self.num_samples = num_samples
         self.iterations = iterations
@@ -148,8 +153,10 @@ class SamplingPlanner(abc.ABC):
             width = self.action_high - self.action_low
             return torch.where(torch.isfinite(width) & (width > 0), width / 4, 1.0)
         std = torch.as_tensor(init_std, dtype=torch.float64).reshape(-1).expand(self.action_dim)
-        require(bool((std > 0).all()) and bool(torch.isfinite(std).all()),
-                f"init_std must be finite and > 0, got {init_std!r}")
+        require(
+            bool((std > 0).all()) and bool(torch.isfinite(std).all()),
+            f"init_std must be finite and > 0, got {init_std!r}",
+        )
         return std.clone()
 
     # ------------------------------------------------------------------ helpers
@@ -158,8 +165,10 @@ class SamplingPlanner(abc.ABC):
         key = (like.device, like.dtype)
         if key not in self._bounds_cache:
             with torch.inference_mode(False):  # normal tensors, usable in and out of it
-                self._bounds_cache[key] = (self.action_low.to(like.device, like.dtype),
-                                           self.action_high.to(like.device, like.dtype))
+                self._bounds_cache[key] = (
+                    self.action_low.to(like.device, like.dtype),
+                    self.action_high.to(like.device, like.dtype),
+                )
         return self._bounds_cache[key]
 
     def clamp(self, actions: Tensor) -> Tensor:
@@ -171,8 +180,7 @@ class SamplingPlanner(abc.ABC):
         self, device: torch.device | str | None = None, dtype: torch.dtype | None = None
     ) -> Tensor:
         """The cold-start plan: zero actions clamped into the bounds. (H, nu)"""
-        zeros = torch.zeros(self.horizon, self.action_dim, device=device,
-                            dtype=dtype or self.dtype)
+        zeros = torch.zeros(self.horizon, self.action_dim, device=device, dtype=dtype or self.dtype)
         return self.clamp(zeros)
 
     def shift(self, mean: Tensor, steps: int = 1) -> Tensor:
@@ -184,14 +192,23 @@ class SamplingPlanner(abc.ABC):
         self._check_mean(mean)
         if steps == 0:
             return mean.clone()
-        kept = mean[min(steps, self.horizon):]
+        kept = mean[min(steps, self.horizon) :]
         n_fill = self.horizon - kept.shape[0]
         if self.shift_fill == "repeat":
             fill = mean[-1:].expand(n_fill, -1)
         else:
-            fill = self.clamp(torch.zeros(n_fill, self.action_dim, device=mean.device,
-                                          dtype=mean.dtype))
+            fill = self.clamp(
+                torch.zeros(n_fill, self.action_dim, device=mean.device, dtype=mean.dtype)
+            )
         return torch.cat([kept, fill], dim=0)
+
+    def carry(self, result: PlanResult) -> dict[str, Tensor]:
+        """What a receding-horizon caller keeps from a plan for the next one (beyond the mean)."""
+        return {}
+
+    def warm_start(self, carried: dict[str, Tensor], steps: int) -> dict[str, Tensor]:
+        """Extra `plan` arguments from what was carried, `steps` control steps later."""
+        return {}
 
     def _check_mean(self, mean: Tensor) -> None:
         expected = (self.horizon, self.action_dim)
@@ -229,7 +246,8 @@ class SamplingPlanner(abc.ABC):
                 returns = clean_returns(objective(samples), samples.shape[0])  # (N,)
                 dist = self._update(dist, samples, returns)
                 best_actions, best_return, it_best = self._track_best(
-                    samples, returns, best_actions, best_return)
+                    samples, returns, best_actions, best_return
+                )
                 iteration_best.append(it_best)
             return PlanResult(
                 mean=self.clamp(dist.mean),
@@ -249,14 +267,22 @@ class SamplingPlanner(abc.ABC):
         if best_return is None:
             return samples[idx], it_best, it_best
         better = it_best > best_return
-        return (torch.where(better, samples[idx], best_actions),
-                torch.where(better, it_best, best_return), it_best)
+        return (
+            torch.where(better, samples[idx], best_actions),
+            torch.where(better, it_best, best_return),
+            it_best,
+        )
 
-    def _noise(self, dist: SamplingDistribution, generator: torch.Generator | None,
-               num: int) -> Tensor:
+    def _noise(
+        self, dist: SamplingDistribution, generator: torch.Generator | None, num: int
+    ) -> Tensor:
         """White Gaussian noise (num, H, nu) on the distribution's device. iCEM overrides."""
-        return torch.randn((num, *dist.mean.shape), generator=generator,
-                           device=dist.mean.device, dtype=dist.mean.dtype)
+        return torch.randn(
+            (num, *dist.mean.shape),
+            generator=generator,
+            device=dist.mean.device,
+            dtype=dist.mean.dtype,
+        )
 
     def _sample(self, dist: SamplingDistribution, generator: torch.Generator | None) -> Tensor:
         """Draw N sequences (N, H, nu) around the distribution; the loop clamps them."""

@@ -34,10 +34,20 @@ class CEMPlanner(SamplingPlanner):
         shift_fill: str = "repeat",
         dtype: torch.dtype = torch.float32,
     ) -> None:
-        super().__init__(horizon, action_low, action_high, num_samples, iterations,
-                         init_std=init_std, shift_fill=shift_fill, dtype=dtype)
-        require(1 <= num_elites <= num_samples,
-                f"num_elites must be in [1, num_samples={num_samples}], got {num_elites}")
+        super().__init__(
+            horizon,
+            action_low,
+            action_high,
+            num_samples,
+            iterations,
+            init_std=init_std,
+            shift_fill=shift_fill,
+            dtype=dtype,
+        )
+        require(
+            1 <= num_elites <= num_samples,
+            f"num_elites must be in [1, num_samples={num_samples}], got {num_elites}",
+        )
         require(min_std >= 0, f"min_std must be >= 0, got {min_std}")
         require(0 <= momentum < 1, f"momentum must be in [0, 1), got {momentum}")
         self.num_elites = num_elites

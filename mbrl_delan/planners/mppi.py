@@ -45,10 +45,20 @@ class MPPIPlanner(SamplingPlanner):
         shift_fill: str = "repeat",
         dtype: torch.dtype = torch.float32,
     ) -> None:
-        require(math.isfinite(temperature) and temperature > 0,
-                f"temperature must be finite and > 0, got {temperature}")
-        super().__init__(horizon, action_low, action_high, num_samples, iterations,
-                         init_std=noise_std, shift_fill=shift_fill, dtype=dtype)
+        require(
+            math.isfinite(temperature) and temperature > 0,
+            f"temperature must be finite and > 0, got {temperature}",
+        )
+        super().__init__(
+            horizon,
+            action_low,
+            action_high,
+            num_samples,
+            iterations,
+            init_std=noise_std,
+            shift_fill=shift_fill,
+            dtype=dtype,
+        )
         self.temperature = temperature
 
     @property

@@ -110,10 +110,12 @@ class MujocoObjectiveFactory:
         if self._pool is None:
             raise RuntimeError("MujocoObjectiveFactory was closed")
         if actions.ndim != 3 or actions.shape[-1] != self.system.nu:
-            raise ValueError(f"actions must be (N, H, nu={self.system.nu}), got "
-                             f"{tuple(actions.shape)}")
-        ctrl = np.clip(actions.detach().to("cpu", torch.float64).numpy(),
-                       self.ctrl_low, self.ctrl_high)  # (N, H, nu)
+            raise ValueError(
+                f"actions must be (N, H, nu={self.system.nu}), got {tuple(actions.shape)}"
+            )
+        ctrl = np.clip(
+            actions.detach().to("cpu", torch.float64).numpy(), self.ctrl_low, self.ctrl_high
+        )  # (N, H, nu)
         skip = self.system.frame_skip
         control = np.ascontiguousarray(np.repeat(ctrl, skip, axis=1))  # (N, H*skip, nu)
         n, nstep = control.shape[0], control.shape[1]
@@ -124,8 +126,10 @@ class MujocoObjectiveFactory:
         q = reached[..., self.qpos_at : self.qpos_at + self.model.nq]
         qd = reached[..., self.qvel_at : self.qvel_at + self.model.nv]
         return OracleRollout(
-            states=State(q=torch.from_numpy(np.ascontiguousarray(q)),
-                         qd=torch.from_numpy(np.ascontiguousarray(qd))),
+            states=State(
+                q=torch.from_numpy(np.ascontiguousarray(q)),
+                qd=torch.from_numpy(np.ascontiguousarray(qd)),
+            ),
             actions=torch.from_numpy(ctrl),
         )
 

@@ -61,12 +61,14 @@ class PlannerPolicy(TensorDictModuleBase):
         self.generator.manual_seed(seed)
         self._plan: Tensor | None = None  # (H, nu) the plan being executed
         self._steps_since_plan = 0
+        self._carried: dict[str, Tensor] = {}  # planner state for the next warm start
         self.last_result: PlanResult | None = None
 
     def reset(self) -> None:
         """Forget the plan (start of an episode); the generator keeps its stream."""
         self._plan = None
         self._steps_since_plan = 0
+        self._carried = {}
         self.last_result = None
 
     @property
@@ -88,11 +90,15 @@ class PlannerPolicy(TensorDictModuleBase):
         else:
             init = self.planner.shift(self._plan, self._steps_since_plan)
         objective = self.objective_factory(q, qd)
-        result = self.planner.plan(objective, init, self.generator)
+        warm = {}
+        if self._plan is not None:
+            warm = self.planner.warm_start(self._carried, self._steps_since_plan)
+        result = self.planner.plan(objective, init, self.generator, **warm)
         if log.isEnabledFor(logging.DEBUG):  # float() syncs with the device
             log.debug("planned: best return %.4g", float(result.best_return))
         self.last_result = result
         self._plan = result.mean
+        self._carried = self.planner.carry(result)
         self._steps_since_plan = 0
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -122,6 +128,7 @@ class PlannerPolicy(TensorDictModuleBase):
             "plan": plan,
             "steps_since_plan": self._steps_since_plan,
             "generator_state": self.generator.get_state().clone(),
+            "carried": {k: v.clone() for k, v in self._carried.items()},
         }
 
     def set_extra_state(self, state: dict[str, Any]) -> None:
@@ -129,4 +136,5 @@ class PlannerPolicy(TensorDictModuleBase):
         self._plan = None if plan is None else plan.to(self.plan_device).clone()
         self._steps_since_plan = int(state["steps_since_plan"])
         self.generator.set_state(state["generator_state"].cpu())
+        self._carried = {k: v.to(self.plan_device) for k, v in state.get("carried", {}).items()}
         self.last_result = None
