@@ -1,0 +1,115 @@
+"""`python -m mbrl_delan.bench suite=NAME out=FILE`: speed benchmarks as JSON Lines.
+
+Each figure is one record `{"suite", "case", "metric", "value", "unit", "device", ...}`
+appended to `out` as soon as it is measured (see `benchmarks/records.py`); the readable
+table goes to the log at the end. `quick=true` runs tiny sizes (for tests and smoke runs).
+Exit status 2 on a bad config value (an unknown suite included), naming the valid choices.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from typing import Any
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from mbrl_delan.benchmarks import (
+    SUITE_NAMES,
+    SuiteOptions,
+    TimingConfig,
+    UnknownSuiteError,
+    get_suite,
+)
+from mbrl_delan.benchmarks.records import RecordWriter, format_table
+from mbrl_delan.config import ConfigError, check_device
+
+log = logging.getLogger("mbrl_delan.bench")
+
+QUICK = {
+    "nv": [2],
+    "batch": [4],
+    "repeats": 3,
+    "min_time_s": 0.01,
+    "warmup": 1,
+    "matmul_size": 256,
+}
+
+
+def _positive_ints(name: str, values: Any) -> tuple[int, ...]:
+    items = list(values) if OmegaConf.is_list(values) or isinstance(values, list) else [values]
+    if not items or not all(
+        isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in items
+    ):
+        raise ConfigError(f"{name}={values!r} is not valid; it must be a list of integers >= 1")
+    return tuple(items)
+
+
+def _positive(name: str, value: Any) -> float:
+    if not isinstance(value, int | float) or isinstance(value, bool) or value <= 0:
+        raise ConfigError(f"{name}={value!r} is not valid; it must be a number > 0")
+    return float(value)
+
+
+def build_options(cfg: DictConfig) -> SuiteOptions:
+    """Check the config and turn it into the suite's plain options (quick sizes applied)."""
+    if cfg.suite not in SUITE_NAMES:
+        raise ConfigError(
+            f"suite={cfg.suite!r} is not a benchmark suite; valid suites: {', '.join(SUITE_NAMES)}"
+        )
+    values = {**OmegaConf.to_container(cfg, resolve=True), **(QUICK if cfg.quick else {})}
+    if values["threads"] is not None:
+        _positive_ints("threads", values["threads"])
+    if not isinstance(values["warmup"], int) or values["warmup"] < 0:
+        raise ConfigError(f"warmup={values['warmup']!r} is not valid; it must be an integer >= 0")
+    return SuiteOptions(
+        nv=_positive_ints("nv", values["nv"]),
+        batch=_positive_ints("batch", values["batch"]),
+        device=check_device(values["device"]),
+        timing=TimingConfig(
+            repeats=_positive_ints("repeats", values["repeats"])[0],
+            min_time_s=_positive("min_time_s", values["min_time_s"]),
+            warmup=values["warmup"],
+        ),
+        max_call_s=_positive("max_call_s", values["max_call_s"]),
+        max_memory_bytes=int(_positive("max_memory_gb", values["max_memory_gb"]) * 1024**3),
+        matmul_size=_positive_ints("matmul_size", values["matmul_size"])[0],
+        humanoid=bool(values["humanoid"]),
+    )
+
+
+def run(cfg: DictConfig) -> RecordWriter:
+    """Run the configured suite, appending each record to `cfg.out` as it is measured."""
+    opts = build_options(cfg)
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
+    suite = get_suite(cfg.suite)
+    writer = RecordWriter(cfg.out)
+    log.info(
+        "suite %s on %s, %d torch threads, nv %s, batch %s%s",
+        cfg.suite,
+        opts.device,
+        torch.get_num_threads(),
+        list(opts.nv),
+        list(opts.batch),
+        f", appending to {writer.path}" if writer.path else "",
+    )
+    for record in suite(opts):
+        writer.write(record)
+    log.info("suite %s:\n%s", cfg.suite, format_table(writer.records))
+    return writer
+
+
+@hydra.main(version_base="1.3", config_path="../configs", config_name="bench")
+def main(cfg: DictConfig) -> None:
+    try:
+        run(cfg)
+    except (ConfigError, UnknownSuiteError) as err:
+        log.error("config error: %s", err)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,161 @@
+"""Benchmark suites, their shared options and timing, and the registry of suite names.
+
+A suite is a function `SuiteOptions -> Iterator[BenchRecord]`, registered by name in
+`SUITE_NAMES` and imported lazily by `get_suite` (so listing suites imports nothing heavy).
+"""
+
+from __future__ import annotations
+
+import importlib
+import platform
+import statistics
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mbrl_delan.benchmarks.records import BenchRecord
+
+Suite = Callable[["SuiteOptions"], Iterator[BenchRecord]]
+
+# name -> "module:function"
+_SUITES = {"delan": "mbrl_delan.benchmarks.delan:run_delan_suite"}
+SUITE_NAMES = tuple(_SUITES)
+
+
+class UnknownSuiteError(KeyError):
+    """The asked suite is not registered; the message lists those that are."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+def get_suite(name: str) -> Suite:
+    if name not in _SUITES:
+        raise UnknownSuiteError(
+            f"unknown benchmark suite {name!r}; valid suites: {', '.join(SUITE_NAMES)}"
+        )
+    module, function = _SUITES[name].split(":")
+    return getattr(importlib.import_module(module), function)
+
+
+@dataclass(frozen=True)
+class TimingConfig:
+    """How each figure is timed.
+
+    `warmup` untimed calls; then the number of calls per measurement k is doubled until k calls
+    take at least `min_time_s`; then `repeats` measurements of k calls; the figure is the
+    median time per call.
+    """
+
+    repeats: int = 5
+    min_time_s: float = 0.2
+    warmup: int = 2
+
+    def __post_init__(self) -> None:
+        if self.repeats < 1 or self.warmup < 0 or self.min_time_s <= 0:
+            raise ValueError(f"need repeats >= 1, warmup >= 0, min_time_s > 0, got {self}")
+
+
+@dataclass
+class Timing:
+    """The result of timing one callable."""
+
+    seconds_per_call: float  # median over the measurements
+    calls_per_measurement: int
+    repeats: int
+    spread: float  # (slowest - fastest) / median, over the measurements
+
+    def fields(self) -> dict[str, Any]:
+        return {
+            "seconds_per_call": self.seconds_per_call,
+            "calls_per_measurement": self.calls_per_measurement,
+            "repeats": self.repeats,
+            "spread": self.spread,
+        }
+
+
+@dataclass(frozen=True)
+class SuiteOptions:
+    """Everything a suite needs; built by the entry point from the Hydra config."""
+
+    nv: tuple[int, ...]
+    batch: tuple[int, ...]
+    device: torch.device
+    timing: TimingConfig
+    max_call_s: float = 5.0  # skip a figure whose single call is predicted to take longer
+    max_memory_bytes: int = 2 * 1024**3  # skip a figure whose main tensors are predicted larger
+    matmul_size: int = 2048  # side of the square float32 matmul that gives the peak FLOP/s
+    humanoid: bool = True  # nv=62: dm_control's humanoid_CMU.xml when available
+
+
+def synchronizer(device: torch.device) -> Callable[[], None]:
+    """A function that waits for the device's queued work (a no-op on CPU)."""
+    if device.type == "cuda":
+        return lambda: torch.cuda.synchronize(device)
+    return lambda: None
+
+
+def _timed(fn: Callable[[], object], calls: int, sync: Callable[[], None]) -> float:
+    sync()
+    start = time.perf_counter()
+    for _ in range(calls):
+        fn()
+    sync()
+    return time.perf_counter() - start
+
+
+def time_call(
+    fn: Callable[[], object], cfg: TimingConfig, sync: Callable[[], None] = lambda: None
+) -> Timing:
+    """Time `fn()` as `TimingConfig` describes."""
+    for _ in range(cfg.warmup):
+        fn()
+    sync()
+    calls = 1
+    while True:
+        elapsed = _timed(fn, calls, sync)
+        if elapsed >= cfg.min_time_s:
+            break
+        grow = cfg.min_time_s / max(elapsed, 1e-9)
+        calls = max(2 * calls, min(int(calls * grow * 1.2), 1_000_000))
+    samples = [_timed(fn, calls, sync) / calls for _ in range(cfg.repeats)]
+    median = statistics.median(samples)
+    return Timing(
+        seconds_per_call=median,
+        calls_per_measurement=calls,
+        repeats=cfg.repeats,
+        spread=(max(samples) - min(samples)) / median,
+    )
+
+
+def single_call_seconds(fn: Callable[[], object], sync: Callable[[], None]) -> float:
+    """Seconds of one call after one untimed call (for predicting whether to skip)."""
+    fn()
+    return _timed(fn, 1, sync)
+
+
+def cpu_name() -> str:
+    """The CPU model name (from /proc/cpuinfo on Linux, else `platform.processor()`)."""
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or "unknown"
+
+
+def host_fields(device: torch.device) -> dict[str, Any]:
+    """Fields every record carries: versions, CPU (and GPU) name, torch threads, time."""
+    fields: dict[str, Any] = {
+        "threads": torch.get_num_threads(),
+        "torch_version": torch.__version__,
+        "cpu": cpu_name(),
+        "timestamp": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+    if device.type == "cuda":
+        fields["gpu"] = torch.cuda.get_device_name(device)
+    return fields
