@@ -33,7 +33,7 @@ from mbrl_delan.models.features import QFeatures
 from mbrl_delan.models.integrators import INTEGRATORS, integrate
 from mbrl_delan.models.tangent_mlp import TangentMLP
 from mbrl_delan.systems.posarith import differentiate_pos
-from mbrl_delan.systems.system import JointLayout, State
+from mbrl_delan.systems.system import BALL, FREE, JointLayout, State
 
 LOSSES = ("forward", "inverse", "both")
 
@@ -155,11 +155,32 @@ class LagrangianDynamics(nn.Module):
     """The DeLaN equations over any mechanics field (network or closed form)."""
 
     def __init__(
-        self, field: MechanicsField, dissipation: Dissipation | None, actuation: Tensor
+        self,
+        field: MechanicsField,
+        dissipation: Dissipation | None,
+        actuation: Tensor,
+        rotational_dofs: Tensor | None = None,
     ) -> None:
+        """`rotational_dofs` (K, 3): velocity indices of the body-frame angular velocity of
+        each ball or free joint (see `rotational_dofs`); they get the Euler-Poincare term."""
         super().__init__()
         self.field, self.dissipation = field, dissipation
         self.register_buffer("actuation", actuation.clone())  # B, (n, nu)
+        rot = torch.zeros(0, 3, dtype=torch.long) if rotational_dofs is None else rotational_dofs
+        self.register_buffer("rotational_dofs", rot.long(), persistent=False)
+
+    def _euler_poincare(self, L: Tensor, w: Tensor, qd: Tensor) -> Tensor:
+        """omega x (M qd)_omega per ball/free joint, zero elsewhere. (..., n)
+
+        With body-frame angular velocities (quasi-velocities) the Euler-Lagrange equations
+        gain this term (Euler's omega x I omega for a single body); M qd = L w.
+        """
+        out = torch.zeros_like(qd)
+        if self.rotational_dofs.numel():
+            momentum = (L @ w.unsqueeze(-1)).squeeze(-1)
+            idx = self.rotational_dofs
+            out[..., idx] = torch.linalg.cross(qd[..., idx], momentum[..., idx], dim=-1)
+        return out
 
     @staticmethod
     def _velocity_products(jet: MechanicsJet, qd: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -179,10 +200,11 @@ class LagrangianDynamics(nn.Module):
         zero_v = torch.zeros_like(jet.potential_energy)
         half_grad_kinetic = jet.pullback(kinetic_cotangent, zero_v)  # 1/2 d(qd^T M qd)/dq
         gravity = jet.pullback(torch.zeros_like(jet.L), torch.ones_like(zero_v))
+        euler_poincare = self._euler_poincare(jet.L, w, qd)
         return LagrangianTerms(
             mass_matrix=jet.L @ jet.L.transpose(-1, -2),
             cholesky=jet.L,
-            coriolis=m_dot_qd - half_grad_kinetic,
+            coriolis=m_dot_qd - half_grad_kinetic + euler_poincare,
             gravity=gravity,
             dissipation=self._dissipation(qd),
             kinetic_energy=0.5 * (w * w).sum(-1),
@@ -192,10 +214,11 @@ class LagrangianDynamics(nn.Module):
     def _bias_and_cholesky(self, q: Tensor, qd: Tensor) -> tuple[Tensor, Tensor]:
         """c + g + d with one reverse pass (the pullback is linear), and L."""
         jet = self.field.jet(q, qd)
-        _, m_dot_qd, kinetic_cotangent = self._velocity_products(jet, qd)
+        w, m_dot_qd, kinetic_cotangent = self._velocity_products(jet, qd)
         coriolis_gravity = m_dot_qd + jet.pullback(
             -kinetic_cotangent, torch.ones_like(jet.potential_energy)
         )
+        coriolis_gravity = coriolis_gravity + self._euler_poincare(jet.L, w, qd)
         return coriolis_gravity + self._dissipation(qd), jet.L
 
     def inverse_dynamics(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
@@ -212,6 +235,16 @@ class LagrangianDynamics(nn.Module):
     def generalized_force(self, action: Tensor) -> Tensor:
         """tau = B a: (..., nu) -> (..., n)."""
         return action @ self.actuation.T
+
+
+def rotational_dofs(layout: JointLayout) -> Tensor:
+    """(K, 3) velocity indices of the angular velocity of each ball and free joint."""
+    rows = [
+        [adr + (3 if jtype == FREE else 0) + k for k in range(3)]
+        for jtype, adr in zip(layout.types, layout.dof_adr, strict=True)
+        if jtype in (BALL, FREE)
+    ]
+    return torch.tensor(rows, dtype=torch.long) if rows else torch.zeros(0, 3, dtype=torch.long)
 
 
 def _scale(x: Tensor, floor_ratio: float = 1e-2) -> Tensor:
@@ -259,6 +292,7 @@ class DeLaN(WorldModel):
             field=LagrangianNetwork(features, n, hidden, layers, activation, diag_shift),
             dissipation=Dissipation(n, coulomb=coulomb) if dissipation else None,
             actuation=actuation.to(torch.get_default_dtype()),
+            rotational_dofs=rotational_dofs(layout),
         )
         for name in ("q_scale", "qd_scale", "tau_scale"):
             self.register_buffer(name, torch.ones(n))
