@@ -169,3 +169,27 @@ def test_bad_arguments_are_named() -> None:
         DeLaN(layout(2), torch.eye(2), 0.01, integrator="leapfrog")
     with pytest.raises(ValueError, match="diag_shift"):
         DeLaN(layout(2), torch.eye(2), 0.01, diag_shift=0.0)
+
+
+def test_planner_survives_a_model_that_returns_inf_and_nan() -> None:
+    """Non-finite returns count as the worst, never poison the plan."""
+    from mbrl_delan.planners.mppi import MPPIPlanner
+
+    planner = MPPIPlanner(
+        horizon=5,
+        action_low=[-1.0],
+        action_high=[1.0],
+        num_samples=64,
+        iterations=5,
+        temperature=0.1,
+    )
+
+    def objective(actions):
+        ret = -(actions - 0.5).square().sum(dim=(-1, -2))
+        ret[::3] = float("nan")
+        ret[1::3] = float("inf") * -1
+        return ret
+
+    result = planner.plan(objective, generator=torch.Generator().manual_seed(0))
+    assert torch.isfinite(result.mean).all()
+    assert abs(float(result.mean[0, 0]) - 0.5) < 0.15  # it still optimises on the finite ones
