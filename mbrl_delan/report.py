@@ -1,8 +1,10 @@
-"""`python -m mbrl_delan.report DIR [DIR ...]`: a table of runs' returns against the oracle.
+"""`python -m mbrl_delan.report DIR [DIR ...] [--figure PNG]`: runs' returns against the oracle.
 
 Reads every `summary.json` below the given folders, groups runs by (env, model, planner) and
 prints a Markdown table of mean and std over seeds of the final evaluation return, the
 oracle return and their ratio. Run dirs without a `summary.json` are listed as incomplete.
+`--figure` also draws evaluation return vs env steps per group (mean and std over seeds,
+from each run's `metrics.jsonl`) with the oracle's return, one panel per env.
 """
 
 from __future__ import annotations
@@ -74,9 +76,73 @@ def table(summaries: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def _curves(summaries: list[dict[str, Any]]) -> dict[tuple[str, str, str], dict[int, list[float]]]:
+    """Evaluation returns by env step, per group, across seeds."""
+    from mbrl_delan.training.recorder import read_metrics
+
+    curves: dict[tuple[str, str, str], dict[int, list[float]]] = defaultdict(
+        lambda: defaultdict(list)
+    )
+    for s in summaries:
+        for rec in read_metrics(Path(s["run_dir"]) / "metrics.jsonl"):
+            if rec.get("eval_return_mean") is not None:
+                group = curves[(s["env"], s["model"], s["planner"])]
+                group[int(rec["env_steps"])].append(float(rec["eval_return_mean"]))
+    return curves
+
+
+def figure(summaries: list[dict[str, Any]], path: Path) -> Path:
+    """Evaluation return vs env steps, one panel per env, mean +- std over seeds.
+
+    Each group's oracle (its planner on MuJoCo's dynamics, same initial states) is a dotted
+    line in the group's colour.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    curves = _curves(summaries)
+    envs = sorted({k[0] for k in curves})
+    fig = Figure(figsize=(4.2 * max(1, len(envs)), 3.4), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, max(1, len(envs)), squeeze=False)[0]
+    for ax, env in zip(axes, envs, strict=False):
+        for (e, model, planner), by_step in sorted(curves.items()):
+            if e != env:
+                continue
+            steps = sorted(by_step)
+            mu = [statistics.fmean(by_step[t]) for t in steps]
+            sd = [statistics.pstdev(by_step[t]) for t in steps]
+            line = ax.plot(steps, mu, marker="o", ms=3, label=f"{model} + {planner}")[0]
+            ax.fill_between(
+                steps,
+                [m - d for m, d in zip(mu, sd, strict=True)],
+                [m + d for m, d in zip(mu, sd, strict=True)],
+                color=line.get_color(),
+                alpha=0.2,
+            )
+            oracle = [
+                float(s["oracle_return_mean"])
+                for s in summaries
+                if (s["env"], s["model"], s["planner"]) == (e, model, planner)
+            ]
+            ax.axhline(
+                statistics.fmean(oracle),
+                color=line.get_color(),
+                ls=":",
+                lw=1.2,
+                label=f"oracle: {planner} on MuJoCo",
+            )
+        ax.set(title=env, xlabel="env steps", ylabel="evaluation return")
+        ax.legend(fontsize=7)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=150)
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("roots", nargs="+", type=Path, help="folders holding run dirs")
+    parser.add_argument("--figure", type=Path, default=None, help="write a PNG of the curves")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     missing = [r for r in args.roots if not r.is_dir()]
@@ -87,6 +153,8 @@ def main(argv: list[str] | None = None) -> int:
     log.info("%s", table(summaries))
     for run in incomplete:
         log.info("incomplete run (no %s): %s", SUMMARY, run)
+    if args.figure is not None and summaries:
+        log.info("figure: %s", figure(summaries, args.figure))
     return 0
 
 

@@ -52,3 +52,16 @@ def test_incomplete_runs_are_listed(tmp_path: Path, caplog) -> None:
 
 def test_missing_folder_is_an_error(tmp_path: Path) -> None:
     assert main([str(tmp_path / "nope")]) == 2
+
+
+def test_figure_is_drawn_from_metrics(tmp_path: Path) -> None:
+    for seed in (0, 1):
+        run = make_run(tmp_path, f"r{seed}", summary(seed, 40.0, 42.0))
+        lines = [
+            {"iteration": k, "env_steps": 100 * k, "eval_return_mean": 10.0 * k + seed}
+            for k in (1, 2, 3)
+        ]
+        (run / "metrics.jsonl").write_text("\n".join(json.dumps(x) for x in lines) + "\n")
+    out = tmp_path / "fig.png"
+    assert main([str(tmp_path), "--figure", str(out)]) == 0
+    assert out.is_file() and out.stat().st_size > 10_000
