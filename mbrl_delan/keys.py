@@ -20,3 +20,4 @@ NEXT_TRUNCATED = (NEXT, TRUNCATED)
 
 EPISODE = "episode"  # index of the episode a transition belongs to, (..., 1) int64
 STEP_COUNT = "step_count"  # TorchRL's StepCounter key
+IS_INIT = "is_init"  # TorchRL's InitTracker key: True on the first step of an episode

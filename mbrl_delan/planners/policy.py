@@ -118,6 +118,10 @@ class PlannerPolicy(TensorDictModuleBase):
 
     @staticmethod
     def _episode_starts(tensordict: TensorDictBase) -> bool:
+        """First step of an episode, by TorchRL's InitTracker or StepCounter (if present)."""
+        is_init = tensordict.get(keys.IS_INIT, None)
+        if is_init is not None:
+            return bool(is_init.reshape(-1)[0])
         step_count = tensordict.get(keys.STEP_COUNT, None)
         return step_count is not None and int(step_count.reshape(-1)[0]) == 0
 

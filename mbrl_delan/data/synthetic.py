@@ -1,0 +1,157 @@
+"""Synthetic dynamics data from MuJoCo: random states and controls with their exact accelerations.
+
+For system identification: every sample is an independent random state (q, qd) and control,
+with MuJoCo's forward acceleration qdd at that state (contacts off), the generalized force
+tau = B a, and the state one control step later (MuJoCo's own integrator), so the same data
+serve inverse-dynamics losses (q, qd, qdd, tau) and next-state losses.
+
+`reference_terms` gives MuJoCo's mass matrix and gravity force at given positions, the
+ground truth that a learned model is compared with.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torch import Tensor
+
+from mbrl_delan import keys
+from mbrl_delan.systems.system import System
+
+F64 = torch.float64
+
+
+@dataclass
+class ReferenceTerms:
+    """MuJoCo's mass matrix and gravity generalized force at a batch of positions."""
+
+    mass_matrix: Tensor  # (N, nv, nv), from mj_fullM
+    gravity: Tensor  # (N, nv), qfrc_bias at zero velocity
+
+
+def _contact_free_model(system: System) -> mujoco.MjModel:
+    """The system's MjModel with contacts (and hence contact forces) disabled."""
+    model = system.mj_model()
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+    return model
+
+
+def _check_scalar_joints(system: System) -> None:
+    if not system.layout.only_scalar_joints:
+        raise NotImplementedError(
+            f"{system.name}: random states are drawn for hinge and slide joints only; "
+            "ball and free joints are not supported by dynamics_dataset"
+        )
+
+
+def _uniform(low: Tensor, high: Tensor, n: int, generator: torch.Generator) -> Tensor:
+    """n samples uniform in the box [low, high]: (k,), (k,) -> (n, k), float64."""
+    u = torch.rand(n, low.shape[0], generator=generator, dtype=F64)
+    return low + (high - low) * u
+
+
+def _position_box(model: mujoco.MjModel, q_scale: float) -> tuple[Tensor, Tensor]:
+    """Per-qpos sampling range: the joint range where limited, else [-q_scale, q_scale]."""
+    low = torch.full((model.nq,), -q_scale, dtype=F64)
+    high = torch.full((model.nq,), q_scale, dtype=F64)
+    for j in range(model.njnt):
+        if model.jnt_limited[j]:
+            adr = int(model.jnt_qposadr[j])
+            low[adr], high[adr] = (float(x) for x in model.jnt_range[j])
+    return low, high
+
+
+def _control_box(system: System, action_scale: float) -> tuple[Tensor, Tensor]:
+    """The control range; unlimited actuators get [-action_scale, action_scale]."""
+    low = torch.where(torch.isfinite(system.ctrl_low), system.ctrl_low, -action_scale)
+    high = torch.where(torch.isfinite(system.ctrl_high), system.ctrl_high, action_scale)
+    return low.to(F64), high.to(F64)
+
+
+def _simulate(
+    system: System, model: mujoco.MjModel, q: Tensor, qd: Tensor, action: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """MuJoCo's qdd at each sample and the state one control step later.
+
+    (N, nq), (N, nv), (N, nu) -> qdd (N, nv), next q (N, nq), next qd (N, nv).
+    """
+    data = mujoco.MjData(model)
+    n = q.shape[0]
+    qdd, q_next, qd_next = np.zeros((n, model.nv)), np.zeros((n, model.nq)), np.zeros((n, model.nv))
+    q_np, qd_np, a_np = q.numpy(), qd.numpy(), action.numpy()
+    for i in range(n):
+        mujoco.mj_resetData(model, data)
+        data.qpos[:], data.qvel[:], data.ctrl[:] = q_np[i], qd_np[i], a_np[i]
+        mujoco.mj_forward(model, data)
+        qdd[i] = data.qacc
+        for _ in range(system.frame_skip):
+            mujoco.mj_step(model, data)
+        q_next[i], qd_next[i] = data.qpos, data.qvel
+    return (torch.from_numpy(x) for x in (qdd, q_next, qd_next))
+
+
+def dynamics_dataset(
+    system: System,
+    n: int,
+    generator: torch.Generator,
+    q_scale: float = math.pi,
+    qd_scale: float = 2.0 * math.pi,
+    action_scale: float = 1.0,
+) -> TensorDict:
+    """n independent samples of MuJoCo's forward dynamics at random states and controls.
+
+    q is uniform in [-q_scale, q_scale] per joint (within the joint range where limited),
+    qd uniform in [-qd_scale, qd_scale], the action uniform in the control range
+    ([-action_scale, action_scale] for unlimited actuators). Contacts are off.
+
+    Returns a float64 TensorDict of batch size (n,) with keys
+    `q` (n, nq), `qd` (n, nv), `action` (n, nu), `qdd` (n, nv) = MuJoCo's `qacc` after
+    `mj_forward`, `tau` (n, nv) = B a, and `("next", "q")`, `("next", "qd")`: the state after
+    one control step (`frame_skip` `mj_step`s) from that state under that action.
+    Hinge and slide joints only.
+    """
+    if n < 1:
+        raise ValueError(f"n must be >= 1, got {n}")
+    if q_scale <= 0 or qd_scale < 0 or action_scale <= 0:
+        raise ValueError(f"need q_scale > 0, qd_scale >= 0, action_scale > 0, "
+                         f"got {q_scale}, {qd_scale}, {action_scale}")
+    _check_scalar_joints(system)
+    model = _contact_free_model(system)
+    q = _uniform(*_position_box(model, q_scale), n, generator)
+    qd_box = torch.full((system.nv,), qd_scale, dtype=F64)
+    qd = _uniform(-qd_box, qd_box, n, generator)
+    action = _uniform(*_control_box(system, action_scale), n, generator)
+    qdd, q_next, qd_next = _simulate(system, model, q, qd, action)
+    tau = action @ system.actuation.to(F64).T
+    return TensorDict(
+        {
+            keys.Q: q,
+            keys.QD: qd,
+            keys.ACTION: action,
+            keys.QDD: qdd,
+            keys.TAU: tau,
+            keys.NEXT_Q: q_next,
+            keys.NEXT_QD: qd_next,
+        },
+        batch_size=[n],
+    )
+
+
+def reference_terms(system: System, q: Tensor) -> ReferenceTerms:
+    """MuJoCo's M(q) (`mj_fullM`) and g(q) (`qfrc_bias` at zero velocity). q: (N, nq)."""
+    model = _contact_free_model(system)
+    data = mujoco.MjData(model)
+    n = q.shape[0]
+    mass, gravity = np.zeros((n, model.nv, model.nv)), np.zeros((n, model.nv))
+    for i, qi in enumerate(q.detach().cpu().to(F64).numpy()):
+        mujoco.mj_resetData(model, data)
+        data.qpos[:] = qi
+        mujoco.mj_forward(model, data)
+        mujoco.mj_fullM(model, data, mass[i])
+        gravity[i] = data.qfrc_bias
+    return ReferenceTerms(mass_matrix=torch.from_numpy(mass), gravity=torch.from_numpy(gravity))
