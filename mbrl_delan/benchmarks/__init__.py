@@ -22,7 +22,10 @@ from mbrl_delan.benchmarks.records import BenchRecord
 Suite = Callable[["SuiteOptions"], Iterator[BenchRecord]]
 
 # name -> "module:function"
-_SUITES = {"delan": "mbrl_delan.benchmarks.delan:run_delan_suite"}
+_SUITES = {
+    "delan": "mbrl_delan.benchmarks.delan:run_delan_suite",
+    "identify": "mbrl_delan.benchmarks.identify:run_identify_suite",
+}
 SUITE_NAMES = tuple(_SUITES)
 
 

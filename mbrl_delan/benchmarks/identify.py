@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
 
 from mbrl_delan import keys
@@ -94,6 +94,8 @@ class IdentifyConfig:
     dtype: torch.dtype = torch.float64
     coulomb: bool = False
     loss: str = "inverse"
+    warmup_loss: str = "forward"
+    warmup_epochs: int = 30
     q_scale: float = math.pi
     qd_scale: float = 2.0 * math.pi
     energy_starts: int = 16
@@ -138,10 +140,27 @@ class IdentifyFit:
         return self.reports[-1].best_val_loss
 
 
+class IdentificationDeLaN(DeLaN):
+    """DeLaN whose torque-error scale of an unactuated DoF is the largest actuated one.
+
+    DeLaN's per-DoF scale is the torque's std with a floor of 1% of the largest; a DoF without
+    actuator (the acrobot's shoulder) has tau = 0 always, so its error would weigh 10^4 times
+    more than the others and the fit drifts to the trivial M -> 0, g -> 0 that satisfies its
+    homogeneous equation. Its generalized forces are of the size of the actuated ones.
+    """
+
+    @torch.no_grad()
+    def fit_normalization(self, data: TensorDictBase) -> None:
+        super().fit_normalization(data)
+        unactuated = self.dynamics.actuation.abs().sum(dim=-1) == 0
+        if unactuated.any() and not unactuated.all():
+            self.tau_scale[unactuated] = self.tau_scale[~unactuated].max()
+
+
 def make_model(system: System, cfg: IdentifyConfig) -> DeLaN:
     """DeLaN with the default network, inverse loss, viscous (and optionally Coulomb) friction."""
     torch.manual_seed(cfg.seed)
-    model = DeLaN(
+    model = IdentificationDeLaN(
         system.layout,
         system.actuation,
         control_dt=system.control_dt,
@@ -157,6 +176,15 @@ def fit_identification(model: DeLaN, data: TensorDict, cfg: IdentifyConfig) -> I
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     reports: list[FitReport] = []
     remaining, lr = cfg.max_epochs, cfg.lr
+    if _underactuated(model) and cfg.warmup_epochs > 0:
+        loss_kind, model.loss_kind = model.loss_kind, cfg.warmup_loss
+        fit_cfg = FitConfig(batch_size=cfg.batch_size, max_epochs=cfg.warmup_epochs,
+                            val_fraction=cfg.val_fraction, patience=None)
+        report = fit_model(model, optimizer, data, fit_cfg, torch.Generator().manual_seed(cfg.seed + 1))
+        log.info("warm-up (%s loss): %d epochs, val loss %.3g", cfg.warmup_loss, report.epochs_run, report.best_val_loss)
+        model.loss_kind = loss_kind
+        reports.append(report)
+        remaining -= report.epochs_run
     for stage in range(cfg.stages):
         if remaining <= 0:
             break
@@ -177,6 +205,10 @@ def fit_identification(model: DeLaN, data: TensorDict, cfg: IdentifyConfig) -> I
                  stage, lr, report.epochs_run, report.best_val_loss)
         lr *= cfg.lr_decay
     return IdentifyFit(model=model, reports=reports, seconds=time.perf_counter() - start)
+
+
+def _underactuated(model: DeLaN) -> bool:
+    return bool((model.dynamics.actuation.abs().sum(dim=-1) == 0).any())
 
 
 # ----------------------------------------------------------------------------- metrics
