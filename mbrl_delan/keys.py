@@ -21,3 +21,10 @@ NEXT_TRUNCATED = (NEXT, TRUNCATED)
 EPISODE = "episode"  # index of the episode a transition belongs to, (..., 1) int64
 STEP_COUNT = "step_count"  # TorchRL's StepCounter key
 IS_INIT = "is_init"  # TorchRL's InitTracker key: True on the first step of an episode
+
+# Motion-capture datasets (mbrl_delan.data.mocap)
+ROOT_RESIDUAL = "root_residual"  # generalized force on the free root joint, (..., 6)
+CLIP = "clip"  # index of the source clip in the dataset's clip list, (..., 1) int64
+FRAME = "frame"  # fractional frame number in the source AMC file, (..., 1) float64
+TIME = "time"  # seconds since the clip's first frame, (..., 1) float64
+SPLIT = "split"  # 0 train, 1 held-out time segment, 2 held-out clip, (..., 1) int64
