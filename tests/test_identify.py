@@ -21,6 +21,7 @@ from mbrl_delan.benchmarks.identify import (
     gravity_errors,
     identify_system,
     make_model,
+    mujoco_energy_drift,
     passive_energy_drift,
     relative_errors,
     run_identify,
@@ -86,12 +87,26 @@ def test_metric_helpers() -> None:
     assert torque_r2(torch.tensor([[2.0, 0.0], [2.0, 0.0]]), target) == pytest.approx(0.0)
 
 
+def test_unactuated_dof_gets_the_stage_scale_not_the_floor() -> None:
+    """The acrobot's shoulder (tau = 0) is scaled like the elbow times the stage's factor."""
+    system, data = _data("acrobot", 64)
+    cfg = IdentifyConfig.quick(unactuated_scales=(10.0, 1.0))
+    model = make_model(system, cfg)
+    elbow = data[keys.TAU][:, 1].std()
+    for stage, factor in ((0, 10.0), (1, 1.0), (5, 1.0)):
+        model.unactuated_scale = cfg.unactuated_scale(stage)
+        model.fit_normalization(data)
+        torch.testing.assert_close(model.tau_scale, torch.stack([factor * elbow, elbow]))
+
+
 def test_untrained_model_conserves_its_own_energy() -> None:
     """Without dissipation the Lagrangian structure conserves T + V whatever the weights."""
     system, data = _data("arm2", 8)
     model = make_model(system, IdentifyConfig.quick())
     drift = passive_energy_drift(model, data[keys.Q], data[keys.QD], data[keys.Q], 200, 0.005)
     assert drift.shape == (8,) and (drift < 1e-6).all()
+    reference = mujoco_energy_drift(system, data[keys.Q], data[keys.QD], data[keys.Q], 200, 0.005)
+    assert reference.shape == (8,) and (reference < 1e-3).all()  # MuJoCo's model, same RK4
 
 
 def test_quick_suite_writes_every_metric(tmp_path: Path) -> None:

@@ -155,3 +155,36 @@ def reference_terms(system: System, q: Tensor) -> ReferenceTerms:
         mujoco.mj_fullM(model, data, mass[i])
         gravity[i] = data.qfrc_bias
     return ReferenceTerms(mass_matrix=torch.from_numpy(mass), gravity=torch.from_numpy(gravity))
+
+
+class PassiveMuJoCo:
+    """MuJoCo's conservative dynamics of a system: no damping, no control, contacts off.
+
+    The reference for energy-conservation figures; batched by a loop over samples.
+    """
+
+    def __init__(self, system: System) -> None:
+        self.model = _contact_free_model(system)
+        self.model.dof_damping[:] = 0.0
+        self.model.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_ENERGY)
+        self.data = mujoco.MjData(self.model)
+
+    def _forward(self, q: np.ndarray, qd: np.ndarray) -> None:
+        self.data.qpos[:], self.data.qvel[:], self.data.ctrl[:] = q, qd, 0.0
+        mujoco.mj_forward(self.model, self.data)
+
+    def acceleration(self, q: Tensor, qd: Tensor) -> Tensor:
+        """qdd at zero control: (N, nq), (N, nv) -> (N, nv), float64."""
+        out = np.zeros(qd.shape)
+        for i, (qi, qdi) in enumerate(zip(q.numpy(), qd.numpy(), strict=True)):
+            self._forward(qi, qdi)
+            out[i] = self.data.qacc
+        return torch.from_numpy(out)
+
+    def energy(self, q: Tensor, qd: Tensor) -> Tensor:
+        """Kinetic plus potential energy (MuJoCo's `data.energy`): (N, nq), (N, nv) -> (N,)."""
+        out = np.zeros(q.shape[0])
+        for i, (qi, qdi) in enumerate(zip(q.numpy(), qd.numpy(), strict=True)):
+            self._forward(qi, qdi)
+            out[i] = self.data.energy.sum()
+        return torch.from_numpy(out)
