@@ -247,16 +247,7 @@ def oscillator_data(n: int, seed: int) -> TensorDict:
     return transitions(q, qd, u, q_next, qd_next)
 
 
-@pytest.fixture
-def one_thread():
-    """Tiny networks only lose from intra-op threads (much more so on a busy machine)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-def test_training_on_a_damped_oscillator_beats_no_change(one_thread):
+def test_training_on_a_damped_oscillator_beats_no_change():
     torch.manual_seed(0)
     model = GaussianEnsemble(SLIDE_1D, nu=1, control_dt=DT, ensemble_size=3, hidden=32,
                              layers=2, propagation="mean", seed=0)

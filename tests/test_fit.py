@@ -15,15 +15,6 @@ from mbrl_delan.systems.system import State
 from mbrl_delan.training import FitConfig, TrainingDivergedError, fit_model
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Tiny models: intra-op threads only add synchronisation cost (large on busy machines)."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 class LinearModel(WorldModel):
     """next_qd = qd @ A^T + action @ B^T, fitted by MSE; records what fit_model does to it."""
 

@@ -25,15 +25,6 @@ TARGET = torch.linspace(-0.6, 0.6, H * NU).reshape(H, NU)
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Keep to one core: the tests are small and the machine is shared."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def quadratic(target: Tensor):
     """returns = -sum_t |a_t - target_t|^2, target (H, nu)."""
     return lambda actions: -(actions - target).square().sum(dim=(1, 2))
