@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
-from types import SimpleNamespace
 
 import mujoco
 import numpy as np
@@ -13,7 +13,7 @@ import torch
 from torch.nn import functional as F
 
 from mbrl_delan import keys
-from mbrl_delan.benchmarks import SUITE_NAMES, get_suite
+from mbrl_delan.benchmarks import SUITE_NAMES, SuiteOptions, TimingConfig, get_suite
 from mbrl_delan.benchmarks.identify import (
     METRICS,
     SYSTEMS,
@@ -94,7 +94,7 @@ def test_unactuated_dof_gets_the_stage_scale_not_the_floor() -> None:
     model = make_model(system, cfg)
     elbow = data[keys.TAU][:, 1].std()
     for stage, factor in ((0, 10.0), (1, 1.0), (5, 1.0)):
-        model.unactuated_scale = cfg.unactuated_scale(stage)
+        model.unactuated_torque_scale = cfg.unactuated_scale(stage)
         model.fit_normalization(data)
         torch.testing.assert_close(model.tau_scale, torch.stack([factor * elbow, elbow]))
 
@@ -124,16 +124,24 @@ def test_quick_suite_writes_every_metric(tmp_path: Path) -> None:
 
 def test_suite_is_registered_and_reads_its_options() -> None:
     assert "identify" in SUITE_NAMES and get_suite("identify") is run_identify_suite
-    cfg = suite_config(SimpleNamespace(quick=True, n_samples=100, max_epochs=None))
+    base = SuiteOptions(nv=(2,), batch=(4,), device=torch.device("cpu"), timing=TimingConfig())
+    cfg = suite_config(replace(base, quick=True, n_samples=100))
     assert cfg.n_samples == 100 and cfg.max_epochs == IdentifyConfig.quick().max_epochs
-    assert suite_config(SimpleNamespace()) == IdentifyConfig()
+    assert suite_config(replace(base, max_epochs=7)) == replace(IdentifyConfig(), max_epochs=7)
+    assert suite_config(base) == IdentifyConfig()
 
 
 def test_short_pendulum_fit_finds_the_mass_and_the_damping_direction() -> None:
     """A weak but real check: 300 samples, about a second of training."""
     cfg = IdentifyConfig(
-        n_samples=300, n_test=100, max_epochs=30, batch_size=32, stages=1, patience=30,
-        energy_steps=50, systems=("pendulum",),
+        n_samples=300,
+        n_test=100,
+        max_epochs=45,
+        batch_size=32,
+        stages=1,
+        patience=45,
+        energy_steps=50,
+        systems=("pendulum",),
     )
     initial = F.softplus(make_model(load_system("pendulum"), cfg).dynamics.dissipation.raw_viscous)
     fit, metrics = identify_system("pendulum", cfg)

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import importlib.util
 import logging
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -202,6 +203,20 @@ def _fwd(model: DeLaN) -> Make:
     return make
 
 
+def _compiled_fwd(model: DeLaN) -> Make:
+    """`forward_dynamics` through `torch.compile` (static shapes; compiled per batch size)."""
+    compiled = torch.compile(model.dynamics.forward_dynamics, dynamic=False)
+
+    def make(x: Inputs) -> Callable[[], object]:
+        def call() -> Tensor:
+            with torch.inference_mode():
+                return compiled(x.q, x.qd, x.tau)
+
+        return call
+
+    return make
+
+
 def _inv(model: DeLaN) -> Make:
     def make(x: Inputs) -> Callable[[], object]:
         def call() -> Tensor:
@@ -343,6 +358,8 @@ def _model_records(
     fwd = _measure(_fwd(model), x, opts, sync)
     yield _record(case, "fwd_dyn_per_s", "evals/s", opts.device, fields, fwd, batch)
     yield _flops_record(case, model, fwd, peak, opts, fields)
+    if batch in opts.compile_batch:
+        yield _compiled_record(model, x, opts, case, fields)
     inv = _measure(_inv(model), x, opts, sync)
     yield _record(case, "inv_dyn_per_s", "evals/s", opts.device, fields, inv, batch)
     element = torch.empty((), dtype=DTYPE).element_size()
@@ -354,6 +371,21 @@ def _model_records(
     model.load_state_dict(state)  # the other figures see the same weights for every batch
     train_fields = {**fields, "integrator": model.integrator, "loss": model.loss_kind}
     yield _record(case, "train_samples_per_s", "samples/s", opts.device, train_fields, train, batch)
+
+
+def _compiled_record(
+    model: DeLaN, x: Inputs, opts: SuiteOptions, case: str, fields: dict[str, Any]
+) -> BenchRecord:
+    """`compiled_fwd_dyn_per_s`, with the compile time (first call) in the record."""
+    sync = synchronizer(opts.device)
+    call = _compiled_fwd(model)(x)  # no trial batches: each new shape would recompile
+    start = time.perf_counter()
+    call()
+    sync()
+    compile_s = time.perf_counter() - start
+    measured = Measured(time_call(call, opts.timing, sync))
+    extra = {**fields, "compile_seconds": compile_s}
+    return _record(case, "compiled_fwd_dyn_per_s", "evals/s", opts.device, extra, measured, x.batch)
 
 
 def _flops_record(

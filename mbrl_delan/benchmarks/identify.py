@@ -23,7 +23,9 @@ Fitting: Adam and `fit_model` (validation split, early stopping on the validatio
 weights restored) in `stages` stages of falling learning rate (x `lr_decay` per stage), each
 allowed an equal share of the epochs left and started from the best weights of the one
 before; all stages use the same split. Unactuated DoFs get a torque-error scale of their own
-(`IdentificationDeLaN`): large in the first stage, then like the actuated ones.
+(`DeLaN.unactuated_torque_scale`): large in the first stage, so the actuated equations,
+which fix the scale of the Lagrangian, lead the fit out of the M -> 0 basin of the
+unactuated DoF's homogeneous equation; then like the actuated ones.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDict
 from torch import Tensor
 from torch.utils.hooks import RemovableHandle
 
@@ -84,7 +86,7 @@ class IdentifyConfig:
         coulomb: learn Coulomb friction too (MuJoCo's systems here have none).
         unactuated_scales: torque-error scale of an unactuated DoF, in units of the largest
             actuated DoF's torque std, per stage (the last one for the stages after; see
-            `IdentificationDeLaN`).
+            `DeLaN.unactuated_torque_scale`).
         q_scale, qd_scale: states are uniform in [-q_scale, q_scale] x [-qd_scale, qd_scale].
         energy_starts, energy_steps, energy_dt: the passive energy-drift rollout.
         seed: seeds the network's initial weights, the data and the split.
@@ -128,8 +130,14 @@ class IdentifyConfig:
     def quick(cls, **overrides: Any) -> IdentifyConfig:
         """Tiny sizes for tests and smoke runs (seconds for all four systems)."""
         sizes = dict(
-            n_samples=64, n_test=32, max_epochs=2, batch_size=32, stages=2, patience=1,
-            energy_starts=4, energy_steps=10,
+            n_samples=64,
+            n_test=32,
+            max_epochs=2,
+            batch_size=32,
+            stages=2,
+            patience=1,
+            energy_starts=4,
+            energy_steps=10,
         )
         return cls(**{**sizes, **overrides})
 
@@ -137,42 +145,16 @@ class IdentifyConfig:
 # ----------------------------------------------------------------------------- fitting
 
 
-class IdentificationDeLaN(DeLaN):
-    """DeLaN with a torque-error scale for unactuated DoFs that suits the inverse loss.
-
-    DeLaN's per-DoF scale is the torque's std, floored at 1% of the largest. A DoF without
-    actuator (the acrobot's shoulder) has tau = 0 in every sample, so it gets that floor and its
-    error weighs 10^4 times more than the others. Its equation, M_1 qdd + c_1 + g_1 + d_1 = 0,
-    is homogeneous: a model with M_1 -> 0, g_1 -> 0 satisfies it, and a fit led by it
-    collapses there (it did on the acrobot from random weights, at equal weights too). Here the
-    unactuated DoFs' scale is `unactuated_scale` times the largest actuated std (set before
-    each `fit_model` call): large at first, so the actuated equations, which fix the scale of
-    the Lagrangian, lead the fit out of that basin; then 1, so both equations count alike.
-    """
-
-    def __init__(self, *args: Any, unactuated_scale: float = 10.0, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.unactuated_scale = unactuated_scale
-
-    @torch.no_grad()
-    def fit_normalization(self, data: TensorDictBase) -> None:
-        super().fit_normalization(data)
-        unactuated = self.dynamics.actuation.abs().sum(dim=-1) == 0
-        if unactuated.any() and not unactuated.all():
-            largest = self.tau_scale[~unactuated].max()
-            self.tau_scale[unactuated] = self.unactuated_scale * largest
-
-
-def make_model(system: System, cfg: IdentifyConfig) -> IdentificationDeLaN:
+def make_model(system: System, cfg: IdentifyConfig) -> DeLaN:
     """DeLaN with the default network, inverse loss, viscous (and optionally Coulomb) friction."""
     torch.manual_seed(cfg.seed)
-    model = IdentificationDeLaN(
+    model = DeLaN(
         system.layout,
         system.actuation,
         control_dt=system.control_dt,
         loss="inverse",
         coulomb=cfg.coulomb,
-        unactuated_scale=cfg.unactuated_scale(0),
+        unactuated_torque_scale=cfg.unactuated_scale(0),
     )
     return model.to(cfg.dtype)
 
@@ -213,8 +195,7 @@ def fit_identification(model: DeLaN, data: TensorDict, cfg: IdentifyConfig) -> I
             warmup.remove()
             for group in optimizer.param_groups:
                 group["lr"] = lr
-        if isinstance(model, IdentificationDeLaN):
-            model.unactuated_scale = cfg.unactuated_scale(stage)
+        model.unactuated_torque_scale = cfg.unactuated_scale(stage)
         share = math.ceil(remaining / (cfg.stages - stage))
         if share <= 0:
             break
@@ -227,8 +208,13 @@ def fit_identification(model: DeLaN, data: TensorDict, cfg: IdentifyConfig) -> I
         report = fit_model(model, optimizer, data, fit_cfg, torch.Generator().manual_seed(cfg.seed))
         reports.append(report)
         remaining -= report.epochs_run
-        log.info("stage %d (lr %.2g): %d epochs, best validation loss %.3g",
-                 stage, lr, report.epochs_run, report.best_val_loss)
+        log.info(
+            "stage %d (lr %.2g): %d epochs, best validation loss %.3g",
+            stage,
+            lr,
+            report.epochs_run,
+            report.best_val_loss,
+        )
     warmup.remove()
     return IdentifyFit(model=model, reports=reports, seconds=time.perf_counter() - start)
 
@@ -409,10 +395,20 @@ UNIT = "fraction"  # every metric of the suite is a ratio
 def identify_system(name: str, cfg: IdentifyConfig) -> tuple[IdentifyFit, IdentifyMetrics]:
     """Data, fit and metrics for one system."""
     system = load_system(name)
-    data = dynamics_dataset(system, cfg.n_samples, torch.Generator().manual_seed(cfg.seed),
-                            q_scale=cfg.q_scale, qd_scale=cfg.qd_scale)
-    test = dynamics_dataset(system, cfg.n_test, torch.Generator().manual_seed(cfg.seed + 10_000),
-                            q_scale=cfg.q_scale, qd_scale=cfg.qd_scale)
+    data = dynamics_dataset(
+        system,
+        cfg.n_samples,
+        torch.Generator().manual_seed(cfg.seed),
+        q_scale=cfg.q_scale,
+        qd_scale=cfg.qd_scale,
+    )
+    test = dynamics_dataset(
+        system,
+        cfg.n_test,
+        torch.Generator().manual_seed(cfg.seed + 10_000),
+        q_scale=cfg.q_scale,
+        qd_scale=cfg.qd_scale,
+    )
     model = make_model(system, cfg)
     fit = fit_identification(model, data.to(cfg.dtype), cfg)
     return fit, evaluate_identification(fit.model, system, test, cfg)
@@ -443,14 +439,13 @@ def run_identify(cfg: IdentifyConfig) -> Iterator[BenchRecord]:
 
 
 def suite_config(opts: SuiteOptions) -> IdentifyConfig:
-    """The suite's config from the bench options: `quick`, `n_samples`, `max_epochs` when
-    `SuiteOptions` carries them (unset or None: the defaults)."""
-    quick = bool(getattr(opts, "quick", False))
-    cfg = IdentifyConfig.quick() if quick else IdentifyConfig()
+    """The suite's config from the bench options: `IdentifyConfig.quick()` under `opts.quick`,
+    else the defaults; then `opts.n_samples` and `opts.max_epochs` where they are not None."""
+    cfg = IdentifyConfig.quick() if opts.quick else IdentifyConfig()
     overrides = {
-        name: getattr(opts, name)
-        for name in ("n_samples", "max_epochs")
-        if getattr(opts, name, None) is not None
+        name: value
+        for name, value in (("n_samples", opts.n_samples), ("max_epochs", opts.max_epochs))
+        if value is not None
     }
     return replace(cfg, **overrides)
 

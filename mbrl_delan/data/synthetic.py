@@ -118,8 +118,10 @@ def dynamics_dataset(
     if n < 1:
         raise ValueError(f"n must be >= 1, got {n}")
     if q_scale <= 0 or qd_scale < 0 or action_scale <= 0:
-        raise ValueError(f"need q_scale > 0, qd_scale >= 0, action_scale > 0, "
-                         f"got {q_scale}, {qd_scale}, {action_scale}")
+        raise ValueError(
+            f"need q_scale > 0, qd_scale >= 0, action_scale > 0, "
+            f"got {q_scale}, {qd_scale}, {action_scale}"
+        )
     _check_scalar_joints(system)
     model = _contact_free_model(system)
     q = _uniform(*_position_box(model, q_scale), n, generator)
@@ -188,3 +190,73 @@ class PassiveMuJoCo:
             self._forward(qi, qdi)
             out[i] = self.data.energy.sum()
         return torch.from_numpy(out)
+
+
+def _random_positions(
+    model: mujoco.MjModel, n: int, generator: torch.Generator, q_scale: float
+) -> Tensor:
+    """(n, nq) float64: hinges and slides as `_position_box`; ball and free joints get a
+    uniformly random unit quaternion; a free joint's position is uniform in [-1, 1]^2 x
+    [0.5, 1.5] (the physics does not depend on it without contacts)."""
+    q = _uniform(*_position_box(model, q_scale), n, generator)
+    for j in range(model.njnt):
+        adr, jtype = int(model.jnt_qposadr[j]), int(model.jnt_type[j])
+        if jtype == mujoco.mjtJoint.mjJNT_FREE:
+            q[:, adr : adr + 3] = _uniform(
+                torch.tensor([-1.0, -1.0, 0.5], dtype=F64),
+                torch.tensor([1.0, 1.0, 1.5], dtype=F64),
+                n,
+                generator,
+            )
+            adr += 3
+        if jtype in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL):
+            quat = torch.randn(n, 4, generator=generator, dtype=F64)
+            q[:, adr : adr + 4] = quat / quat.norm(dim=-1, keepdim=True)
+    return q
+
+
+def _free_model(system: System) -> mujoco.MjModel:
+    """The system's MjModel with contacts and joint and tendon limits disabled."""
+    model = _contact_free_model(system)
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
+    return model
+
+
+def inverse_dynamics_dataset(
+    system: System,
+    n: int,
+    generator: torch.Generator,
+    q_scale: float = math.pi,
+    qd_scale: float = 1.0,
+    qdd_scale: float = 5.0,
+) -> TensorDict:
+    """n random states and accelerations with MuJoCo's inverse dynamics, any joint type.
+
+    q as `_random_positions` (hinges within their ranges where limited), qd ~ N(0, qd_scale^2)
+    and qdd ~ N(0, qdd_scale^2) per DoF; tau = `mj_inverse` with contacts and limits disabled:
+    the generalized force on every DoF (a floating base's 6 included) that produces qdd.
+
+    Returns a float64 TensorDict of batch size (n,) with keys `q` (n, nq), `qd`, `qdd`,
+    `tau` (n, nv) and `action` = tau, so a model with actuation B = I (one "actuator" per
+    DoF) learns the generalized force directly.
+    """
+    if n < 1 or q_scale <= 0 or qd_scale < 0 or qdd_scale < 0:
+        raise ValueError(
+            f"need n >= 1, q_scale > 0, qd_scale, qdd_scale >= 0, got "
+            f"{n}, {q_scale}, {qd_scale}, {qdd_scale}"
+        )
+    model = _free_model(system)
+    q = _random_positions(model, n, generator, q_scale)
+    qd = qd_scale * torch.randn(n, model.nv, generator=generator, dtype=F64)
+    qdd = qdd_scale * torch.randn(n, model.nv, generator=generator, dtype=F64)
+    data = mujoco.MjData(model)
+    tau = np.zeros((n, model.nv))
+    for i, (qi, qdi, qddi) in enumerate(zip(q.numpy(), qd.numpy(), qdd.numpy(), strict=True)):
+        data.qpos[:], data.qvel[:], data.qacc[:] = qi, qdi, qddi
+        mujoco.mj_inverse(model, data)
+        tau[i] = data.qfrc_inverse
+    tau_t = torch.from_numpy(tau)
+    return TensorDict(
+        {keys.Q: q, keys.QD: qd, keys.QDD: qdd, keys.TAU: tau_t, keys.ACTION: tau_t.clone()},
+        batch_size=[n],
+    )

@@ -101,33 +101,62 @@ class LagrangianNetwork(MechanicsField):
         n_off = n * (n - 1) // 2
         self.trunk = TangentMLP(features.n_features, n + n_off + 1, hidden, layers, activation)
         rows, cols = torch.tril_indices(n, n, -1)
-        gather = torch.full((n * n,), n + n_off, dtype=torch.long)  # default: the zero slot
-        gather[torch.arange(n) * (n + 1)] = torch.arange(n)
-        gather[rows * n + cols] = n + torch.arange(n_off)
+        # row of [diag head rows; strictly-lower head rows; a zero row] for each entry of L
+        layout = torch.full((n * n,), n + n_off, dtype=torch.long)
+        layout[torch.arange(n) * (n + 1)] = torch.arange(n)
+        layout[rows * n + cols] = n + torch.arange(n_off)
+        self.register_buffer("layout", layout, persistent=False)
         self.register_buffer("rows", rows, persistent=False)
         self.register_buffer("cols", cols, persistent=False)
-        self.register_buffer("gather", gather, persistent=False)
+        # per-row scale of L (M = D L~ L~^T D, D = diag(row_scale)) and scale of V: constant
+        # changes of units, set from data (`DeLaN.fit_normalization`), 1 by default
+        self.register_buffer("row_scale", torch.ones(n))
+        self.register_buffer("energy_scale", torch.ones(()))
+        row_of_entry = torch.arange(n).repeat_interleave(n)
+        row_of_entry[torch.arange(n) * (n + 1)] = n  # diagonal entries: unscaled (slot n)
+        self.register_buffer("row_of_entry", row_of_entry, persistent=False)
 
-    def _assemble(self, diag: Tensor, off: Tensor) -> Tensor:
-        """(..., n), (..., n(n-1)/2) -> lower-triangular (..., n, n)."""
-        flat = torch.cat([diag, off, diag.new_zeros(diag.shape[:-1] + (1,))], dim=-1)
-        return flat[..., self.gather].unflatten(-1, (self.n, self.n))
+    def _matrix_head(self) -> tuple[Tensor, Tensor]:
+        """The L head laid out as the matrix L, row-major: weight (n*n, hidden), bias (n*n,).
+
+        Entries above the diagonal get zero rows, so `linear(h, W, b)` gives the raw L
+        directly (no per-sample gather), and a cotangent on all of L maps back with one
+        matmul (the entries above the diagonal meet zero rows). Costs one gather of the
+        weights per call, independent of the batch.
+        """
+        head = self.trunk.head
+        weight = torch.cat([head.weight[:-1], head.weight.new_zeros(1, head.in_features)])
+        bias = torch.cat([head.bias[:-1], head.bias.new_zeros(1)])
+        scale = torch.cat([self.row_scale, self.row_scale.new_ones(1)])[self.row_of_entry]
+        weight = weight.index_select(0, self.layout) * scale.unsqueeze(-1)
+        return weight, bias.index_select(0, self.layout) * scale
 
     def jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
-        n = self.n
-        fwd = self.trunk(self.features(q), self.features.jvp(q, qd))
-        raw_diag, off = fwd.out[..., :n], fwd.out[..., n:-1]
-        slope = torch.sigmoid(raw_diag)
-        L = self._assemble(F.softplus(raw_diag) + self.diag_shift, off)
-        L_dot = self._assemble(slope * fwd.d_out[..., :n], fwd.d_out[..., n:-1])
+        n, head = self.n, self.trunk.head
+        body = self.trunk.body(self.features(q), self.features.jvp(q, qd))
+        weight, bias = self._matrix_head()
+        raw = F.linear(body.out, weight, bias).unflatten(-1, (n, n))  # (..., n, n), 0 above
+        d_raw = (body.d_out @ weight.T).unflatten(-1, (n, n))
+        raw_diag = torch.diagonal(raw, dim1=-2, dim2=-1).clone()  # (..., n), unscaled
+        diag_slope = self.row_scale * torch.sigmoid(raw_diag)  # d L_ii / d raw_ii
+        L = raw  # fresh output of `linear`: its diagonal is replaced in place
+        diag = self.row_scale * (F.softplus(raw_diag) + self.diag_shift)
+        torch.diagonal(L, dim1=-2, dim2=-1).copy_(diag)
+        L_dot = d_raw
+        torch.diagonal(L_dot, dim1=-2, dim2=-1).mul_(diag_slope)
+        v_weight, v_bias = head.weight[-1] * self.energy_scale, head.bias[-1:] * self.energy_scale
+        potential = F.linear(body.out, v_weight.unsqueeze(0), v_bias).squeeze(-1)
 
         def pullback(d_L: Tensor, d_V: Tensor) -> Tensor:
-            d_diag = torch.diagonal(d_L, dim1=-2, dim2=-1) * slope
-            d_off = d_L[..., self.rows, self.cols]
-            d_out = torch.cat([d_diag, d_off, d_V.unsqueeze(-1)], dim=-1)
-            return self.features.vjp(q, self.trunk.vjp(fwd, d_out))
+            d_diag = torch.diagonal(d_L, dim1=-2, dim2=-1)  # (..., n)
+            d_hidden = (
+                d_L.flatten(-2) @ weight  # every entry as if raw; diagonal fixed below
+                + ((diag_slope - 1.0) * d_diag) @ head.weight[:n]
+                + d_V.unsqueeze(-1) * v_weight
+            )
+            return self.features.vjp(q, self.trunk.body_vjp(body, d_hidden))
 
-        return MechanicsJet(L=L, L_dot=L_dot, potential_energy=fwd.out[..., -1], pullback=pullback)
+        return MechanicsJet(L=L, L_dot=L_dot, potential_energy=potential, pullback=pullback)
 
 
 class Dissipation(nn.Module):
@@ -169,26 +198,26 @@ class LagrangianDynamics(nn.Module):
         rot = torch.zeros(0, 3, dtype=torch.long) if rotational_dofs is None else rotational_dofs
         self.register_buffer("rotational_dofs", rot.long(), persistent=False)
 
-    def _euler_poincare(self, L: Tensor, w: Tensor, qd: Tensor) -> Tensor:
-        """omega x (M qd)_omega per ball/free joint, zero elsewhere. (..., n)
+    def _add_euler_poincare(self, force: Tensor, L: Tensor, w: Tensor, qd: Tensor) -> Tensor:
+        """force + omega x (M qd)_omega on each ball/free joint's angular DoFs. (..., n)
 
         With body-frame angular velocities (quasi-velocities) the Euler-Lagrange equations
         gain this term (Euler's omega x I omega for a single body); M qd = L w.
         """
-        out = torch.zeros_like(qd)
-        if self.rotational_dofs.numel():
-            momentum = (L @ w.unsqueeze(-1)).squeeze(-1)
-            idx = self.rotational_dofs
-            out[..., idx] = torch.linalg.cross(qd[..., idx], momentum[..., idx], dim=-1)
-        return out
+        if not self.rotational_dofs.numel():
+            return force
+        idx = self.rotational_dofs  # (K, 3)
+        momentum = (L @ w.unsqueeze(-1)).squeeze(-1)
+        term = torch.linalg.cross(qd[..., idx], momentum[..., idx], dim=-1)  # (..., K, 3)
+        return force.index_add(-1, idx.flatten(), term.flatten(-2))
 
     @staticmethod
-    def _velocity_products(jet: MechanicsJet, qd: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """w = L^T qd, Mdot qd = Ldot w + L Ldot^T qd, and the cotangent qd w^T."""
+    def _velocity_products(jet: MechanicsJet, qd: Tensor) -> tuple[Tensor, Tensor]:
+        """w = L^T qd and Mdot qd = Ldot w + L Ldot^T qd. (..., n) each"""
         w = (jet.L.transpose(-1, -2) @ qd.unsqueeze(-1)).squeeze(-1)
         w_dot = (jet.L_dot.transpose(-1, -2) @ qd.unsqueeze(-1)).squeeze(-1)
         m_dot_qd = (jet.L_dot @ w.unsqueeze(-1) + jet.L @ w_dot.unsqueeze(-1)).squeeze(-1)
-        return w, m_dot_qd, qd.unsqueeze(-1) * w.unsqueeze(-2)
+        return w, m_dot_qd
 
     def _dissipation(self, qd: Tensor) -> Tensor:
         return torch.zeros_like(qd) if self.dissipation is None else self.dissipation(qd)
@@ -196,15 +225,15 @@ class LagrangianDynamics(nn.Module):
     def terms(self, q: Tensor, qd: Tensor) -> LagrangianTerms:
         """All terms at (q, qd): (..., nq), (..., n). Two reverse passes (c and g apart)."""
         jet = self.field.jet(q, qd)
-        w, m_dot_qd, kinetic_cotangent = self._velocity_products(jet, qd)
+        w, m_dot_qd = self._velocity_products(jet, qd)
         zero_v = torch.zeros_like(jet.potential_energy)
+        kinetic_cotangent = qd.unsqueeze(-1) * w.unsqueeze(-2)  # qd w^T, (..., n, n)
         half_grad_kinetic = jet.pullback(kinetic_cotangent, zero_v)  # 1/2 d(qd^T M qd)/dq
         gravity = jet.pullback(torch.zeros_like(jet.L), torch.ones_like(zero_v))
-        euler_poincare = self._euler_poincare(jet.L, w, qd)
         return LagrangianTerms(
             mass_matrix=jet.L @ jet.L.transpose(-1, -2),
             cholesky=jet.L,
-            coriolis=m_dot_qd - half_grad_kinetic + euler_poincare,
+            coriolis=self._add_euler_poincare(m_dot_qd - half_grad_kinetic, jet.L, w, qd),
             gravity=gravity,
             dissipation=self._dissipation(qd),
             kinetic_energy=0.5 * (w * w).sum(-1),
@@ -214,11 +243,12 @@ class LagrangianDynamics(nn.Module):
     def _bias_and_cholesky(self, q: Tensor, qd: Tensor) -> tuple[Tensor, Tensor]:
         """c + g + d with one reverse pass (the pullback is linear), and L."""
         jet = self.field.jet(q, qd)
-        w, m_dot_qd, kinetic_cotangent = self._velocity_products(jet, qd)
+        w, m_dot_qd = self._velocity_products(jet, qd)
+        minus_kinetic_cotangent = (-qd).unsqueeze(-1) * w.unsqueeze(-2)  # -qd w^T
         coriolis_gravity = m_dot_qd + jet.pullback(
-            -kinetic_cotangent, torch.ones_like(jet.potential_energy)
+            minus_kinetic_cotangent, torch.ones_like(jet.potential_energy)
         )
-        coriolis_gravity = coriolis_gravity + self._euler_poincare(jet.L, w, qd)
+        coriolis_gravity = self._add_euler_poincare(coriolis_gravity, jet.L, w, qd)
         return coriolis_gravity + self._dissipation(qd), jet.L
 
     def inverse_dynamics(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
@@ -260,6 +290,16 @@ class DeLaN(WorldModel):
     normalised by the std of the one-step change; 'inverse' compares the predicted torque
     B a with DeLaN's inverse dynamics at the finite-difference acceleration (or the batch's
     `qdd` when present), normalised by the per-DoF torque std; 'both' adds them.
+
+    A DoF without actuator has tau = 0 in every sample; its torque error is normalised by
+    `unactuated_torque_scale` times the largest actuated std (a std floor would give it 10^4
+    times the weight and pull M towards 0, see docs/benchmarks.md, suite identify).
+
+    Safety at extreme inputs: `fit_normalization` also standardises the plain position
+    features (bounded at +-5 std, see `QFeatures`) and sets `velocity_limit` to
+    `velocity_margin` times the largest |qd| in the data per DoF; `step` evaluates the
+    dynamics at velocities clamped to it and clamps the velocity it returns, so any finite
+    state and action give a finite next state.
     """
 
     def __init__(
@@ -276,6 +316,11 @@ class DeLaN(WorldModel):
         loss: str = "forward",
         dissipation: bool = True,
         coulomb: bool = True,
+        unactuated_torque_scale: float = 1.0,
+        velocity_margin: float = 3.0,
+        max_velocity: float = 100.0,
+        compile_step: bool = False,
+        inertia_scaling: bool = False,
     ) -> None:
         super().__init__()
         if integrator not in INTEGRATORS:
@@ -284,6 +329,15 @@ class DeLaN(WorldModel):
             raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
         if control_dt <= 0 or substeps < 1:
             raise ValueError(f"need control_dt > 0 and substeps >= 1, got {control_dt}, {substeps}")
+        if min(unactuated_torque_scale, velocity_margin, max_velocity) <= 0:
+            raise ValueError(
+                "need unactuated_torque_scale, velocity_margin, max_velocity > 0, got "
+                f"{unactuated_torque_scale}, {velocity_margin}, {max_velocity}"
+            )
+        self.unactuated_torque_scale = unactuated_torque_scale
+        self.velocity_margin = velocity_margin
+        self.compile_step, self.inertia_scaling = compile_step, inertia_scaling
+        self._compiled_step: Callable[[Tensor, Tensor, Tensor], State] | None = None
         n = layout.nv
         features = QFeatures(layout)
         self.layout, self.control_dt = layout, control_dt
@@ -296,6 +350,7 @@ class DeLaN(WorldModel):
         )
         for name in ("q_scale", "qd_scale", "tau_scale"):
             self.register_buffer(name, torch.ones(n))
+        self.register_buffer("velocity_limit", torch.full((n,), float(max_velocity)))
 
     def terms(self, q: Tensor, qd: Tensor) -> LagrangianTerms:
         return self.dynamics.terms(q, qd)
@@ -307,27 +362,77 @@ class DeLaN(WorldModel):
     def step(
         self, q: Tensor, qd: Tensor, action: Tensor, generator: torch.Generator | None = None
     ) -> State:
+        """One control step. With `compile_step`, calls without autograd (planning) run a
+        `torch.compile`d copy of the step (compiled on first use, again per new shape)."""
+        if self.compile_step and not torch.is_grad_enabled():
+            if self._compiled_step is None:
+                self._compiled_step = torch.compile(self._step, dynamic=False)
+            return self._compiled_step(q, qd, action)
+        return self._step(q, qd, action)
+
+    def _step(self, q: Tensor, qd: Tensor, action: Tensor) -> State:
         tau = self.dynamics.generalized_force(action)
+        limit = self.velocity_limit
 
         def accel(q_: Tensor, qd_: Tensor) -> Tensor:
-            return self.dynamics.forward_dynamics(q_, qd_, tau)
+            return self.dynamics.forward_dynamics(q_, torch.clamp(qd_, -limit, limit), tau)
 
-        return integrate(self.layout, accel, q, qd, self.control_dt, self.integrator, self.substeps)
+        nxt = integrate(self.layout, accel, q, qd, self.control_dt, self.integrator, self.substeps)
+        return State(q=nxt.q, qd=torch.clamp(nxt.qd, -limit, limit))
 
     @torch.no_grad()
     def fit_normalization(self, data: TensorDictBase) -> None:
-        q, qd, q_next, qd_next = (data[k] for k in (keys.Q, keys.QD, keys.NEXT_Q, keys.NEXT_QD))
+        """Loss scales, feature statistics and the velocity limit from training data.
+
+        Inverse-dynamics data without ("next", ...) states set everything but the
+        next-state scales (used by the forward loss only)."""
+        q, qd = data[keys.Q], data[keys.QD]
         tau = self.dynamics.generalized_force(data[keys.ACTION].to(self.q_scale.dtype))
-        self.q_scale.copy_(_scale(differentiate_pos(self.layout, q, q_next, 1.0)))
-        self.qd_scale.copy_(_scale(qd_next - qd))
-        self.tau_scale.copy_(_scale(tau))
+        self.tau_scale.copy_(self._torque_scale(tau))
+        if keys.NEXT_Q in data.keys(include_nested=True):
+            q_next, qd_next = data[keys.NEXT_Q], data[keys.NEXT_QD]
+            self.q_scale.copy_(_scale(differentiate_pos(self.layout, q, q_next, 1.0)))
+            self.qd_scale.copy_(_scale(qd_next - qd))
+            q, qd = torch.cat([q, q_next]), torch.cat([qd, qd_next])
+        if self.inertia_scaling:
+            self._fit_inertia_scale(data, tau)
+        self.dynamics.field.features.standardize(q)
+        speed = qd.abs().amax(dim=0).clamp_min(1e-3)
+        self.velocity_limit.copy_(self.velocity_margin * speed)
+
+    def _fit_inertia_scale(self, data: TensorDictBase, tau: Tensor) -> None:
+        """Units for M and V from the data: M = D L~ L~^T D with D_i^2 = std(tau_i) / std(qdd_i)
+        (an inertia per DoF; an unactuated DoF gets the geometric mean of the others), and
+        V in units of the largest torque std. Starts M near the data's inertia scale, which
+        matters when it spans decades (a humanoid: 40 kg root, 0.02 kg m^2 wrists)."""
+        qdd = data.get(keys.QDD, None)
+        if qdd is None:
+            qdd = (data[keys.NEXT_QD] - data[keys.QD]) / self.control_dt
+        tau_std, qdd_std = tau.std(dim=0), qdd.to(tau.dtype).std(dim=0)
+        known = (tau_std > 1e-8 * tau_std.max()) & (qdd_std > 0)
+        if not known.any():
+            return
+        inertia = torch.ones_like(tau_std)
+        inertia[known] = tau_std[known] / qdd_std[known]
+        inertia[~known] = inertia[known].log().mean().exp()
+        field = self.dynamics.field
+        field.row_scale.copy_(inertia.sqrt())
+        field.energy_scale.fill_(float(tau_std.max()))
+
+    def _torque_scale(self, tau: Tensor) -> Tensor:
+        """Per-DoF torque std; unactuated DoFs get `unactuated_torque_scale` x the largest."""
+        scale = _scale(tau)
+        unactuated = self.dynamics.actuation.abs().sum(dim=-1) == 0
+        if unactuated.any() and not unactuated.all():
+            scale[unactuated] = self.unactuated_torque_scale * scale[~unactuated].max()
+        return scale
 
     def loss(self, batch: TensorDictBase) -> LossOutput:
         q, qd, action = batch[keys.Q], batch[keys.QD], batch[keys.ACTION]
-        q_next, qd_next = batch[keys.NEXT_Q], batch[keys.NEXT_QD]
         metrics: dict[str, float] = {}
         total = q.new_zeros(())
         if self.loss_kind in ("forward", "both"):
+            q_next, qd_next = batch[keys.NEXT_Q], batch[keys.NEXT_QD]
             pred = self.step(q, qd, action)
             e_q = differentiate_pos(self.layout, q_next, pred.q, 1.0) / self.q_scale
             e_qd = (pred.qd - qd_next) / self.qd_scale
@@ -337,7 +442,7 @@ class DeLaN(WorldModel):
         if self.loss_kind in ("inverse", "both"):
             qdd = batch.get(keys.QDD, None)
             if qdd is None:
-                qdd = (qd_next - qd) / self.control_dt
+                qdd = (batch[keys.NEXT_QD] - qd) / self.control_dt
             tau = self.dynamics.generalized_force(action)
             e_tau = (self.dynamics.inverse_dynamics(q, qd, qdd) - tau) / self.tau_scale
             inverse = e_tau.pow(2).mean()

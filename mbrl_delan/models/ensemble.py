@@ -137,7 +137,7 @@ class GaussianEnsemble(WorldModel):
         self.generator: torch.Generator | None = (
             None if seed is None else torch.Generator().manual_seed(seed)
         )
-        self.features = QFeatures(layout)
+        self.features = QFeatures(layout, bound_plain=False)
         self.nv = layout.nv
         self.in_dim = self.features.n_features + self.nv + nu
         self.out_dim = 2 * self.nv
@@ -268,7 +268,9 @@ class GaussianEnsemble(WorldModel):
             return torch.arange(n, device=device).expand(self.ensemble_size, n)
         gen = self.generator
         idx = torch.randint(
-            n, (self.ensemble_size, n), generator=gen,
+            n,
+            (self.ensemble_size, n),
+            generator=gen,
             device=gen.device if gen is not None else torch.device("cpu"),
         )
         return idx.to(device)
@@ -398,8 +400,9 @@ class GaussianEnsemble(WorldModel):
         delta = pred.mean  # (B, D) normalised
         if sample:
             gen_device = generator.device if generator is not None else delta.device
-            noise = torch.randn(delta.shape, generator=generator, device=gen_device,
-                                dtype=delta.dtype).to(delta.device)
+            noise = torch.randn(
+                delta.shape, generator=generator, device=gen_device, dtype=delta.dtype
+            ).to(delta.device)
             delta = delta + noise * torch.exp(0.5 * pred.logvar)
         delta = (delta * self.out_std + self.out_mean).reshape(*lead, self.out_dim)
         v_avg, d_qd = delta.to(q.dtype).split(self.nv, dim=-1)

@@ -2,7 +2,9 @@
 
 Per joint (MuJoCo layout):
 - unlimited hinge: (sin q, cos q);
-- limited hinge, slide: q itself;
+- limited hinge, slide: q standardised with the training data's mean and std (set by
+  `standardize`) and softly bounded, b tanh(z / b) with b = `PLAIN_BOUND`: about z within
+  the data, never beyond +-b, so a far-away position cannot blow up the network;
 - ball: the 9 entries of its rotation matrix R (smooth, and blind to the quaternion's sign);
 - free: the root height z and R; the x/y position is left out (the physics does not depend
   on it), unless `translation_invariant=False`.
@@ -21,10 +23,12 @@ from torch import Tensor, nn
 
 from mbrl_delan.systems.system import BALL, FREE, HINGE, JointLayout
 
+PLAIN_BOUND = 5.0  # plain features saturate at +-5 standard deviations of the data
+
 
 def rotation_matrix(quat: Tensor) -> Tensor:
     """Unit-normalised quaternion (..., 4) as (w, x, y, z) -> rotation matrix (..., 3, 3)."""
-    w, x, y, z = (quat / quat.norm(dim=-1, keepdim=True)).unbind(-1)
+    w, x, y, z = (quat / quat.norm(dim=-1, keepdim=True).clamp_min(1e-12)).unbind(-1)
     rows = (
         (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
         (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
@@ -53,7 +57,11 @@ def unskew_of_rt(R: Tensor, G: Tensor) -> Tensor:
 class QFeatures(nn.Module):
     """phi(q): (..., nq) -> (..., n_features), with jvp/vjp in velocity space (nv)."""
 
-    def __init__(self, layout: JointLayout, translation_invariant: bool = True) -> None:
+    def __init__(
+        self, layout: JointLayout, translation_invariant: bool = True, bound_plain: bool = True
+    ) -> None:
+        """`bound_plain=False` gives the plain coordinates as they are (for models that
+        standardise their inputs themselves)."""
         super().__init__()
         periodic, plain_q, plain_v, rotations, positions = [], [], [], [], []
         for jtype, qa, va, limited in zip(
@@ -81,41 +89,79 @@ class QFeatures(nn.Module):
         self.n_periodic, self.n_plain, self.n_rot = len(periodic), len(plain_q), len(rotations)
         self.nq, self.nv = layout.nq, layout.nv
         self.n_features = 2 * self.n_periodic + self.n_plain + 9 * self.n_rot
+        self.bound_plain = bound_plain
+        self.register_buffer("plain_mean", torch.zeros(self.n_plain))
+        self.register_buffer("plain_std", torch.ones(self.n_plain))
+        self._index("velocity_order", self._velocity_order())
+
+    @torch.no_grad()
+    def standardize(self, q: Tensor) -> None:
+        """Set the plain features' mean and std from positions (N, nq) (std floored at 1e-3)."""
+        plain = _take(q.reshape(-1, q.shape[-1]), self.plain_q).to(self.plain_mean.dtype)
+        if self.n_plain and plain.shape[0] > 1:
+            self.plain_mean.copy_(plain.mean(dim=0))
+            self.plain_std.copy_(plain.std(dim=0).clamp_min(1e-3))
+
+    def _plain(self, q: Tensor) -> tuple[Tensor, Tensor]:
+        """Bounded standardised plain features and their derivative per unit of q. (..., m)"""
+        if not self.bound_plain:
+            plain = _take(q, self.plain_q)
+            return plain, torch.ones_like(plain)
+        z = (_take(q, self.plain_q) - self.plain_mean) / self.plain_std
+        bounded = torch.tanh(z / PLAIN_BOUND)
+        return PLAIN_BOUND * bounded, (1.0 - bounded * bounded) / self.plain_std
 
     def _index(self, name: str, values: list, empty_shape: tuple[int, ...] = (0,)) -> None:
         t = torch.tensor(values, dtype=torch.long) if values else torch.zeros(empty_shape).long()
         self.register_buffer(name, t, persistent=False)
 
+    def _velocity_order(self) -> list[int]:
+        """For each velocity index, its place in [periodic, plain, rotation, zero] cotangents."""
+        placed = self.periodic_v.tolist() + self.plain_v.tolist() + self.rot_v.flatten().tolist()
+        where = {v: i for i, v in enumerate(placed)}
+        return [where.get(v, len(placed)) for v in range(self.nv)]
+
     def _rotations(self, q: Tensor) -> Tensor:
         """(..., nq) -> (..., K, 3, 3)."""
-        return rotation_matrix(q[..., self.rot_q])
+        return rotation_matrix(_take(q, self.rot_q.flatten()).unflatten(-1, (self.n_rot, 4)))
 
     def forward(self, q: Tensor) -> Tensor:
         """(..., nq) -> (..., n_features)."""
-        qp = q[..., self.periodic_q]
-        parts = [torch.sin(qp), torch.cos(qp), q[..., self.plain_q]]
+        qp = _take(q, self.periodic_q)
+        parts = [torch.sin(qp), torch.cos(qp), self._plain(q)[0]]
         if self.n_rot:
             parts.append(self._rotations(q).flatten(-3))
         return torch.cat(parts, dim=-1)
 
     def jvp(self, q: Tensor, v: Tensor) -> Tensor:
         """d phi(q (+) eps v) / d eps at 0: (..., nq), (..., nv) -> (..., n_features)."""
-        qp, vp = q[..., self.periodic_q], v[..., self.periodic_v]
-        parts = [torch.cos(qp) * vp, -torch.sin(qp) * vp, v[..., self.plain_v]]
+        qp, vp = _take(q, self.periodic_q), _take(v, self.periodic_v)
+        parts = [
+            torch.cos(qp) * vp,
+            -torch.sin(qp) * vp,
+            self._plain(q)[1] * _take(v, self.plain_v),
+        ]
         if self.n_rot:
-            R = self._rotations(q)
-            parts.append((R @ skew(v[..., self.rot_v])).flatten(-3))
+            omega = _take(v, self.rot_v.flatten()).unflatten(-1, (self.n_rot, 3))
+            parts.append((self._rotations(q) @ skew(omega)).flatten(-3))
         return torch.cat(parts, dim=-1)
 
     def vjp(self, q: Tensor, cotangent: Tensor) -> Tensor:
         """Cotangent on the features -> cotangent in velocity space: (..., nf) -> (..., nv)."""
         k, m = self.n_periodic, self.n_plain
-        qp = q[..., self.periodic_q]
+        qp = _take(q, self.periodic_q)
         c_sin, c_cos = cotangent[..., :k], cotangent[..., k : 2 * k]
-        out = cotangent.new_zeros(cotangent.shape[:-1] + (self.nv,))
-        out[..., self.periodic_v] = torch.cos(qp) * c_sin - torch.sin(qp) * c_cos
-        out[..., self.plain_v] = cotangent[..., 2 * k : 2 * k + m]
+        parts = [
+            torch.cos(qp) * c_sin - torch.sin(qp) * c_cos,
+            self._plain(q)[1] * cotangent[..., 2 * k : 2 * k + m],
+        ]
         if self.n_rot:
             G = cotangent[..., 2 * k + m :].unflatten(-1, (self.n_rot, 3, 3))
-            out[..., self.rot_v] = unskew_of_rt(self._rotations(q), G)
-        return out
+            parts.append(unskew_of_rt(self._rotations(q), G).flatten(-2))
+        parts.append(cotangent.new_zeros(cotangent.shape[:-1] + (1,)))
+        return _take(torch.cat(parts, dim=-1), self.velocity_order)
+
+
+def _take(x: Tensor, index: Tensor) -> Tensor:
+    """x[..., index] for a 1-d index (index_select: faster than advanced indexing)."""
+    return x.index_select(-1, index)

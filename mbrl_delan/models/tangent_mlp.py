@@ -52,21 +52,29 @@ class TangentMLP(nn.Module):
         self.head = nn.Linear(hidden, n_out)
         self.activation = activation
 
-    def forward(self, x: Tensor, dx: Tensor | None = None) -> MLPPass:
-        """x: (..., n_in); dx: optional tangent (..., n_in)."""
+    def body(self, x: Tensor, dx: Tensor | None = None) -> MLPPass:
+        """The hidden layers only: `out` is the last hidden activation (..., hidden)."""
         slopes = []
         for layer in self.hidden:
-            z = layer(x)
-            x, slope = _activate(self.activation, z)
+            x, slope = _activate(self.activation, layer(x))
             if dx is not None:
                 dx = slope * (dx @ layer.weight.T)
             slopes.append(slope)
-        d_out = None if dx is None else dx @ self.head.weight.T
-        return MLPPass(out=self.head(x), d_out=d_out, slopes=slopes)
+        return MLPPass(out=x, d_out=dx, slopes=slopes)
 
-    def vjp(self, fwd: MLPPass, cotangent: Tensor) -> Tensor:
-        """(d out / d x)^T cotangent: (..., n_out) -> (..., n_in)."""
-        g = cotangent @ self.head.weight
+    def body_vjp(self, fwd: MLPPass, cotangent: Tensor) -> Tensor:
+        """Cotangent on the last hidden activation (..., hidden) -> on the input (..., n_in)."""
+        g = cotangent
         for layer, slope in zip(reversed(self.hidden), reversed(fwd.slopes), strict=True):
             g = (g * slope) @ layer.weight
         return g
+
+    def forward(self, x: Tensor, dx: Tensor | None = None) -> MLPPass:
+        """x: (..., n_in); dx: optional tangent (..., n_in)."""
+        body = self.body(x, dx)
+        d_out = None if body.d_out is None else body.d_out @ self.head.weight.T
+        return MLPPass(out=self.head(body.out), d_out=d_out, slopes=body.slopes)
+
+    def vjp(self, fwd: MLPPass, cotangent: Tensor) -> Tensor:
+        """(d out / d x)^T cotangent: (..., n_out) -> (..., n_in)."""
+        return self.body_vjp(fwd, cotangent @ self.head.weight)
