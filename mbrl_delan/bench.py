@@ -17,6 +17,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from mbrl_delan.benchmarks import (
+    PLANNER_MODELS,
     SUITE_NAMES,
     SuiteOptions,
     TimingConfig,
@@ -24,7 +25,7 @@ from mbrl_delan.benchmarks import (
     get_suite,
 )
 from mbrl_delan.benchmarks.records import RecordWriter, format_table
-from mbrl_delan.config import ConfigError, check_device
+from mbrl_delan.config import PLANNER_NAMES, ConfigError, check_device
 
 log = logging.getLogger("mbrl_delan.bench")
 
@@ -35,6 +36,7 @@ QUICK = {
     "min_time_s": 0.01,
     "warmup": 1,
     "matmul_size": 256,
+    "compile_batch": [],
 }
 
 
@@ -47,10 +49,43 @@ def _positive_ints(name: str, values: Any) -> tuple[int, ...]:
     return tuple(items)
 
 
+def _optional_positive_int(name: str, value: Any) -> int | None:
+    """None (the suite's default) or an integer >= 1."""
+    if value is None:
+        return None
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+        raise ConfigError(f"{name}={value!r} is not valid; it must be null or an integer >= 1")
+    return value
+
+
+def _optional_positive_ints(name: str, values: Any) -> tuple[int, ...] | None:
+    """None (the suite's default) or a non-empty list of integers >= 1."""
+    return None if values is None else _positive_ints(name, values)
+
+
+def _optional_choices(name: str, values: Any, choices: tuple[str, ...]) -> tuple[str, ...] | None:
+    """None (the suite's default) or a non-empty list of names from `choices`."""
+    if values is None:
+        return None
+    items = list(values) if OmegaConf.is_list(values) or isinstance(values, list) else [values]
+    if not items or not all(v in choices for v in items):
+        raise ConfigError(
+            f"{name}={values!r} is not valid; use null or a list of: {', '.join(choices)}"
+        )
+    return tuple(items)
+
+
 def _positive(name: str, value: Any) -> float:
     if not isinstance(value, int | float) or isinstance(value, bool) or value <= 0:
         raise ConfigError(f"{name}={value!r} is not valid; it must be a number > 0")
     return float(value)
+
+
+def _compile_batch(values: Any) -> tuple[int, ...]:
+    """An empty list (no compiled figures) or batch sizes >= 1."""
+    if values is None or (OmegaConf.is_list(values) or isinstance(values, list)) and not values:
+        return ()
+    return _positive_ints("compile_batch", values)
 
 
 def build_options(cfg: DictConfig) -> SuiteOptions:
@@ -77,6 +112,16 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         max_memory_bytes=int(_positive("max_memory_gb", values["max_memory_gb"]) * 1024**3),
         matmul_size=_positive_ints("matmul_size", values["matmul_size"])[0],
         humanoid=bool(values["humanoid"]),
+        compile_batch=_compile_batch(values["compile_batch"]),
+        quick=bool(values["quick"]),
+        n_samples=_optional_positive_int("n_samples", values["n_samples"]),
+        max_epochs=_optional_positive_int("max_epochs", values["max_epochs"]),
+        planners=_optional_choices("planners", values["planners"], PLANNER_NAMES),
+        models=_optional_choices("models", values["models"], PLANNER_MODELS),
+        num_samples=_optional_positive_ints("num_samples", values["num_samples"]),
+        horizons=_optional_positive_ints("horizons", values["horizons"]),
+        iterations=_optional_positive_ints("iterations", values["iterations"]),
+        torchrl=bool(values["torchrl"]),
     )
 
 

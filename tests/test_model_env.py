@@ -25,8 +25,9 @@ class DoubleIntegrator(WorldModel):
         super().__init__()
         self.register_buffer("offsets", torch.tensor(offsets, dtype=dtype))
 
-    def step(self, q: Tensor, qd: Tensor, action: Tensor,
-             generator: torch.Generator | None = None) -> State:
+    def step(
+        self, q: Tensor, qd: Tensor, action: Tensor, generator: torch.Generator | None = None
+    ) -> State:
         batch = q.shape[:-1]
         flat = torch.arange(batch.numel(), device=q.device).reshape(batch)
         offset = self.offsets[flat % self.offsets.numel()].unsqueeze(-1)  # (..., 1)
@@ -51,8 +52,7 @@ class QuadraticTask(Task):
     def initial_state(self, batch_shape: tuple[int, ...], generator: torch.Generator) -> State:
         shape = (*batch_shape, 1)
         q = torch.rand(shape, generator=generator, dtype=torch.float64, device=generator.device)
-        return State(q=q - 0.5, qd=torch.zeros(shape, dtype=torch.float64,
-                                               device=generator.device))
+        return State(q=q - 0.5, qd=torch.zeros(shape, dtype=torch.float64, device=generator.device))
 
 
 class EndlessQuadraticTask(QuadraticTask):
@@ -104,8 +104,9 @@ def test_model_objective_particles_mean_over_members() -> None:
 
 def test_model_objective_casts_to_model_dtype() -> None:
     model = DoubleIntegrator(dtype=torch.float64)
-    objective = model_objective_factory(model, QuadraticTask())(one(0.0, torch.float32),
-                                                                one(0.0, torch.float32))
+    objective = model_objective_factory(model, QuadraticTask())(
+        one(0.0, torch.float32), one(0.0, torch.float32)
+    )
     returns = objective(torch.ones(2, 3, 1, dtype=torch.float32))
     assert returns.dtype == torch.float32
     assert returns[0].item() == pytest.approx(-0.3010, abs=1e-6)
@@ -130,8 +131,9 @@ def test_model_objective_restores_training_mode() -> None:
 def test_planner_on_toy_model_brakes(planner_cls: type) -> None:
     """From q = 1, moving away at qd = 1, the first action must push back (negative)."""
     kwargs = {"num_elites": 20} if planner_cls is CEMPlanner else {"temperature": 0.1}
-    planner = planner_cls(10, [-1.0], [1.0], num_samples=200, iterations=5,
-                          dtype=torch.float64, **kwargs)
+    planner = planner_cls(
+        10, [-1.0], [1.0], num_samples=200, iterations=5, dtype=torch.float64, **kwargs
+    )
     task = EndlessQuadraticTask()
     objective = model_objective_factory(DoubleIntegrator(), task)(one(1.0), one(1.0))
     result = planner.plan(objective, None, torch.Generator().manual_seed(0))
@@ -143,8 +145,15 @@ def test_model_env_check_env_specs() -> None:
     env = ModelEnv(DoubleIntegrator(), QuadraticTask(), system, seed=0)
     check_env_specs(env)
     td = env.rollout(5)
-    for key in (keys.Q, keys.QD, keys.ACTION, keys.NEXT_REWARD, keys.NEXT_DONE,
-                keys.NEXT_TERMINATED, keys.NEXT_TRUNCATED):
+    for key in (
+        keys.Q,
+        keys.QD,
+        keys.ACTION,
+        keys.NEXT_REWARD,
+        keys.NEXT_DONE,
+        keys.NEXT_TERMINATED,
+        keys.NEXT_TRUNCATED,
+    ):
         assert key in td.keys(include_nested=True), key
     assert td[keys.NEXT_Q].dtype == torch.float64
     # the step is the toy model's
@@ -153,8 +162,9 @@ def test_model_env_check_env_specs() -> None:
 
 def test_model_env_batched_and_terminates() -> None:
     system = load_system("pendulum", frame_skip=5)
-    env = ModelEnv(DoubleIntegrator(dtype=torch.float32), QuadraticTask(), system,
-                   batch_size=(4,), seed=1)
+    env = ModelEnv(
+        DoubleIntegrator(dtype=torch.float32), QuadraticTask(), system, batch_size=(4,), seed=1
+    )
     check_env_specs(env)
     td = env.reset()
     assert td[keys.Q].shape == (4, 1) and td[keys.Q].dtype == torch.float32
@@ -181,8 +191,9 @@ def test_model_placement_without_parameters_is_float64() -> None:
             nn.Module.__init__(self)
             self.offsets = torch.zeros(1)  # plain attribute, not a buffer
 
-    objective = model_objective_factory(Bare(), QuadraticTask())(one(0.0, torch.float32),
-                                                                 one(0.0, torch.float32))
+    objective = model_objective_factory(Bare(), QuadraticTask())(
+        one(0.0, torch.float32), one(0.0, torch.float32)
+    )
     assert objective(torch.ones(1, 3, 1)).item() == pytest.approx(-0.301, abs=1e-6)
 
 
@@ -194,3 +205,18 @@ def test_model_env_partial_reset_keeps_other_envs() -> None:
     td[env.reset_keys[0]] = torch.tensor([[True], [False], [True], [False]])
     q = env.reset(td)[keys.Q][:, 0]
     assert (q[[1, 3]] == 9.0).all() and (q[[0, 2]].abs() <= 0.5).all()
+
+
+def test_torchrl_planner_runs_through_terminations() -> None:
+    """The env is not batch-locked: TorchRL's planners expand the start state to
+    (num_candidates,) and reset the candidates that terminate mid-rollout; the reset must
+    give states for that whole batch."""
+    from torchrl.modules.planners import CEMPlanner as TorchRLCEMPlanner
+
+    env = ModelEnv(DoubleIntegrator(), QuadraticTask(), load_system("pendulum"), seed=0)
+    start = env.reset()
+    start[keys.Q] = torch.full((1,), 1.95, dtype=torch.float64)  # q > 2 after one step
+    start[keys.QD] = torch.ones(1, dtype=torch.float64)
+    planner = TorchRLCEMPlanner(env, planning_horizon=3, optim_steps=1, num_candidates=8, top_k=2)
+    action = planner(start.clone())[keys.ACTION]
+    assert action.shape == (1,) and torch.isfinite(action).all()

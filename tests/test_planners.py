@@ -69,15 +69,24 @@ def test_finds_clipped_optimum(kind: str) -> None:
 
 
 def test_bounds_per_dimension_and_float64() -> None:
-    planner = CEMPlanner(H, [0.0, -2.0], [0.5, -1.0], num_samples=100, num_elites=10,
-                         iterations=4, dtype=torch.float64)
-    result = planner.plan(quadratic(torch.zeros(H, NU, dtype=torch.float64)), None,
-                          torch.Generator().manual_seed(0))
+    planner = CEMPlanner(
+        H,
+        [0.0, -2.0],
+        [0.5, -1.0],
+        num_samples=100,
+        num_elites=10,
+        iterations=4,
+        dtype=torch.float64,
+    )
+    result = planner.plan(
+        quadratic(torch.zeros(H, NU, dtype=torch.float64)), None, torch.Generator().manual_seed(0)
+    )
     assert result.mean.dtype == torch.float64
     assert (result.mean[:, 0] >= 0).all() and (result.mean[:, 0] <= 0.5).all()
     assert (result.mean[:, 1] >= -2).all() and (result.mean[:, 1] <= -1).all()
-    torch.testing.assert_close(result.first_action, torch.tensor([0.0, -1.0]).double(),
-                               atol=TOL, rtol=0)
+    torch.testing.assert_close(
+        result.first_action, torch.tensor([0.0, -1.0]).double(), atol=TOL, rtol=0
+    )
 
 
 def test_mppi_weights_finite_at_huge_returns() -> None:
@@ -101,6 +110,7 @@ def test_mppi_plan_finite_at_huge_returns() -> None:
 
 def test_nan_returns_are_worst() -> None:
     """Samples whose return is NaN never become elites."""
+
     def objective(actions: Tensor) -> Tensor:
         returns = quadratic(TARGET)(actions)
         return torch.where(actions[:, 0, 0] > 0, torch.nan, returns)
@@ -115,22 +125,23 @@ def test_shift(fill: str) -> None:
     mean = torch.tensor([[0.1], [0.2], [0.3]])
     last = 0.3 if fill == "repeat" else 0.0
     torch.testing.assert_close(planner.shift(mean), torch.tensor([[0.2], [0.3], [last]]))
-    torch.testing.assert_close(planner.shift(mean, steps=2),
-                               torch.tensor([[0.3], [last], [last]]))
+    torch.testing.assert_close(planner.shift(mean, steps=2), torch.tensor([[0.3], [last], [last]]))
     torch.testing.assert_close(planner.shift(mean, steps=5), torch.full((3, 1), last))
 
 
 def test_zero_fill_respects_bounds() -> None:
     planner = MPPIPlanner(2, [0.5], [1.0], shift_fill="zero")
-    torch.testing.assert_close(planner.shift(torch.tensor([[0.7], [0.8]])),
-                               torch.tensor([[0.8], [0.5]]))
+    torch.testing.assert_close(
+        planner.shift(torch.tensor([[0.7], [0.8]])), torch.tensor([[0.8], [0.5]])
+    )
     torch.testing.assert_close(planner.initial_mean(), torch.full((2, 1), 0.5))
 
 
 def test_warm_start_is_used() -> None:
     """One iteration of CEM with tiny std stays at the warm start it was given."""
-    planner = CEMPlanner(H, LOW, HIGH, num_samples=20, num_elites=5, iterations=1,
-                         init_std=1e-4, momentum=0.0)
+    planner = CEMPlanner(
+        H, LOW, HIGH, num_samples=20, num_elites=5, iterations=1, init_std=1e-4, momentum=0.0
+    )
     warm = TARGET.clone()
     result = planner.plan(quadratic(torch.zeros(H, NU)), warm, torch.Generator().manual_seed(0))
     torch.testing.assert_close(result.mean, warm, atol=1e-3, rtol=0)
@@ -160,8 +171,11 @@ def test_cem_validation(kwargs: dict, bad: str) -> None:
 
 @pytest.mark.parametrize(
     ("kwargs", "bad"),
-    [(dict(temperature=0.0), "temperature"), (dict(noise_std=-0.1), "init_std"),
-     (dict(num_samples=0), "num_samples")],
+    [
+        (dict(temperature=0.0), "temperature"),
+        (dict(noise_std=-0.1), "init_std"),
+        (dict(num_samples=0), "num_samples"),
+    ],
 )
 def test_mppi_validation(kwargs: dict, bad: str) -> None:
     args = dict(horizon=H, action_low=LOW, action_high=HIGH)
@@ -206,8 +220,10 @@ def test_policy_in_real_env_rollout() -> None:
 
 def states(n: int) -> list[TensorDict]:
     g = torch.Generator().manual_seed(123)
-    return [TensorDict({keys.Q: torch.randn(1, generator=g), keys.QD: torch.randn(1, generator=g)})
-            for _ in range(n)]
+    return [
+        TensorDict({keys.Q: torch.randn(1, generator=g), keys.QD: torch.randn(1, generator=g)})
+        for _ in range(n)
+    ]
 
 
 def test_policy_replans_every_k() -> None:
@@ -273,8 +289,9 @@ def mj_step_return(system, task, q0, qd0, actions: np.ndarray, discount: float) 
     return total
 
 
-@pytest.mark.parametrize(("task", "discount"), [(PendulumSwingup(), 1.0),
-                                                 (PendulumWithLimit(), 0.9)])
+@pytest.mark.parametrize(
+    ("task", "discount"), [(PendulumSwingup(), 1.0), (PendulumWithLimit(), 0.9)]
+)
 def test_oracle_matches_mj_step_loop(task: PendulumSwingup, discount: float) -> None:
     system = make_env_parts("pendulum").system
     q0, qd0 = np.array([0.1]), np.array([-0.2])
@@ -313,8 +330,15 @@ def test_oracle_mppi_swings_pendulum_up() -> None:
     the test near 15 s on two busy cores (N = 256 also swings up, at twice the cost)."""
     parts = make_env_parts("pendulum")
     system, task = parts.system, parts.task
-    planner = MPPIPlanner(30, system.ctrl_low, system.ctrl_high, num_samples=128,
-                          iterations=1, temperature=0.01, noise_std=0.8)
+    planner = MPPIPlanner(
+        30,
+        system.ctrl_low,
+        system.ctrl_high,
+        num_samples=128,
+        iterations=1,
+        temperature=0.01,
+        noise_std=0.8,
+    )
     env = make_real_env("pendulum", seed=0)
     with mujoco_objective_factory(system, task, nthread=2) as factory:
         policy = PlannerPolicy(planner, factory, replan_every=2, seed=0)
@@ -322,3 +346,12 @@ def test_oracle_mppi_swings_pendulum_up() -> None:
     q = td[keys.NEXT_Q][:, 0].double()
     upright = 0.5 * (1 - torch.cos(q))  # 1 = straight up
     assert upright[-10:].mean() > 0.8, upright[::10]
+
+
+def test_warm_start_keywords_reach_only_planners_that_take_them() -> None:
+    """`plan(**warm)` goes to `_warm_distribution`: CEM and MPPI take none."""
+    for kind in ("cem", "mppi"):
+        planner = make(kind, iterations=1)
+        assert planner.warm_start({}, 1) == {}
+        with pytest.raises(TypeError, match="init_elites"):
+            planner.plan(quadratic(TARGET), None, torch.Generator(), init_elites=TARGET[None])

@@ -25,8 +25,13 @@ Suite = Callable[["SuiteOptions"], Iterator[BenchRecord]]
 _SUITES = {
     "delan": "mbrl_delan.benchmarks.delan:run_delan_suite",
     "identify": "mbrl_delan.benchmarks.identify:run_identify_suite",
+    "planner": "mbrl_delan.benchmarks.planner:run_planner_suite",
 }
 SUITE_NAMES = tuple(_SUITES)
+# world-model cases of suite planner (here so the entry point can check names without
+# importing the suite): DeLaN on the pendulum and on Humanoid-v5's layout, the MLP ensemble on
+# the pendulum, and MuJoCo's true pendulum dynamics (the oracle)
+PLANNER_MODELS = ("pendulum_delan", "humanoid_delan", "pendulum_ensemble", "pendulum_oracle")
 
 
 class UnknownSuiteError(KeyError):
@@ -93,6 +98,18 @@ class SuiteOptions:
     max_memory_bytes: int = 2 * 1024**3  # skip a figure whose main tensors are predicted larger
     matmul_size: int = 2048  # side of the square float32 matmul that gives the peak FLOP/s
     humanoid: bool = True  # nv=62: dm_control's humanoid_CMU.xml when available
+    compile_batch: tuple[int, ...] = ()  # suite delan: batches also timed through torch.compile
+    quick: bool = False  # tiny sizes; each suite applies its own quick sizes
+    # suite identify (None: the suite's default, or its quick size under `quick`)
+    n_samples: int | None = None  # training + validation samples per system
+    max_epochs: int | None = None  # epochs over all learning-rate stages
+    # suite planner (None: the suite's default, or its quick sizes under `quick`)
+    planners: tuple[str, ...] | None = None  # of "mppi", "cem", "icem"
+    models: tuple[str, ...] | None = None  # world-model cases, see benchmarks/planner.py
+    num_samples: tuple[int, ...] | None = None  # samples N per iteration
+    horizons: tuple[int, ...] | None = None  # planning horizons H (control steps)
+    iterations: tuple[int, ...] | None = None  # planner iterations per control step
+    torchrl: bool = True  # also time TorchRL's MPPIPlanner / CEMPlanner where they apply
 
 
 def synchronizer(device: torch.device) -> Callable[[], None]:

@@ -13,6 +13,7 @@ sample is scored by every member equally often.
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -24,7 +25,7 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 
 from mbrl_delan import keys
 from mbrl_delan.models.base import WorldModel
-from mbrl_delan.planners.base import discounted_masked_return
+from mbrl_delan.planners.base import discounted_masked_return, risk_adjusted_return
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
 
@@ -38,7 +39,8 @@ class Placement:
 
 
 def model_placement(
-    model: nn.Module, fallback_device: torch.device | str = "cpu",
+    model: nn.Module,
+    fallback_device: torch.device | str = "cpu",
     fallback_dtype: torch.dtype = torch.float64,
 ) -> Placement:
     """Device and dtype of the model's first floating parameter or buffer, else the fallback."""
@@ -63,13 +65,12 @@ def eval_mode(model: nn.Module) -> Iterator[None]:
 class ModelObjective:
     """Objective for one start state: returns of actions (N, H, nu) under the world model.
 
-    Returns are the mean over particles of masked, discounted task returns, on the actions'
-    device and in their dtype. (N,)
+    Returns are the masked, discounted task returns scored over particles by
+    `risk_adjusted_return` (mean - risk * std over the P particles; risk 0: the mean), on the
+    actions' device and in their dtype. (N,)
     """
 
-    def __init__(
-        self, factory: ModelObjectiveFactory, q0: Tensor, qd0: Tensor
-    ) -> None:
+    def __init__(self, factory: ModelObjectiveFactory, q0: Tensor, qd0: Tensor) -> None:
         self.factory = factory
         self.q0 = q0  # (nq,) as given
         self.qd0 = qd0  # (nv,)
@@ -95,7 +96,7 @@ class ModelObjective:
             returns = discounted_masked_return(
                 torch.stack(rewards, dim=-1), torch.stack(terminated, dim=-1), f.discount
             )  # (N*P,)
-            returns = returns.reshape(n, p).mean(dim=1)  # (N,)
+            returns = risk_adjusted_return(returns.reshape(n, p), f.risk)  # (N,)
         dtype = actions.dtype if actions.is_floating_point() else returns.dtype
         return returns.to(actions.device, dtype)
 
@@ -111,17 +112,21 @@ class ModelObjectiveFactory:
         discount: float = 1.0,
         generator: torch.Generator | None = None,
         dtype: torch.dtype | None = None,
+        risk: float = 0.0,
     ) -> None:
         if particles < 1:
             raise ValueError(f"particles must be >= 1, got {particles}")
         if not 0 < discount <= 1:
             raise ValueError(f"discount must be in (0, 1], got {discount}")
+        if not math.isfinite(risk):
+            raise ValueError(f"risk must be finite, got {risk}")
         self.model = model
         self.task = task
         self.particles = particles
         self.discount = discount
         self.generator = generator
         self.dtype = dtype
+        self.risk = float(risk)
 
     def placement(self, fallback_device: torch.device) -> Placement:
         """Where to compute: the model's device and dtype (or the override dtype)."""
@@ -139,6 +144,7 @@ def model_objective_factory(
     discount: float = 1.0,
     generator: torch.Generator | None = None,
     dtype: torch.dtype | None = None,
+    risk: float = 0.0,
 ) -> ModelObjectiveFactory:
     """Objectives over (N, H, nu) action sequences rolled out in the learned world model.
 
@@ -147,13 +153,22 @@ def model_objective_factory(
             device and dtype (a model without floating parameters or buffers computes in
             float64 on the actions' device).
         task: reward and termination.
-        particles: P rollouts per sample (flat index n * P + p), returns averaged over them.
+        particles: P rollouts per sample (flat index n * P + p), scored together.
         discount: per-step discount in (0, 1].
         generator: randomness of stochastic models (on the model's device).
         dtype: compute dtype override.
+        risk: k in score = mean - k * std of the P particles' returns (population std, see
+            `risk_adjusted_return`); 0 (default) is the plain mean, > 0 is risk-averse.
     """
-    return ModelObjectiveFactory(model, task, particles=particles, discount=discount,
-                                 generator=generator, dtype=dtype)
+    return ModelObjectiveFactory(
+        model,
+        task,
+        particles=particles,
+        discount=discount,
+        generator=generator,
+        dtype=dtype,
+        risk=risk,
+    )
 
 
 class ModelEnv(ModelBasedEnvBase):
@@ -188,37 +203,52 @@ class ModelEnv(ModelBasedEnvBase):
     def _make_specs(self) -> None:
         bs, dt, sys = self.batch_size, self.state_dtype, self.system
         self.observation_spec = Composite(
-            {keys.Q: Unbounded((*bs, sys.nq), dtype=dt, device=self.device),
-             keys.QD: Unbounded((*bs, sys.nv), dtype=dt, device=self.device)},
-            shape=bs, device=self.device,
+            {
+                keys.Q: Unbounded((*bs, sys.nq), dtype=dt, device=self.device),
+                keys.QD: Unbounded((*bs, sys.nv), dtype=dt, device=self.device),
+            },
+            shape=bs,
+            device=self.device,
         )
         low, high = sys.ctrl_low.to(dt), sys.ctrl_high.to(dt)
         if bool(torch.isfinite(low).all() and torch.isfinite(high).all()):
-            self.action_spec = Bounded(low.expand(*bs, sys.nu), high.expand(*bs, sys.nu),
-                                       shape=(*bs, sys.nu), dtype=dt, device=self.device)
+            self.action_spec = Bounded(
+                low.expand(*bs, sys.nu),
+                high.expand(*bs, sys.nu),
+                shape=(*bs, sys.nu),
+                dtype=dt,
+                device=self.device,
+            )
         else:
             self.action_spec = Unbounded((*bs, sys.nu), dtype=dt, device=self.device)
         self.reward_spec = Unbounded((*bs, 1), dtype=dt, device=self.device)
         flag = Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device)
         self.full_done_spec = Composite(
-            {keys.DONE: flag.clone(), keys.TERMINATED: flag.clone(),
-             keys.TRUNCATED: flag.clone()},
-            shape=bs, device=self.device,
+            {keys.DONE: flag.clone(), keys.TERMINATED: flag.clone(), keys.TRUNCATED: flag.clone()},
+            shape=bs,
+            device=self.device,
         )
 
     def _flags(self, terminated: Tensor) -> dict[str, Tensor]:
         """done / terminated / truncated entries from terminated (*B,) bool."""
         term = terminated.to(self.device, torch.bool).unsqueeze(-1)
-        return {keys.DONE: term.clone(), keys.TERMINATED: term,
-                keys.TRUNCATED: torch.zeros_like(term)}
+        return {
+            keys.DONE: term.clone(),
+            keys.TERMINATED: term,
+            keys.TRUNCATED: torch.zeros_like(term),
+        }
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: object) -> TensorDict:
-        state = self.task.initial_state(tuple(self.batch_size), self._generator)
+        # the env is not batch-locked: a larger input batch (TorchRL's planners expand the
+        # start state to (num_candidates,) and reset the finished ones) gets states for all
+        batch = self.batch_size if tensordict is None else tensordict.batch_size
+        state = self.task.initial_state(tuple(batch), self._generator)
         q = state.q.to(self.device, self.state_dtype)
         qd = state.qd.to(self.device, self.state_dtype)
         not_done = torch.zeros(q.shape[:-1], dtype=torch.bool, device=self.device)
-        return TensorDict({keys.Q: q, keys.QD: qd, **self._flags(not_done)},
-                          batch_size=self.batch_size, device=self.device)
+        return TensorDict(
+            {keys.Q: q, keys.QD: qd, **self._flags(not_done)}, batch_size=batch, device=self.device
+        )
 
     def _step(self, tensordict: TensorDictBase) -> TensorDict:
         q, qd = tensordict.get(keys.Q), tensordict.get(keys.QD)
@@ -233,7 +263,8 @@ class ModelEnv(ModelBasedEnvBase):
         terminated = self.task.terminated(q1, qd1)
         return TensorDict(
             {keys.Q: q1, keys.QD: qd1, keys.REWARD: reward, **self._flags(terminated)},
-            batch_size=tensordict.batch_size, device=self.device,
+            batch_size=tensordict.batch_size,
+            device=self.device,
         )
 
     def _set_seed(self, seed: int | None) -> None:

@@ -6,6 +6,7 @@ from mbrl_delan.planners.base import (
     PlanResult,
     SamplingDistribution,
     SamplingPlanner,
+    risk_adjusted_return,
 )
 from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner, ICEMPlanResult, colored_noise
@@ -33,4 +34,5 @@ __all__ = [
     "colored_noise",
     "mppi_weights",
     "mujoco_objective_factory",
+    "risk_adjusted_return",
 ]

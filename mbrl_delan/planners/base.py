@@ -2,8 +2,10 @@
 
 A planner sees only an objective, a callable mapping a batch of action sequences to their
 returns, `(N, H, nu) -> (N,)`, and improves a sampling distribution over a few iterations.
-Subclasses implement `_initial_distribution`, `_sample` and `_update`; iCEM will override
-`_sample` (colored noise, kept elites) without touching the loop in `plan`.
+Subclasses implement `_initial_distribution`, `_sample` and `_update`, and may override
+`_noise` (iCEM: colored noise), `_warm_distribution` (state carried from the previous call,
+passed to `plan` as keyword arguments: iCEM's kept elites) and `_result` (extra result
+fields), all without touching the loop in `plan`.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from __future__ import annotations
 import abc
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
@@ -44,6 +46,29 @@ class SamplingDistribution:
 
     mean: Tensor  # (H, nu)
     std: Tensor  # (H, nu)
+
+
+@dataclass
+class PlanTrace:
+    """What the iterations of one `plan` call have seen so far."""
+
+    best_actions: Tensor  # (H, nu) best sequence sampled so far (the start mean before any)
+    best_return: Tensor | None = None  # () its return; None before the first iteration
+    iteration_best: list[Tensor] = field(default_factory=list)  # () per iteration
+    population: list[int] = field(default_factory=list)  # objective batch size per iteration
+
+    def record(self, samples: Tensor, returns: Tensor) -> None:
+        """Add one iteration's samples (N, H, nu) and cleaned returns (N,), without a host sync."""
+        idx = torch.argmax(returns)
+        it_best = returns[idx]
+        if self.best_return is None:
+            self.best_actions, self.best_return = samples[idx], it_best
+        else:
+            better = it_best > self.best_return
+            self.best_actions = torch.where(better, samples[idx], self.best_actions)
+            self.best_return = torch.where(better, it_best, self.best_return)
+        self.iteration_best.append(it_best)
+        self.population.append(samples.shape[0])
 
 
 def as_bound(value: Tensor | Sequence[float] | float, name: str) -> Tensor:
@@ -87,6 +112,25 @@ def discounted_masked_return(rewards: Tensor, terminated: Tensor, discount: floa
     rewards = torch.where(ended_before, torch.zeros_like(rewards), rewards)
     powers = discount ** torch.arange(horizon, device=rewards.device, dtype=rewards.dtype)
     return (rewards * powers).sum(dim=-1)
+
+
+def risk_adjusted_return(particle_returns: Tensor, risk: float = 0.0) -> Tensor:
+    """Score of each action sequence from its particles' returns: mean - risk * std.
+
+    particle_returns: (N, P) returns of the P particles (ensemble rollouts) of each of N
+    sequences -> (N,). The std is over particles with divisor P (population std), so one
+    particle scores its plain return whatever `risk`. risk 0 is the plain mean over
+    particles; risk > 0 prefers sequences the particles agree on (pessimism under model
+    uncertainty); risk < 0 is optimistic.
+    """
+    if particle_returns.ndim != 2:
+        raise ValueError(
+            f"particle_returns must be (N, P), got shape {tuple(particle_returns.shape)}"
+        )
+    mean = particle_returns.mean(dim=1)  # (N,)
+    if risk == 0.0 or particle_returns.shape[1] == 1:
+        return mean
+    return mean - risk * particle_returns.std(dim=1, correction=0)
 
 
 class SamplingPlanner(abc.ABC):
@@ -223,6 +267,7 @@ class SamplingPlanner(abc.ABC):
         objective: Objective,
         init_mean: Tensor | None = None,
         generator: torch.Generator | None = None,
+        **warm: Tensor | None,
     ) -> PlanResult:
         """Optimise the action sequence for `objective`.
 
@@ -232,6 +277,8 @@ class SamplingPlanner(abc.ABC):
             init_mean: (H, nu) warm start; its device and dtype are the planner's for this
                 call. None: `initial_mean` on the generator's device.
             generator: source of all randomness (on the planning device).
+            **warm: planner-specific warm-start state (what `warm_start` returns), handed to
+                `_warm_distribution`; the base planners take none.
         """
         with torch.inference_mode():
             if init_mean is None:
@@ -239,38 +286,31 @@ class SamplingPlanner(abc.ABC):
                 init_mean = self.initial_mean(device=device)
             self._check_mean(init_mean)
             dist = self._initial_distribution(self.clamp(init_mean))
-            best_actions, best_return = dist.mean, None
-            iteration_best = []
+            dist = self._warm_distribution(dist, **warm)
+            trace = PlanTrace(best_actions=dist.mean)
             for _ in range(self.iterations):
-                samples = self.clamp(self._sample(dist, generator))  # (N, H, nu)
-                returns = clean_returns(objective(samples), samples.shape[0])  # (N,)
+                samples = self.clamp(self._sample(dist, generator))  # (N_i, H, nu)
+                returns = clean_returns(objective(samples), samples.shape[0])  # (N_i,)
                 dist = self._update(dist, samples, returns)
-                best_actions, best_return, it_best = self._track_best(
-                    samples, returns, best_actions, best_return
-                )
-                iteration_best.append(it_best)
-            return PlanResult(
-                mean=self.clamp(dist.mean),
-                std=dist.std,
-                best_actions=best_actions,
-                best_return=best_return,
-                iteration_best=torch.stack(iteration_best),
-            )
+                trace.record(samples, returns)
+            return self._result(dist, trace)
 
-    @staticmethod
-    def _track_best(
-        samples: Tensor, returns: Tensor, best_actions: Tensor, best_return: Tensor | None
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """Keep the best sequence seen so far, without a host sync."""
-        idx = torch.argmax(returns)
-        it_best = returns[idx]
-        if best_return is None:
-            return samples[idx], it_best, it_best
-        better = it_best > best_return
-        return (
-            torch.where(better, samples[idx], best_actions),
-            torch.where(better, it_best, best_return),
-            it_best,
+    def _warm_distribution(self, dist: SamplingDistribution) -> SamplingDistribution:
+        """The first iteration's distribution given the warm-start state of `plan(**warm)`.
+
+        Subclasses that carry state between calls (iCEM's kept elites) take it as keyword
+        arguments here; the base takes none, so an unknown keyword is a TypeError.
+        """
+        return dist
+
+    def _result(self, dist: SamplingDistribution, trace: PlanTrace) -> PlanResult:
+        """What `plan` returns from the final distribution and the iterations' trace."""
+        return PlanResult(
+            mean=self.clamp(dist.mean),
+            std=dist.std,
+            best_actions=trace.best_actions,
+            best_return=trace.best_return,
+            iteration_best=torch.stack(trace.iteration_best),
         )
 
     def _noise(

@@ -25,11 +25,10 @@ import torch
 from torch import Tensor
 
 from mbrl_delan.planners.base import (
-    Objective,
     PlanResult,
+    PlanTrace,
     SamplingDistribution,
     SamplingPlanner,
-    clean_returns,
     require,
 )
 
@@ -235,51 +234,33 @@ class ICEMPlanner(SamplingPlanner):
             return {}
         return {"init_elites": self.shift_elites(carried["elites"], steps)}
 
-    # ------------------------------------------------------------------ the loop
-    def plan(
-        self,
-        objective: Objective,
-        init_mean: Tensor | None = None,
-        generator: torch.Generator | None = None,
-        init_elites: Tensor | None = None,
-    ) -> ICEMPlanResult:
-        """Optimise the action sequence for `objective`; see `SamplingPlanner.plan`.
+    # ------------------------------------------------------------------ the hooks
+    def _warm_distribution(
+        self, dist: ICEMDistribution, init_elites: Tensor | None = None
+    ) -> ICEMDistribution:
+        """Seed the first iteration with kept elites.
 
-        Args (beyond the base's):
-            init_elites: (K, H, nu) sequences evaluated in the first iteration, typically
-                `shift_elites(previous_result.elites, steps)`; at most `num_kept` of them
-                are used (the first ones). None or empty: a cold first iteration.
+        `plan(..., init_elites=E)`: E (K, H, nu) are evaluated in the first iteration,
+        typically `shift_elites(previous_result.elites, steps)`; at most `num_kept` of them
+        are used (the first ones). None or empty: a cold first iteration.
         """
-        with torch.inference_mode():
-            if init_mean is None:
-                device = generator.device if generator is not None else None
-                init_mean = self.initial_mean(device=device)
-            self._check_mean(init_mean)
-            dist = self._initial_distribution(self.clamp(init_mean))
-            if init_elites is not None and self.num_kept > 0:
-                dist.kept = self._warm_elites(init_elites, dist.mean)
-            best_actions, best_return = dist.mean, None
-            iteration_best, population = [], []
-            for _ in range(self.iterations):
-                samples = self.clamp(self._sample(dist, generator))  # (N_i, H, nu)
-                returns = clean_returns(objective(samples), samples.shape[0])  # (N_i,)
-                dist = self._update(dist, samples, returns)
-                best_actions, best_return, it_best = self._track_best(
-                    samples, returns, best_actions, best_return
-                )
-                iteration_best.append(it_best)
-                population.append(samples.shape[0])
-            dist_mean = self.clamp(dist.mean)
-            return ICEMPlanResult(
-                mean=best_actions if self.return_best else dist_mean,
-                std=dist.std,
-                best_actions=best_actions,
-                best_return=best_return,
-                iteration_best=torch.stack(iteration_best),
-                dist_mean=dist_mean,
-                elites=dist.kept,
-                population=tuple(population),
-            )
+        if init_elites is not None and self.num_kept > 0:
+            dist.kept = self._warm_elites(init_elites, dist.mean)
+        return dist
+
+    def _result(self, dist: ICEMDistribution, trace: PlanTrace) -> ICEMPlanResult:
+        """`PlanResult` plus the distribution mean, the kept elites and the populations."""
+        dist_mean = self.clamp(dist.mean)
+        return ICEMPlanResult(
+            mean=trace.best_actions if self.return_best else dist_mean,
+            std=dist.std,
+            best_actions=trace.best_actions,
+            best_return=trace.best_return,
+            iteration_best=torch.stack(trace.iteration_best),
+            dist_mean=dist_mean,
+            elites=dist.kept,
+            population=tuple(trace.population),
+        )
 
     def _warm_elites(self, elites: Tensor, like: Tensor) -> Tensor:
         """The first `num_kept` of the given elites, checked and clamped. -> (k, H, nu)"""
@@ -291,7 +272,6 @@ class ICEMPlanner(SamplingPlanner):
         )
         return self.clamp(elites[: self.num_kept].to(like.device, like.dtype))
 
-    # ------------------------------------------------------------------ the hooks
     def _initial_distribution(self, mean: Tensor) -> ICEMDistribution:
         std = self.init_std.to(mean.device, mean.dtype).expand_as(mean).clone()
         kept = mean.new_empty((0, *mean.shape))

@@ -1,0 +1,570 @@
+"""Suite `planner`: how long one control step's plan takes, against the control period.
+
+For each world-model case in `PlannerGrid.models`, planner in `planners`, samples N in
+`num_samples`, horizon H in `horizons` and iteration count in `iterations`:
+
+- `plan_latency_ms`: milliseconds of one `PlannerPolicy.act(q0, qd0)` with `replan_every=1`,
+  i.e. one full planner call from a state, warm-started from the previous plan shifted by one
+  step (and, for iCEM, its shifted kept elites) exactly as in the training loop; the policy
+  is called from the same state again and again, so every timed call is warm-started.
+- `realtime_factor`: control period / plan latency (> 1: the planner keeps up with the
+  system in real time on this machine).
+- `torchrl_plan_latency_ms`: for mppi and cem, the same figure for TorchRL's own
+  `torchrl.modules.planners.MPPIPlanner` / `CEMPlanner` on our `ModelEnv` (same model, N, H,
+  iterations; they start every call from mean 0 and std 1: no warm start), plus its
+  `realtime_factor`.
+
+World-model cases (`PLANNER_MODELS`), all untrained (timing does not depend on the weights),
+float32, with the settings of `configs/model/*.yaml` (`DELAN_SETTINGS`, `ENSEMBLE_SETTINGS`;
+a test keeps them equal):
+
+- `pendulum_delan`: DeLaN on the pendulum (nv 1, control period 0.05 s), task pendulum swing-up.
+- `humanoid_delan`: DeLaN on the layout of gymnasium's Humanoid-v5 (`humanoid.xml`: a free root,
+  nq 7 / nv 6, and 17 hinges: nq 24, nv 23, nu 17, B from its gears), control period 0.015 s
+  (frame skip 5 of 0.003 s), task `StandTask` (a stand-in: reward root height - 0.1 |a|^2,
+  terminated outside heights [1, 2] m, Humanoid-v5's healthy range).
+- `pendulum_ensemble`: the MLP ensemble on the pendulum, 5 particles per sequence (TSinf).
+- `pendulum_oracle`: MuJoCo's true pendulum dynamics (`planners/oracle.py`, `mujoco.rollout` on
+  torch's thread count), planners in float64 on the CPU as `train.py` builds the oracle.
+
+Planner settings other than N, H and iterations are those of `configs/planner/*.yaml`
+(`PLANNER_SETTINGS`), with num_elites capped at N.
+
+Timing (`time_plan`): settings of one (model, planner) pair run in order of work
+N x H x iterations, and each call's seconds are predicted linearly in that work from the
+largest setting measured before. A call under `min_time_s`: one untimed call (the cold
+start), then `time_call` (no further warm-up). A slower one: `repeats` single calls, fewer
+where they would take more than `max_call_s / 2` in all (one at least), without the untimed
+call when the prediction already says it is slow. A setting predicted over `max_call_s` is
+recorded with `value: null` and a note, as is one that cannot be built.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import statistics
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import Tensor, nn
+from torchrl.modules.planners import CEMPlanner as TorchRLCEMPlanner
+from torchrl.modules.planners import MPPIPlanner as TorchRLMPPIPlanner
+
+from mbrl_delan import keys
+from mbrl_delan.benchmarks import (
+    PLANNER_MODELS,
+    SuiteOptions,
+    Timing,
+    host_fields,
+    synchronizer,
+    time_call,
+)
+from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.envs.model_env import ModelEnv, model_objective_factory
+from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.models.base import WorldModel
+from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.ensemble import GaussianEnsemble
+from mbrl_delan.planners.base import ObjectiveFactory, SamplingPlanner
+from mbrl_delan.planners.cem import CEMPlanner
+from mbrl_delan.planners.icem import ICEMPlanner
+from mbrl_delan.planners.mppi import MPPIPlanner
+from mbrl_delan.planners.oracle import MujocoObjectiveFactory, mujoco_objective_factory
+from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.systems.system import State, System, load_system
+from mbrl_delan.tasks.base import Task
+
+log = logging.getLogger(__name__)
+
+SUITE = "planner"
+DTYPE = torch.float32
+PLANNERS = ("mppi", "cem", "icem")
+TORCHRL_PLANNERS = ("mppi", "cem")
+HUMANOID_FRAME_SKIP = 5  # Humanoid-v5: 5 x 0.003 s = 0.015 s per control step
+
+# configs/model/delan.yaml and ensemble.yaml (tests/test_planner_bench.py keeps them equal)
+DELAN_SETTINGS: dict[str, Any] = dict(
+    hidden=64,
+    layers=2,
+    activation="softplus",
+    diag_shift=0.001,
+    integrator="euler",
+    substeps=2,
+    loss="forward",
+    dissipation=True,
+    coulomb=True,
+)
+DELAN_PARTICLES = 1
+ENSEMBLE_SETTINGS: dict[str, Any] = dict(
+    ensemble_size=5, hidden=128, layers=3, activation="silu", propagation="tsinf"
+)
+ENSEMBLE_PARTICLES = 5
+
+# configs/planner/*.yaml without horizon, num_samples, iterations, replan_every, discount, risk
+PLANNER_SETTINGS: dict[str, dict[str, Any]] = {
+    "mppi": dict(temperature=0.5, noise_std=0.5),
+    "cem": dict(num_elites=25, init_std=0.5, min_std=0.05, momentum=0.1),
+    "icem": dict(
+        num_elites=25,
+        beta=2.0,
+        decay=1.25,
+        min_samples=None,
+        keep_elites=0.3,
+        init_std=0.5,
+        min_std=0.05,
+        momentum=0.1,
+        return_best=False,
+    ),
+}
+
+
+# ----------------------------------------------------------------------------- the grid
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One planner configuration to time."""
+
+    num_samples: int  # N
+    horizon: int  # H
+    iterations: int
+
+    @property
+    def work(self) -> int:
+        """N x H x iterations: what a call's time is predicted from."""
+        return self.num_samples * self.horizon * self.iterations
+
+    def tag(self) -> str:
+        return f"n{self.num_samples}-h{self.horizon}-i{self.iterations}"
+
+
+@dataclass(frozen=True)
+class PlannerGrid:
+    """What the suite times: cases x planners x N x H x iterations."""
+
+    models: tuple[str, ...] = PLANNER_MODELS
+    planners: tuple[str, ...] = PLANNERS
+    num_samples: tuple[int, ...] = (256, 1024, 4096)
+    horizons: tuple[int, ...] = (15, 30)
+    iterations: tuple[int, ...] = (1, 5)
+    torchrl: bool = True
+
+    @classmethod
+    def quick(cls) -> PlannerGrid:
+        """Tiny sizes for tests and smoke runs: N 64, H 5, one iteration, MPPI only."""
+        return cls(planners=("mppi",), num_samples=(64,), horizons=(5,), iterations=(1,))
+
+    def settings(self) -> list[Setting]:
+        """Every (N, H, iterations), cheapest first."""
+        grid = [
+            Setting(n, h, i)
+            for n in self.num_samples
+            for h in self.horizons
+            for i in self.iterations
+        ]
+        return sorted(grid, key=lambda s: (s.work, s.num_samples, s.horizon))
+
+
+def grid_from_options(opts: SuiteOptions) -> PlannerGrid:
+    """`PlannerGrid.quick()` under `opts.quick`, else the defaults; then every option that is
+    not None replaces its field."""
+    grid = PlannerGrid.quick() if opts.quick else PlannerGrid()
+    overrides = {
+        name: getattr(opts, name)
+        for name in ("models", "planners", "num_samples", "horizons", "iterations")
+        if getattr(opts, name) is not None
+    }
+    return replace(grid, torchrl=opts.torchrl, **overrides)
+
+
+# ----------------------------------------------------------------------------- cases
+
+
+class StandTask(Task):
+    """Timing stand-in for a humanoid task: reward = root height - 0.1 |a|^2, terminated when
+    the root height leaves [1, 2] m (Humanoid-v5's healthy range)."""
+
+    name = "stand"
+    episode_len = 1000
+
+    def __init__(self, q_start: Tensor, nv: int) -> None:
+        self.q_start = q_start.double()  # (nq,) the model's qpos0
+        self.nv = nv
+
+    def reward(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
+        return q[..., 2] - 0.1 * action.square().sum(-1)
+
+    def terminated(self, q: Tensor, qd: Tensor) -> Tensor:
+        return (q[..., 2] < 1.0) | (q[..., 2] > 2.0)
+
+    def initial_state(self, batch_shape: tuple[int, ...], generator: torch.Generator) -> State:
+        q = self.q_start.to(generator.device).expand(*batch_shape, -1).clone()
+        return State(q=q, qd=q.new_zeros((*batch_shape, self.nv)))
+
+
+@dataclass
+class Case:
+    """A system, task and world model (None: the MuJoCo oracle) and the start state."""
+
+    name: str
+    system: System
+    task: Task
+    model: WorldModel | None
+    particles: int
+    q0: Tensor  # (nq,) float64 on the CPU
+    qd0: Tensor  # (nv,)
+
+
+def humanoid_v5_path() -> Path:
+    """gymnasium's Humanoid-v5 MJCF (`envs/mujoco/assets/humanoid.xml`)."""
+    return Path(gymnasium.__file__).parent / "envs" / "mujoco" / "assets" / "humanoid.xml"
+
+
+def build_delan(system: System) -> DeLaN:
+    """DeLaN as `config.build_model` builds it from configs/model/delan.yaml."""
+    return DeLaN(system.layout, system.actuation.float(), system.control_dt, **DELAN_SETTINGS)
+
+
+def build_ensemble(system: System) -> GaussianEnsemble:
+    """The ensemble as `config.build_model` builds it from configs/model/ensemble.yaml."""
+    return GaussianEnsemble(system.layout, system.nu, system.control_dt, **ENSEMBLE_SETTINGS)
+
+
+def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
+    """The world-model case `name` (one of `PLANNER_MODELS`), its model on `device`."""
+    torch.manual_seed(seed)
+    if name == "humanoid_delan":
+        system = load_system(humanoid_v5_path(), frame_skip=HUMANOID_FRAME_SKIP, name="humanoid")
+        task: Task = StandTask(torch.from_numpy(system.mj_model().qpos0.copy()), system.nv)
+    else:
+        parts = make_env_parts("pendulum")
+        system, task = parts.system, parts.task
+    start = task.initial_state((), torch.Generator().manual_seed(seed))
+    model: WorldModel | None
+    particles = DELAN_PARTICLES
+    if name == "pendulum_oracle":
+        model = None
+    elif name == "pendulum_ensemble":
+        model, particles = build_ensemble(system), ENSEMBLE_PARTICLES
+    else:
+        model = build_delan(system)
+    if model is not None:
+        model = model.to(device=device, dtype=DTYPE).eval()
+    return Case(name, system, task, model, particles, start.q, start.qd)
+
+
+# ----------------------------------------------------------------------------- planners
+
+
+def build_planner(
+    kind: str, setting: Setting, system: System, dtype: torch.dtype
+) -> SamplingPlanner:
+    """Our planner `kind` with `PLANNER_SETTINGS` (num_elites capped at N)."""
+    settings = dict(PLANNER_SETTINGS[kind])
+    if "num_elites" in settings:
+        settings["num_elites"] = min(settings["num_elites"], setting.num_samples)
+    cls = {"mppi": MPPIPlanner, "cem": CEMPlanner, "icem": ICEMPlanner}[kind]
+    return cls(
+        horizon=setting.horizon,
+        action_low=system.ctrl_low,
+        action_high=system.ctrl_high,
+        num_samples=setting.num_samples,
+        iterations=setting.iterations,
+        dtype=dtype,
+        **settings,
+    )
+
+
+def model_steps_per_call(planner: SamplingPlanner, particles: int) -> int:
+    """World-model steps (of one sample each) in one `plan` call: sum_i N_i x P x H."""
+    if isinstance(planner, ICEMPlanner):
+        population = sum(planner.population(i) for i in range(planner.iterations))
+    else:
+        population = planner.num_samples * planner.iterations
+    return population * particles * planner.horizon
+
+
+class ReturnToGo(nn.Module):
+    """TorchRL MPPI's advantage module: the undiscounted sum of the rollout's rewards from
+    each step on, written to "advantage" (..., H, 1); MPPI reads its first step."""
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        reward = tensordict.get(keys.NEXT_REWARD)  # (..., H, 1), post-done rewards zeroed
+        tensordict.set("advantage", reward.flip(-2).cumsum(-2).flip(-2))
+        return tensordict
+
+
+def build_torchrl_planner(kind: str, setting: Setting, env: ModelEnv) -> nn.Module:
+    """TorchRL's planner `kind` on `env`: CEM with top_k = our num_elites; MPPI over all N
+    samples with TorchRL's temperature (a multiplier of the return) = 1 / ours."""
+    n, h, i = setting.num_samples, setting.horizon, setting.iterations
+    if kind == "cem":
+        top_k = min(PLANNER_SETTINGS["cem"]["num_elites"], n)
+        return TorchRLCEMPlanner(
+            env, planning_horizon=h, optim_steps=i, num_candidates=n, top_k=top_k
+        )
+    temperature = 1.0 / PLANNER_SETTINGS["mppi"]["temperature"]
+    return TorchRLMPPIPlanner(
+        env,
+        ReturnToGo(),
+        temperature=temperature,
+        planning_horizon=h,
+        optim_steps=i,
+        num_candidates=n,
+        top_k=n,
+    )
+
+
+# ----------------------------------------------------------------------------- timing
+
+
+@dataclass
+class Measured:
+    """A timed planner call, or why it was not timed."""
+
+    timing: Timing | None
+    note: str | None = None
+
+
+class LatencyPredictor:
+    """Predicts a call's seconds linearly in `Setting.work` from the largest setting measured."""
+
+    def __init__(self) -> None:
+        self.work = 0
+        self.seconds = 0.0
+
+    def predict(self, setting: Setting) -> float:
+        return 0.0 if self.work == 0 else self.seconds * setting.work / self.work
+
+    def observe(self, setting: Setting, seconds: float) -> None:
+        if setting.work >= self.work:
+            self.work, self.seconds = setting.work, seconds
+
+
+def _seconds(call: Callable[[], object], sync: Callable[[], None]) -> float:
+    """Seconds of one call."""
+    sync()
+    start = time.perf_counter()
+    call()
+    sync()
+    return time.perf_counter() - start
+
+
+def time_plan(
+    call: Callable[[], object], predicted: float, opts: SuiteOptions, sync: Callable[[], None]
+) -> Timing:
+    """Time `call` as the module docstring says; `predicted`: its seconds, 0 if unknown.
+
+    Fast calls (predicted and measured under `min_time_s`): one untimed call, then
+    `time_call`. Slow ones: `repeats` single calls, fewer where they would take more than
+    `max_call_s / 2` in all (at least one); the untimed call is left out when the prediction
+    already says the call is slow (the code path is warm from the smaller settings, and a
+    cold-started plan costs what a warm-started one does).
+    """
+    estimate = predicted
+    if predicted < opts.timing.min_time_s:
+        estimate = _seconds(call, sync)  # untimed: the cold start
+        if estimate < opts.timing.min_time_s:
+            return time_call(call, replace(opts.timing, warmup=0), sync)
+    budget = opts.max_call_s / 2
+    repeats = max(1, min(opts.timing.repeats, math.floor(budget / estimate)))
+    samples = [_seconds(call, sync) for _ in range(repeats)]
+    median = statistics.median(samples)
+    return Timing(median, 1, repeats, (max(samples) - min(samples)) / median)
+
+
+def measure(
+    make: Callable[[], Callable[[], object]],
+    setting: Setting,
+    predictor: LatencyPredictor,
+    opts: SuiteOptions,
+    sync: Callable[[], None],
+) -> Measured:
+    """Build the call with `make()` and time it, unless predicted too slow or unbuildable."""
+    predicted = predictor.predict(setting)
+    if predicted > opts.max_call_s:
+        return Measured(None, f"skipped: one call predicted {predicted:.1f} s > max_call_s")
+    try:
+        call = make()
+    except ValueError as err:  # a planner constructor's check, e.g. N too small for iCEM
+        return Measured(None, f"not run: {err}")
+    timing = time_plan(call, predicted, opts, sync)
+    predictor.observe(setting, timing.seconds_per_call)
+    return Measured(timing)
+
+
+# ----------------------------------------------------------------------------- records
+
+
+def latency_records(
+    case_name: str,
+    metric: str,
+    measured: Measured,
+    control_dt: float,
+    device: torch.device | str,
+    fields: dict[str, Any],
+) -> Iterator[BenchRecord]:
+    """`metric` in ms and `realtime_factor` = control_dt / latency for one setting."""
+    extra = {**fields, "control_dt_s": control_dt, "latency_metric": metric}
+    latency = factor = None
+    if measured.timing is not None:
+        seconds = measured.timing.seconds_per_call
+        latency, factor = 1e3 * seconds, control_dt / seconds
+        extra.update(measured.timing.fields())
+        steps = fields.get("model_steps_per_call")
+        if steps is not None:
+            extra["model_steps_per_s"] = steps / seconds
+    notes = [n for n in (fields.get("note"), measured.note) if n]
+    if notes:
+        extra["note"] = "; ".join(notes)
+    yield BenchRecord(SUITE, case_name, metric, latency, "ms", str(device), dict(extra))
+    yield BenchRecord(SUITE, case_name, "realtime_factor", factor, "x", str(device), extra)
+
+
+def _fields(case: Case, setting: Setting, planner: str, dtype: torch.dtype) -> dict[str, Any]:
+    return dict(
+        model=case.name,
+        system=case.system.name,
+        planner=planner,
+        num_samples=setting.num_samples,
+        horizon=setting.horizon,
+        iterations=setting.iterations,
+        particles=case.particles,
+        nq=case.system.nq,
+        nv=case.system.nv,
+        nu=case.system.nu,
+        dtype=str(dtype).removeprefix("torch."),
+    )
+
+
+def _objective_factory(case: Case, device: torch.device) -> ObjectiveFactory:
+    if case.model is None:
+        return mujoco_objective_factory(case.system, case.task, nthread=torch.get_num_threads())
+    generator = torch.Generator(device=device).manual_seed(0)
+    return model_objective_factory(
+        case.model, case.task, particles=case.particles, generator=generator
+    )
+
+
+def our_records(
+    case: Case, kind: str, grid: PlannerGrid, opts: SuiteOptions, host: dict[str, Any]
+) -> Iterator[BenchRecord]:
+    """`plan_latency_ms` and `realtime_factor` of our planner `kind` on every setting."""
+    oracle = case.model is None
+    device = torch.device("cpu") if oracle else opts.device
+    dtype = torch.float64 if oracle else DTYPE
+    factory = _objective_factory(case, device)
+    q0, qd0 = case.q0.to(device, dtype), case.qd0.to(device, dtype)
+    sync, predictor = synchronizer(device), LatencyPredictor()
+    for setting in grid.settings():
+        log.info("planner suite: %s %s %s", case.name, kind, setting.tag())
+        fields = {**_fields(case, setting, kind, dtype), "implementation": "mbrl_delan", **host}
+
+        def make(setting: Setting = setting, fields: dict[str, Any] = fields) -> Callable[[], Any]:
+            planner = build_planner(kind, setting, case.system, dtype)
+            fields["model_steps_per_call"] = model_steps_per_call(planner, case.particles)
+            policy = PlannerPolicy(planner, factory, replan_every=1, seed=0, device=device)
+            return lambda: policy.act(q0, qd0)
+
+        measured = measure(make, setting, predictor, opts, sync)
+        name = f"{case.name}-{kind}-{setting.tag()}"
+        yield from latency_records(
+            name, "plan_latency_ms", measured, case.system.control_dt, device, fields
+        )
+    if isinstance(factory, MujocoObjectiveFactory):
+        factory.close()  # its rollout threads
+
+
+def _start_tensordict(case: Case, env: ModelEnv) -> TensorDict:
+    """The start state as TorchRL's planners read it (q, qd and the done flags)."""
+    flag = torch.zeros(1, dtype=torch.bool, device=env.device)
+    return TensorDict(
+        {
+            keys.Q: case.q0.to(env.device, env.state_dtype),
+            keys.QD: case.qd0.to(env.device, env.state_dtype),
+            keys.DONE: flag,
+            keys.TERMINATED: flag.clone(),
+            keys.TRUNCATED: flag.clone(),
+        },
+        batch_size=(),
+        device=env.device,
+    )
+
+
+def torchrl_call(
+    planner: nn.Module, start: TensorDict, actions: list[Tensor]
+) -> Callable[[], Tensor]:
+    """One TorchRL planning call, under inference mode as ours, appending its action (nu,)
+    to `actions` (the last few are kept)."""
+
+    def call() -> Tensor:
+        with torch.inference_mode():
+            action = planner(start.clone()).get(keys.ACTION)
+        actions.append(action)
+        del actions[:-4]
+        return action
+
+    return call
+
+
+TORCHRL_NOTE = "TorchRL planner: no warm start (mean 0, std 1 every call)"
+
+
+def torchrl_records(
+    case: Case, kind: str, grid: PlannerGrid, opts: SuiteOptions, host: dict[str, Any]
+) -> Iterator[BenchRecord]:
+    """`torchrl_plan_latency_ms` and `realtime_factor` of TorchRL's planner `kind`."""
+    env = ModelEnv(case.model, case.task, case.system, device=opts.device, dtype=DTYPE)
+    start = _start_tensordict(case, env)
+    sync, predictor = synchronizer(opts.device), LatencyPredictor()
+    note = TORCHRL_NOTE
+    if case.particles > 1:
+        note += f"; one rollout per candidate (ours: {case.particles} particles)"
+    for setting in grid.settings():
+        log.info("planner suite: %s torchrl_%s %s", case.name, kind, setting.tag())
+        fields = {**_fields(case, setting, f"torchrl_{kind}", DTYPE), "particles": 1, **host}
+        fields.update(implementation="torchrl", note=note)
+        fields["model_steps_per_call"] = setting.work
+
+        actions: list[Tensor] = []  # what the timed calls returned
+
+        def make(setting: Setting = setting, actions: list[Tensor] = actions) -> Callable[[], Any]:
+            return torchrl_call(build_torchrl_planner(kind, setting, env), start, actions)
+
+        measured = measure(make, setting, predictor, opts, sync)
+        if actions:
+            fields["action_finite"] = all(bool(torch.isfinite(a).all()) for a in actions)
+            if not fields["action_finite"]:
+                fields["note"] += "; it returned a non-finite action"
+        name = f"{case.name}-torchrl_{kind}-{setting.tag()}"
+        yield from latency_records(
+            name, "torchrl_plan_latency_ms", measured, case.system.control_dt, opts.device, fields
+        )
+
+
+# ----------------------------------------------------------------------------- the suite
+
+
+def run_planner(grid: PlannerGrid, opts: SuiteOptions) -> Iterator[BenchRecord]:
+    """Every figure of the grid, one record at a time."""
+    host = host_fields(opts.device)
+    for name in grid.models:
+        case = make_case(name, opts.device)
+        for kind in grid.planners:
+            yield from our_records(case, kind, grid, opts, host)
+        if case.model is None or not grid.torchrl:
+            continue
+        for kind in (k for k in grid.planners if k in TORCHRL_PLANNERS):
+            yield from torchrl_records(case, kind, grid, opts, host)
+
+
+def run_planner_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
+    """The registered suite: `run_planner` on `grid_from_options(opts)`."""
+    yield from run_planner(grid_from_options(opts), opts)

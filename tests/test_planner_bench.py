@@ -1,0 +1,216 @@
+"""Suite `planner` and the bench options that reach the suites. No timed assertions."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from mbrl_delan.bench import build_options
+from mbrl_delan.benchmarks import (
+    PLANNER_MODELS,
+    SUITE_NAMES,
+    SuiteOptions,
+    TimingConfig,
+    get_suite,
+)
+from mbrl_delan.benchmarks import planner as suite
+from mbrl_delan.benchmarks.planner import (
+    DELAN_SETTINGS,
+    ENSEMBLE_PARTICLES,
+    ENSEMBLE_SETTINGS,
+    PLANNER_SETTINGS,
+    LatencyPredictor,
+    PlannerGrid,
+    Setting,
+    build_planner,
+    grid_from_options,
+    make_case,
+    measure,
+    model_steps_per_call,
+    run_planner,
+    time_plan,
+)
+from mbrl_delan.benchmarks.records import BASE_FIELDS, RecordWriter, read_records
+from mbrl_delan.config import ConfigError
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+OPTS = SuiteOptions(
+    nv=(2,),
+    batch=(4,),
+    device=torch.device("cpu"),
+    timing=TimingConfig(repeats=2, min_time_s=0.005, warmup=1),
+    quick=True,
+)
+
+
+def bench_config(*overrides: str):
+    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
+        return compose("bench", overrides=list(overrides))
+
+
+# ---------------------------------------------------------------------------- options
+def test_options_reach_the_suites() -> None:
+    opts = build_options(
+        bench_config(
+            "suite=planner",
+            "quick=true",
+            "n_samples=100",
+            "max_epochs=3",
+            "planners=[cem,icem]",
+            "models=[pendulum_delan]",
+            "num_samples=[32,64]",
+            "horizons=[4]",
+            "iterations=[2]",
+            "torchrl=false",
+        )
+    )
+    assert opts.quick and opts.n_samples == 100 and opts.max_epochs == 3
+    grid = grid_from_options(opts)
+    assert grid == PlannerGrid(
+        models=("pendulum_delan",),
+        planners=("cem", "icem"),
+        num_samples=(32, 64),
+        horizons=(4,),
+        iterations=(2,),
+        torchrl=False,
+    )
+    defaults = build_options(bench_config("suite=planner"))
+    assert not defaults.quick and defaults.n_samples is None and defaults.planners is None
+    assert grid_from_options(defaults) == PlannerGrid()
+    assert grid_from_options(replace(defaults, quick=True)) == PlannerGrid.quick()
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "planners=[ppo]",
+        "models=[cartpole]",
+        "num_samples=[0]",
+        "horizons=[]",
+        "n_samples=0",
+        "max_epochs=1.5",
+    ],
+)
+def test_bad_option_values_are_config_errors(override: str) -> None:
+    name = override.split("=")[0]
+    with pytest.raises(ConfigError, match=name):
+        build_options(bench_config("suite=planner", override))
+
+
+def test_suite_is_registered() -> None:
+    assert "planner" in SUITE_NAMES and get_suite("planner") is suite.run_planner_suite
+
+
+def test_settings_are_the_configs_defaults() -> None:
+    """The suite builds models and planners as configs/model and configs/planner say."""
+    delan = OmegaConf.load(CONFIGS / "model" / "delan.yaml")
+    assert {k: delan[k] for k in DELAN_SETTINGS} == DELAN_SETTINGS
+    ensemble = OmegaConf.load(CONFIGS / "model" / "ensemble.yaml")
+    assert {k: ensemble[k] for k in ENSEMBLE_SETTINGS} == ENSEMBLE_SETTINGS
+    assert ensemble.particles == ENSEMBLE_PARTICLES
+    for kind, settings in PLANNER_SETTINGS.items():
+        cfg = OmegaConf.load(CONFIGS / "planner" / f"{kind}.yaml")
+        assert {k: cfg[k] for k in settings} == settings, kind
+
+
+# ---------------------------------------------------------------------------- the grid
+def test_grid_runs_cheapest_first_and_counts_model_steps() -> None:
+    settings = PlannerGrid().settings()
+    assert len(settings) == 12 and settings[0] == Setting(256, 15, 1)
+    assert settings[-1] == Setting(4096, 30, 5)
+    assert all(a.work <= b.work for a, b in zip(settings[:-1], settings[1:], strict=True))
+    case = make_case("pendulum_ensemble", torch.device("cpu"))
+    icem = build_planner("icem", Setting(100, 5, 3), case.system, torch.float32)
+    assert model_steps_per_call(icem, 5) == (100 + 80 + 64) * 5 * 5
+    small = build_planner("cem", Setting(8, 5, 1), case.system, torch.float32)
+    assert small.num_elites == 8  # capped at N
+
+
+def test_humanoid_case_has_humanoid_v5_sizes() -> None:
+    case = make_case("humanoid_delan", torch.device("cpu"))
+    system = case.system
+    assert (system.nq, system.nv, system.nu) == (24, 23, 17)
+    assert system.control_dt == pytest.approx(0.015)
+    assert case.q0.shape == (24,) and case.qd0.shape == (23,)
+    reward = case.task.reward(case.q0[None], case.qd0[None], torch.zeros(1, 17))
+    assert reward.item() == pytest.approx(case.q0[2].item())  # root height, no control cost
+
+
+# ---------------------------------------------------------------------------- timing
+def counting_call():
+    calls = []
+    return calls, lambda: calls.append(1)
+
+
+def test_slow_prediction_times_single_calls_within_the_budget() -> None:
+    calls, call = counting_call()
+    timing = time_plan(call, predicted=10.0, opts=replace(OPTS, max_call_s=5.0), sync=lambda: None)
+    assert len(calls) == 1 and timing.repeats == 1 and timing.calls_per_measurement == 1
+    calls.clear()
+    timing = time_plan(call, predicted=1.0, opts=replace(OPTS, max_call_s=5.0), sync=lambda: None)
+    assert len(calls) == 2 == timing.repeats  # min(repeats 2, floor(2.5 s / 1 s))
+
+
+def test_fast_call_gets_an_untimed_call_then_time_call() -> None:
+    calls, call = counting_call()
+    timing = time_plan(call, predicted=0.0, opts=OPTS, sync=lambda: None)
+    assert len(calls) > 1 + OPTS.timing.repeats and timing.calls_per_measurement > 1
+
+
+def test_predicted_too_slow_is_skipped_and_errors_are_notes() -> None:
+    predictor = LatencyPredictor()
+    predictor.observe(Setting(10, 10, 1), 1.0)
+    assert predictor.predict(Setting(20, 10, 2)) == pytest.approx(4.0)
+    opts = replace(OPTS, max_call_s=3.0)
+    built = []
+    skipped = measure(lambda: built.append(1), Setting(20, 10, 2), predictor, opts, lambda: None)
+    assert skipped.timing is None and "predicted 4.0 s > max_call_s" in skipped.note
+    assert not built  # not even built
+
+    def bad() -> None:
+        raise ValueError("num_elites must be ...")
+
+    failed = measure(bad, Setting(1, 1, 1), LatencyPredictor(), opts, lambda: None)
+    assert failed.timing is None and failed.note.startswith("not run: num_elites")
+
+
+# ---------------------------------------------------------------------------- the suite
+def test_quick_suite_writes_every_figure(tmp_path: Path) -> None:
+    grid = replace(PlannerGrid.quick(), num_samples=(16,), horizons=(3,))
+    writer = RecordWriter(tmp_path / "planner.jsonl")
+    for record in run_planner(grid, OPTS):
+        writer.write(record)
+    records = read_records(tmp_path / "planner.jsonl")
+    expected = {(f"{m}-mppi-n16-h3-i1", "plan_latency_ms") for m in PLANNER_MODELS}
+    expected |= {
+        (f"{m}-torchrl_mppi-n16-h3-i1", "torchrl_plan_latency_ms")
+        for m in PLANNER_MODELS
+        if m != "pendulum_oracle"
+    }
+    expected |= {(case, "realtime_factor") for case, _ in expected}
+    assert {(r["case"], r["metric"]) for r in records} == expected
+    for r in records:
+        assert set(BASE_FIELDS) <= set(r) and r["suite"] == "planner", r
+        assert isinstance(r["value"], float) and math.isfinite(r["value"]) and r["value"] > 0, r
+        assert (r["num_samples"], r["horizon"], r["iterations"]) == (16, 3, 1)
+    by_key = {(r["case"], r["metric"]): r for r in records}
+    for case, metric in expected:
+        if metric == "realtime_factor":
+            continue
+        latency, factor = by_key[case, metric], by_key[case, "realtime_factor"]
+        assert factor["value"] == pytest.approx(1e3 * latency["control_dt_s"] / latency["value"])
+    humanoid = by_key["humanoid_delan-mppi-n16-h3-i1", "plan_latency_ms"]
+    assert humanoid["control_dt_s"] == pytest.approx(0.015) and humanoid["nv"] == 23
+    ensemble = by_key["pendulum_ensemble-mppi-n16-h3-i1", "plan_latency_ms"]
+    assert ensemble["particles"] == 5 and ensemble["model_steps_per_call"] == 16 * 5 * 3
+    oracle = by_key["pendulum_oracle-mppi-n16-h3-i1", "plan_latency_ms"]
+    assert oracle["dtype"] == "float64" and oracle["device"] == "cpu"
+    torchrl = by_key["pendulum_delan-torchrl_mppi-n16-h3-i1", "torchrl_plan_latency_ms"]
+    assert torchrl["implementation"] == "torchrl" and "no warm start" in torchrl["note"]
+    assert isinstance(torchrl["action_finite"], bool)
