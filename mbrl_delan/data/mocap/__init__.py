@@ -4,6 +4,8 @@
 - `amc`: validated ASF / AMC readers;
 - `retarget`: AMC -> q on humanoid_CMU, filtering, resampling, qd, qdd;
 - `inverse`: joint torques and root residual by ``mj_inverse`` (contacts and limits off);
+- `tracking`: torques by PD tracking of the reference in simulation (the alternative source);
+- `groups`: the hinges grouped by body part, for per-group errors;
 - `dataset`: the dataset TensorDict with provenance and its two validation splits.
 """
 
@@ -27,6 +29,8 @@ from mbrl_delan.data.mocap.clips import (
 from mbrl_delan.data.mocap.dataset import (
     DEFAULT_CLIPS,
     DEFAULT_VAL_CLIPS,
+    SPLIT_NAMES,
+    TORQUE_SOURCES,
     TRAIN,
     VAL_CLIP,
     VAL_TIME,
@@ -37,6 +41,7 @@ from mbrl_delan.data.mocap.dataset import (
     save_dataset,
     split_dataset,
 )
+from mbrl_delan.data.mocap.groups import BODY_PARTS, ROOT_GROUP, dof_groups
 from mbrl_delan.data.mocap.inverse import (
     InverseDynamics,
     dynamics_model,
@@ -53,11 +58,24 @@ from mbrl_delan.data.mocap.retarget import (
     retarget,
     retarget_files,
 )
+from mbrl_delan.data.mocap.tracking import (
+    GAINS,
+    TrackingErrors,
+    TrackingResult,
+    TrackingSettings,
+    TrackingUnstableError,
+    track_clip,
+)
 
 __all__ = [
+    "BODY_PARTS",
     "CMU_URL_TEMPLATE",
     "DEFAULT_CLIPS",
     "DEFAULT_VAL_CLIPS",
+    "GAINS",
+    "ROOT_GROUP",
+    "SPLIT_NAMES",
+    "TORQUE_SOURCES",
     "TRAIN",
     "UNCAPTURED_BONES",
     "VAL_CLIP",
@@ -74,10 +92,15 @@ __all__ = [
     "MocapFormatError",
     "MocapQpos",
     "RetargetedClip",
+    "TrackingErrors",
+    "TrackingResult",
+    "TrackingSettings",
+    "TrackingUnstableError",
     "amc_to_qpos",
     "build_dataset",
     "clip_subject",
     "default_cache_dir",
+    "dof_groups",
     "download_clip",
     "dynamics_model",
     "find_clip",
@@ -91,4 +114,5 @@ __all__ = [
     "retarget_files",
     "save_dataset",
     "split_dataset",
+    "track_clip",
 ]

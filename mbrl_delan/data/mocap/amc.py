@@ -258,7 +258,8 @@ def read_amc(path: str | Path, skeleton: AsfSkeleton) -> AmcMotion:
         missing = [bone for bone in expected if bone not in seen]
         if missing:
             raise MocapFormatError(
-                path, at_line,
+                path,
+                at_line,
                 f"frame {frames[-1]} (from line {frame_line}) is truncated: "
                 f"no values for {', '.join(missing)}",
             )
@@ -301,7 +302,8 @@ def read_amc(path: str | Path, skeleton: AsfSkeleton) -> AmcMotion:
         dofs = expected[bone]
         if len(tokens) - 1 != len(dofs):
             raise MocapFormatError(
-                path, lineno,
+                path,
+                lineno,
                 f"bone {bone!r} has {len(tokens) - 1} values, the skeleton "
                 f"{skeleton.path.name} declares {len(dofs)} ({' '.join(dofs)})",
             )

@@ -7,7 +7,10 @@ drop samples near glitches and at the borders of the held-out segment, keep abou
 The result is a float64 TensorDict of batch size (N,) with the keys (`mbrl_delan.keys`)
 
 - ``q`` (N, 63), ``qd`` (N, 62), ``qdd`` (N, 62), ``tau`` (N, 62): ``qfrc_inverse``, the
-  56 joint torques and the 6 root-residual forces in their dof slots;
+  56 joint torques and the 6 root-residual forces in their dof slots (``torques="inverse"``,
+  default); with ``torques="pd"`` the clip is tracked in simulation by PD control
+  (`mbrl_delan.data.mocap.tracking`) and q, qd, qdd, tau are the achieved motion and the
+  applied generalized forces (still ``mj_inverse(q, qd, qdd) = tau``);
 - ``root_residual`` (N, 6): the root's part of tau, kept separately (it is the force the
   ground provides; nothing inside the body can produce it);
 - ``("next", "q")`` (N, 63), ``("next", "qd")`` (N, 62): the state dt later, for next-state
@@ -30,7 +33,7 @@ import logging
 import shutil
 import zlib
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from hashlib import sha256
 from pathlib import Path
@@ -40,6 +43,7 @@ import mujoco
 import numpy as np
 import torch
 from tensordict import TensorDict
+from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.data.buffer import check_finite
@@ -52,6 +56,7 @@ from mbrl_delan.data.mocap.retarget import (
     humanoid_cmu_xml,
     retarget,
 )
+from mbrl_delan.data.mocap.tracking import TrackingSettings, track_clip
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +72,7 @@ DEFAULT_CLIPS = (
     "07_03", "07_05", "09_06", "09_12", "131_03", "131_07", "131_12",
 )  # fmt: skip
 DEFAULT_VAL_CLIPS = ("02_02", "05_07", "131_07")  # a walk, a dance, a jump
+TORQUE_SOURCES = ("inverse", "pd")  # mj_inverse of the reference, or PD tracking in simulation
 
 
 @dataclass
@@ -140,19 +146,27 @@ def _clip_samples(
     clip_index: int,
     samples_per_clip: int | None,
     passive: bool,
+    applied: Tensor | None = None,
 ) -> TensorDict:
-    """The chosen samples of one clip with their forces, TensorDict (n,)."""
+    """The chosen samples of one clip with their forces, TensorDict (n,).
+
+    ``applied`` (T, nv): the generalized forces of every clip sample when they are known
+    (PD tracking); otherwise they are computed by `inverse_dynamics`.
+    """
     chosen = torch.from_numpy(_evenly(np.flatnonzero(labels != _DROP), samples_per_clip))
     q, qd, qdd = clip.q[chosen], clip.qd[chosen], clip.qdd[chosen]
-    forces = inverse_dynamics(model, q, qd, qdd, passive=passive)
+    if applied is None:
+        tau = inverse_dynamics(model, q, qd, qdd, passive=passive).tau  # (n, nv)
+    else:
+        tau = applied[chosen].clone()  # (n, nv)
     n = int(chosen.numel())
     td = TensorDict(
         {
             keys.Q: q,
             keys.QD: qd,
             keys.QDD: qdd,
-            keys.TAU: forces.tau,
-            keys.ROOT_RESIDUAL: forces.root_residual,
+            keys.TAU: tau,
+            keys.ROOT_RESIDUAL: tau[:, list(root_dofs(model))].clone(),
             keys.NEXT_Q: clip.next_q[chosen],
             keys.NEXT_QD: clip.next_qd[chosen],
             keys.CLIP: torch.full((n, 1), clip_index, dtype=torch.int64),
@@ -187,6 +201,8 @@ def build_dataset(
     glitch_pad_s: float = 0.25,
     passive: bool = True,
     seed: int = 0,
+    torques: str = "inverse",
+    tracking: TrackingSettings | None = None,
 ) -> MocapDataset:
     """Build the mocap dataset from CMU clips.
 
@@ -205,6 +221,11 @@ def build_dataset(
         glitch_pad_s: samples this close to a glitch are dropped.
         passive: keep the MJCF's joint springs and dampers in the inverse dynamics.
         seed: seeds the placement of the held-out segments.
+        torques: "inverse" (``mj_inverse`` of the retargeted motion) or "pd" (track it in
+            simulation with `track_clip`; the samples are the achieved motion and the
+            applied forces).
+        tracking: PD settings for ``torques="pd"`` (`TrackingSettings()` if None; its
+            ``passive`` is set to ``passive``).
     """
     settings = settings or FilterSettings()
     clips = tuple(clips)
@@ -215,12 +236,20 @@ def build_dataset(
         raise ValueError(f"clips listed twice in {list(clips)}")
     if samples_per_clip is not None and samples_per_clip < 1:
         raise ValueError(f"samples_per_clip must be >= 1 or None, got {samples_per_clip}")
+    if torques not in TORQUE_SOURCES:
+        raise ValueError(f"torques must be one of {TORQUE_SOURCES}, got {torques!r}")
+    tracking = replace(tracking or TrackingSettings(), passive=passive)
     xml = Path(xml_path) if xml_path is not None else humanoid_cmu_xml()
     model = mujoco.MjModel.from_xml_path(str(xml))
     parts, info = [], {}
     for index, name in enumerate(clips):
         files = find_clip(name, folders, cache_dir, download, url_template)
         clip = _retarget_files(files, model, settings, timestep)
+        applied, tracking_errors = None, None
+        if torques == "pd":
+            tracked = track_clip(model, clip, tracking)
+            clip, applied = tracked.as_clip(clip), tracked.tau
+            tracking_errors = tracked.errors().as_dict()
         time = clip.time.numpy()
         labels, segment = split_labels(
             time, name in val_clips, val_time_fraction, gap_s, _clip_rng(seed, name)
@@ -232,7 +261,7 @@ def build_dataset(
             near |= np.abs(time - g) <= glitch_pad_s
         glitch_drop = int(np.sum(near & (labels != _DROP)))
         labels[near] = _DROP
-        td = _clip_samples(clip, model, labels, index, samples_per_clip, passive)
+        td = _clip_samples(clip, model, labels, index, samples_per_clip, passive, applied)
         parts.append(td)
         counts = torch.bincount(td[keys.SPLIT].flatten(), minlength=3).tolist()
         info[name] = {
@@ -253,10 +282,14 @@ def build_dataset(
             "missing_joints": list(clip.missing),
             "unused_channels": list(clip.unused),
             "out_of_range": clip.out_of_range,
+            "tracking_errors": tracking_errors,
         }
         log.info(
             "%s: %d samples (train %d, val_time %d, val_clip %d); %d dropped near glitches",
-            name, td.batch_size[0], *counts, glitch_drop,
+            name,
+            td.batch_size[0],
+            *counts,
+            glitch_drop,
         )
     data = torch.cat(parts, dim=0) if parts else TensorDict({}, batch_size=[0])
     provenance = {
@@ -275,6 +308,10 @@ def build_dataset(
             "root_dofs": list(root_dofs(model)),
         },
         "inverse_dynamics": {"contacts": False, "limits": False, "passive": passive},
+        "torques": {
+            "source": torques,
+            "tracking": tracking.as_dict() if torques == "pd" else None,
+        },
         "split": {
             "codes": {v: k for k, v in SPLIT_NAMES.items()},
             "val_clips": list(val_clips),

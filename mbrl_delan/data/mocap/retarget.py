@@ -339,7 +339,12 @@ def retarget(
     )
     log.info(
         "%s: %d frames -> %d samples at dt=%g; %d hinges leave their range; max jump %.0f deg",
-        name, motion.n_frames, len(clip), dt, len(clip.out_of_range), float(jumps.max(initial=0)),
+        name,
+        motion.n_frames,
+        len(clip),
+        dt,
+        len(clip.out_of_range),
+        float(jumps.max(initial=0)),
     )
     return clip
 

@@ -1,0 +1,425 @@
+"""`python -m mbrl_delan.fit data=cmu_mocap model=delan|mlp|ensemble`: inverse dynamics from mocap.
+
+The paper's experiment: learn a humanoid's inverse dynamics ``(q, qd, qdd) -> tau`` from CMU
+motion capture with DeLaN and with a feed-forward network, and compare their training and
+validation losses per epoch. The config tree is ``configs/fit`` (``model=`` names an
+inverse-dynamics model of `mbrl_delan.models.inverse` here).
+
+Builds (or loads) the mocap dataset, trains the model on its training part and evaluates it on
+every split after each epoch. The run dir (``runs/fit/...``) receives ``config.yaml``,
+``dataset_provenance.json``, ``metrics.jsonl`` (one record per epoch), ``summary.json``
+(final errors per split and body part; DeLaN's positive-definiteness check), ``model.pt``
+and ``loss_curves.png``. Compare runs with ``python -m mbrl_delan.fit_report``.
+
+Exit codes: 0 done, 2 bad config value or missing clip/dataset, 1 bad data (NaN, malformed
+file, unstable PD tracking) or diverged training.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import hydra
+import mujoco
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from tensordict import TensorDict, TensorDictBase
+
+from mbrl_delan import keys
+from mbrl_delan.config import DTYPES, ConfigError, check_device
+from mbrl_delan.data.buffer import NonFiniteDataError, check_finite
+from mbrl_delan.data.mocap import (
+    GAINS,
+    SPLIT_NAMES,
+    TORQUE_SOURCES,
+    ClipNotFoundError,
+    FilterSettings,
+    MocapDataset,
+    MocapFormatError,
+    TrackingSettings,
+    TrackingUnstableError,
+    build_dataset,
+    dof_groups,
+    humanoid_cmu_xml,
+    load_dataset,
+    split_dataset,
+)
+from mbrl_delan.data.mocap.retarget import joint_layout
+from mbrl_delan.models.inverse import (
+    MLP_ACTIVATIONS,
+    MODEL_NAMES,
+    DeLaNInverse,
+    InverseDynamicsModel,
+    MLPEnsembleInverse,
+    MLPInverse,
+)
+from mbrl_delan.models.tangent_mlp import ACTIVATIONS as DELAN_ACTIVATIONS
+from mbrl_delan.systems.system import JointLayout
+from mbrl_delan.training.fit import TrainingDivergedError
+from mbrl_delan.training.inverse_fit import (
+    EpochResult,
+    InverseFitSettings,
+    TorqueErrors,
+    check_mass_matrix,
+    fit_inverse_model,
+)
+from mbrl_delan.training.recorder import METRICS_FILE, Recorder, read_metrics
+
+log = logging.getLogger("mbrl_delan.fit")
+
+DATA_NAMES = ("cmu_mocap",)
+RUN_CONFIG = "config.yaml"
+PROVENANCE_FILE = "dataset_provenance.json"
+MODEL_FILE = "model.pt"
+SPLITS = tuple(SPLIT_NAMES.values())  # ("train", "val_time", "val_clip")
+TAU_DEFINITION = (
+    "all nv generalized forces (humanoid_CMU: 62 = 6 root residual [world-frame force, "
+    "body-frame torque] + 56 hinge torques), the dataset's tau"
+)
+
+
+# ---------------------------------------------------------------- config checking
+
+
+def _choice(path: str, value: Any, choices: Sequence[str]) -> None:
+    if value not in choices:
+        raise ConfigError(f"{path}={value!r} is not valid; choose one of: {', '.join(choices)}")
+
+
+def _number(
+    path: str, value: Any, low: float, high: float = math.inf, open_low: bool = False
+) -> None:
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if ok:
+        ok = (value > low if open_low else value >= low) and value <= high
+    if not ok:
+        bound = f"> {low}" if open_low else f">= {low}"
+        limit = "" if high == math.inf else f" and <= {high}"
+        raise ConfigError(f"{path}={value!r} is not valid; it must be a number {bound}{limit}")
+
+
+def _clip_names(path: str, value: Any, allow_empty: bool = False) -> list[str]:
+    if not isinstance(value, list | tuple | ListConfig) or (not value and not allow_empty):
+        raise ConfigError(
+            f"{path}={value!r} is not valid; give a list of clip names (subject_trial)"
+        )
+    for i, name in enumerate(value):
+        if not isinstance(name, str):
+            raise ConfigError(
+                f"{path}[{i}]={name!r} is not a clip name; quote names like '131_03' "
+                "(Hydra reads 131_03 as the number 13103)"
+            )
+    return [str(v) for v in value]
+
+
+def _validate_model(cfg: DictConfig) -> None:
+    _choice("model.name", cfg.name, MODEL_NAMES)
+    _number("model.hidden", cfg.hidden, 1)
+    if cfg.name == "delan":
+        _number("model.layers", cfg.layers, 1)
+        _choice("model.activation", cfg.activation, DELAN_ACTIVATIONS)
+        _number("model.diag_shift", cfg.diag_shift, 0.0, open_low=True)
+        _number("model.unit_floor", cfg.unit_floor, 0.0, 1.0, open_low=True)
+    else:
+        _choice("model.activation", cfg.activation, tuple(MLP_ACTIVATIONS))
+    if cfg.name == "ensemble":
+        _number("model.ensemble_size", cfg.ensemble_size, 1)
+
+
+def _validate_data(cfg: DictConfig) -> None:
+    _choice("data.name", cfg.name, DATA_NAMES)
+    _choice("data.torques", cfg.torques, TORQUE_SOURCES)
+    if cfg.dataset_dir is not None:
+        return
+    clips = _clip_names("data.clips", cfg.clips)
+    val = _clip_names("data.val_clips", cfg.val_clips, allow_empty=True)
+    unknown = [c for c in val if c not in clips]
+    if unknown:
+        raise ConfigError(f"data.val_clips={val} is not valid: {unknown} not in data.clips={clips}")
+    if len(set(clips)) != len(clips):
+        raise ConfigError(f"data.clips={clips} is not valid: a clip is listed twice")
+    if cfg.samples_per_clip is not None:
+        _number("data.samples_per_clip", cfg.samples_per_clip, 1)
+    if cfg.filter.cutoff_hz is not None:
+        _number("data.filter.cutoff_hz", cfg.filter.cutoff_hz, 0.0, 59.99, open_low=True)
+    _number("data.filter.order", cfg.filter.order, 1)
+    _number("data.filter.edge_trim_s", cfg.filter.edge_trim_s, 0.0)
+    _number("data.split.val_time_fraction", cfg.split.val_time_fraction, 0.0, 0.95)
+    _number("data.split.gap_s", cfg.split.gap_s, 0.0)
+    _number("data.glitch.deg", cfg.glitch.deg, 0.0, open_low=True)
+    _number("data.glitch.pad_s", cfg.glitch.pad_s, 0.0)
+    if cfg.torques == "pd":
+        _number("data.pd.omega", cfg.pd.omega, 0.0, open_low=True)
+        _number("data.pd.zeta", cfg.pd.zeta, 0.0, open_low=True)
+        _choice("data.pd.gains", cfg.pd.gains, GAINS)
+
+
+def validate_fit_config(cfg: DictConfig) -> None:
+    """Every value the fit entry point uses, checked before anything is built or written."""
+    _choice("dtype", cfg.dtype, tuple(DTYPES))
+    check_device(cfg.device)
+    if cfg.threads is not None:
+        _number("threads", cfg.threads, 1)
+    _number("epochs", cfg.epochs, 1)
+    _number("batch_size", cfg.batch_size, 1)
+    _number("eval_batch_size", cfg.eval_batch_size, 1)
+    _number("lr", cfg.lr, 0.0, open_low=True)
+    _number("weight_decay", cfg.weight_decay, 0.0)
+    if cfg.max_grad_norm is not None:
+        _number("max_grad_norm", cfg.max_grad_norm, 0.0, open_low=True)
+    _number("loss.std_floor", cfg.loss.std_floor, 0.0, 1.0, open_low=True)
+    _validate_model(cfg.model)
+    _validate_data(cfg.data)
+
+
+# ---------------------------------------------------------------- building the parts
+
+
+def make_dataset(cfg: DictConfig) -> MocapDataset:
+    """The mocap dataset the data config describes (loaded from ``dataset_dir`` if set)."""
+    if cfg.dataset_dir is not None:
+        log.info(
+            "loading the dataset saved in %s (the clip and filter settings are not used)",
+            cfg.dataset_dir,
+        )
+        dataset = load_dataset(cfg.dataset_dir)
+    else:
+        dataset = build_dataset(
+            clips=_clip_names("data.clips", cfg.clips),
+            val_clips=_clip_names("data.val_clips", cfg.val_clips, allow_empty=True),
+            folders=list(cfg.folders),
+            cache_dir=cfg.cache_dir,
+            download=cfg.download,
+            settings=FilterSettings(
+                cutoff_hz=cfg.filter.cutoff_hz,
+                order=cfg.filter.order,
+                edge_trim_s=cfg.filter.edge_trim_s,
+            ),
+            samples_per_clip=cfg.samples_per_clip,
+            val_time_fraction=cfg.split.val_time_fraction,
+            gap_s=cfg.split.gap_s,
+            glitch_deg=cfg.glitch.deg,
+            glitch_pad_s=cfg.glitch.pad_s,
+            passive=cfg.passive,
+            seed=cfg.split.seed,
+            torques=cfg.torques,
+            tracking=TrackingSettings(
+                omega=cfg.pd.omega,
+                zeta=cfg.pd.zeta,
+                gains=cfg.pd.gains,
+                feedforward=cfg.pd.feedforward,
+            ),
+        )
+    check_finite(dataset.data, f"the mocap dataset ({len(dataset)} samples)")
+    return dataset
+
+
+def build_inverse_model(
+    cfg: DictConfig, layout: JointLayout, std_floor: float
+) -> InverseDynamicsModel:
+    """The inverse-dynamics model named by ``cfg.name``."""
+    if cfg.name == "delan":
+        return DeLaNInverse(
+            layout,
+            hidden=cfg.hidden,
+            layers=cfg.layers,
+            activation=cfg.activation,
+            diag_shift=cfg.diag_shift,
+            dissipation=cfg.dissipation,
+            coulomb=cfg.coulomb,
+            std_floor=std_floor,
+            unit_floor=cfg.unit_floor,
+        )
+    if cfg.name == "mlp":
+        return MLPInverse(layout, hidden=cfg.hidden, activation=cfg.activation, std_floor=std_floor)
+    return MLPEnsembleInverse(
+        layout,
+        ensemble_size=cfg.ensemble_size,
+        hidden=cfg.hidden,
+        activation=cfg.activation,
+        std_floor=std_floor,
+    )
+
+
+def _mujoco_model(dataset: MocapDataset) -> mujoco.MjModel:
+    """The model the data were retargeted onto (from the provenance, else humanoid_CMU)."""
+    xml = dataset.provenance.get("model", {}).get("xml")
+    path = Path(xml) if xml and Path(xml).is_file() else humanoid_cmu_xml()
+    return mujoco.MjModel.from_xml_path(str(path))
+
+
+def _tensors(td: TensorDictBase, device: torch.device, dtype: torch.dtype) -> TensorDict:
+    """Only q, qd, qdd, tau, on the device in the training dtype. (N,)"""
+    return td.select(keys.Q, keys.QD, keys.QDD, keys.TAU).to(device=device, dtype=dtype)
+
+
+# ---------------------------------------------------------------- the run
+
+
+def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
+    """Validate, build, train and evaluate; write everything into ``run_dir``. The summary."""
+    validate_fit_config(cfg)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    device, dtype = check_device(cfg.device), DTYPES[cfg.dtype]
+    run_dir.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, run_dir / RUN_CONFIG, resolve=True)
+    start = time.perf_counter()
+    dataset = make_dataset(cfg.data)
+    (run_dir / PROVENANCE_FILE).write_text(json.dumps(dataset.provenance, indent=1))
+    parts = split_dataset(dataset)
+    splits = {name: _tensors(getattr(parts, name), device, dtype) for name in SPLITS}
+    mj_model = _mujoco_model(dataset)
+    model = build_inverse_model(cfg.model, joint_layout(mj_model), cfg.loss.std_floor)
+    model = model.to(device=device, dtype=dtype)
+    container = OmegaConf.to_container(cfg, resolve=True)
+    logger = cfg.logger
+    with Recorder(run_dir, logger.wandb, logger.project, logger.group, container) as recorder:
+        results = _train(cfg, model, splits, recorder, device)
+        summary = _summary(cfg, dataset, model, mj_model, splits, results)
+        summary["wall_time_s"] = time.perf_counter() - start
+        recorder.write_summary(summary)
+    _save_model_and_curves(cfg, model, run_dir)
+    _log_summary(run_dir, summary)
+    return summary
+
+
+def _train(
+    cfg: DictConfig,
+    model: InverseDynamicsModel,
+    splits: dict[str, TensorDict],
+    recorder: Recorder,
+    device: torch.device,
+) -> list[EpochResult]:
+    """Adam on the training split; every non-empty split evaluated and logged per epoch."""
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    settings = InverseFitSettings(
+        epochs=cfg.epochs,
+        batch_size=cfg.batch_size,
+        eval_batch_size=cfg.eval_batch_size,
+        max_grad_norm=cfg.max_grad_norm,
+    )
+    generator = torch.Generator(device=device).manual_seed(cfg.seed)
+    evaluated = {k: v for k, v in splits.items() if v.shape[0] > 0}
+
+    def on_epoch(result: EpochResult) -> None:
+        recorder.log(result.record(), result.epoch)
+
+    return fit_inverse_model(
+        model, optimizer, splits["train"], evaluated, settings, generator, on_epoch
+    )
+
+
+def _save_model_and_curves(cfg: DictConfig, model: InverseDynamicsModel, run_dir: Path) -> None:
+    """``model.pt`` (state dict) and ``loss_curves.png`` from ``metrics.jsonl``."""
+    from mbrl_delan.training.fit_plots import LOSS_CURVES_PNG, plot_loss_curves  # matplotlib
+
+    torch.save({"model": cfg.model.name, "state_dict": model.state_dict()}, run_dir / MODEL_FILE)
+    records = read_metrics(run_dir / METRICS_FILE)
+    plot_loss_curves({cfg.model.name: records}, run_dir / LOSS_CURVES_PNG)
+
+
+def _split_summary(errors: TorqueErrors, groups: dict[str, tuple[int, ...]]) -> dict[str, Any]:
+    joints = [i for name, dofs in groups.items() if name != "root" for i in dofs]
+    return {
+        "n": errors.n,
+        "mse": errors.mse,
+        "mse_si": errors.mse_si,
+        "r2": errors.r2,
+        "joint_mse_si": errors.group(joints).mse_si,
+        "groups": {name: errors.group(dofs).as_dict() for name, dofs in groups.items()},
+    }
+
+
+def _summary(
+    cfg: DictConfig,
+    dataset: MocapDataset,
+    model: InverseDynamicsModel,
+    mj_model: mujoco.MjModel,
+    splits: dict[str, TensorDict],
+    results: list[EpochResult],
+) -> dict[str, Any]:
+    groups = dof_groups(mj_model)
+    final = results[-1].errors
+    summary: dict[str, Any] = {
+        "data": cfg.data.name,
+        "model": cfg.model.name,
+        "seed": cfg.seed,
+        "device": cfg.device,
+        "dtype": cfg.dtype,
+        "epochs": len(results),
+        "n_parameters": sum(p.numel() for p in model.parameters()),
+        "clips": list(dataset.provenance.get("clips", [])),
+        "val_clips": list(dataset.provenance.get("split", {}).get("val_clips", [])),
+        "torques": dataset.provenance.get("torques", {}).get("source", "inverse"),
+        "samples": {name: int(td.shape[0]) for name, td in splits.items()},
+        "tau": TAU_DEFINITION,
+        "loss": f"per-DoF normalised torque MSE, std floored at {cfg.loss.std_floor} x the largest",
+        "dof_groups": {name: len(dofs) for name, dofs in groups.items()},
+        "final": {name: _split_summary(err, groups) for name, err in final.items()},
+    }
+    for name, err in final.items():
+        summary[f"{name}_mse"] = err.mse
+        summary[f"{name}_mse_si"] = err.mse_si
+        summary[f"{name}_r2"] = err.r2
+    if isinstance(model, DeLaNInverse):
+        q_all = torch.cat([td[keys.Q] for td in splits.values()])
+        check = check_mass_matrix(model, q_all, cfg.eval_batch_size)
+        summary["mass_matrix"] = check.as_dict()
+        summary["positive_definite_fraction"] = check.positive_definite_fraction
+    return summary
+
+
+def _log_summary(run_dir: Path, s: dict[str, Any]) -> None:
+    log.info("run dir: %s", run_dir)
+    for name, part in s["final"].items():
+        log.info(
+            "%s after %d epochs, %s: MSE %.4g (normalised), %.4g (SI), R2 %.3f (%d samples)",
+            s["model"],
+            s["epochs"],
+            name,
+            part["mse"],
+            part["mse_si"],
+            part["r2"],
+            part["n"],
+        )
+    if "positive_definite_fraction" in s:
+        log.info(
+            "DeLaN: M positive definite on %.4f of %d samples",
+            s["positive_definite_fraction"],
+            s["mass_matrix"]["n"],
+        )
+    log.info("wall time %.1f s", s["wall_time_s"])
+
+
+@hydra.main(version_base="1.3", config_path="../configs/fit", config_name="config")
+def main(cfg: DictConfig) -> float | None:
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        summary = run(cfg, run_dir)
+    except ConfigError as err:
+        log.error("config error: %s", err)
+        sys.exit(2)
+    except (ClipNotFoundError, FileNotFoundError) as err:
+        log.error("data not found: %s", err)
+        sys.exit(2)
+    except (NonFiniteDataError, MocapFormatError, TrackingUnstableError) as err:
+        log.error("bad data: %s", err)
+        sys.exit(1)
+    except TrainingDivergedError as err:
+        log.error("training diverged: %s", err)
+        sys.exit(1)
+    return summary.get("val_clip_mse")
+
+
+if __name__ == "__main__":
+    main()

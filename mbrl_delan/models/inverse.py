@@ -1,0 +1,402 @@
+"""Inverse-dynamics models: generalized forces tau from (q, qd, qdd), for fitting mocap data.
+
+One interface (`InverseDynamicsModel`: `predict_torque`, `loss`, `fit_normalization`) and
+three models:
+
+- `DeLaNInverse`: ``tau = M(q) qdd + c(q, qd) + g(q) + d(qd)`` by the `LagrangianDynamics` of
+  `mbrl_delan.models.delan` over a `LagrangianNetwork` (free root and Euler-Poincare term
+  included), in per-DoF units set from the data (below);
+- `MLPInverse`: the paper's feed-forward baseline, three linear layers
+  ``[phi(q), qd, qdd] -> tau``;
+- `MLPEnsembleInverse`: E such MLPs with batched weight tensors ``(E, in, out)`` (one
+  ``torch.baddbmm`` per layer for all members); the prediction is the members' mean.
+
+What tau is: all nv generalized forces (62 on humanoid_CMU), i.e. the dataset's ``tau``: the
+6 root-residual components (world-frame force, then body-frame torque) and the 56 hinge
+torques. The root rows are the same equations of motion (M's root rows carry the body's mass
+and momentum); the 56 joint torques alone are the columns 6: of the prediction.
+
+Same information for every model: phi(q) (`QFeatures`: the root height and rotation matrix,
+hinge angles; not the x/y position), qd and qdd. The MLPs get them concatenated and
+standardised with the training mean and std (constant columns, e.g. the uncaptured fingers,
+are only centred); DeLaN's networks see phi(q), while qd and qdd enter through the equations.
+
+Loss (the same for every model): the per-DoF normalised torque MSE
+
+    loss = mean over samples and DoFs of ((tau_hat - tau) / sigma)^2,
+
+sigma (``tau_scale``) being the training std of each DoF's torque, floored at
+``std_floor`` times the largest DoF's std (so DoFs with almost no torque, the fingers, do not
+dominate). `loss` also reports ``mse_si``, the plain MSE in SI units (N m^2 for torques, N^2
+for the root force). An ensemble's loss averages its members' losses (each member is
+trained); its metrics are those of the mean prediction.
+
+DeLaN's units. Torques span 0.02 (fingers) to 500 (root vertical force), accelerations 0 to
+50 and inertias 0.01 to 52; the networks' outputs are O(1). Instead of normalising outputs
+(which would break the structure), the mechanics is reparametrised with fixed positive
+scales set by `fit_normalization` from the training data:
+
+- ``M = S L L^T S`` with ``S = diag(s)``, ``s_i^2 = sigma_tau_i / sigma_qdd_i`` (an inertia
+  unit per DoF; sigma_qdd floored at ``unit_floor`` times its largest, for DoFs that never
+  move): ``S L`` is still lower-triangular with a positive diagonal, so M stays symmetric
+  positive definite, and c is derived from this M exactly;
+- ``V = e V_net`` with ``e`` the largest RMS torque (an energy unit);
+- at initialisation the heads of L's off-diagonal entries and of V are zero: M starts
+  diagonal (a random dense M couples the fingers to the whole body's accelerations) and g
+  starts at zero;
+- viscous and Coulomb friction in units ``sigma_tau_i / sigma_qd_i`` and ``sigma_tau_i``
+  (still dissipative: the scales are positive); the viscous coefficients start at
+  softplus(0) = 0.69 units (humanoid_CMU's dampers, 5 N m s/rad, are about one unit: the
+  default near-zero start would take thousands of Adam steps to get there).
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from collections.abc import Callable
+
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+from mbrl_delan import keys
+from mbrl_delan.models.base import LossOutput
+from mbrl_delan.models.delan import (
+    Dissipation,
+    LagrangianDynamics,
+    LagrangianNetwork,
+    MechanicsField,
+    MechanicsJet,
+    rotational_dofs,
+)
+from mbrl_delan.models.features import QFeatures
+from mbrl_delan.systems.system import JointLayout
+
+MODEL_NAMES = ("delan", "mlp", "ensemble")
+MLP_ACTIVATIONS: dict[str, Callable[[Tensor], Tensor]] = {
+    "silu": F.silu,
+    "tanh": torch.tanh,
+    "relu": F.relu,
+    "softplus": F.softplus,
+    "elu": F.elu,
+    "gelu": F.gelu,
+}
+CONSTANT_STD = 1e-6  # an input column with a smaller std is constant: centred, not scaled
+
+
+def torque_scale(tau: Tensor, std_floor: float) -> Tensor:
+    """Per-DoF std of tau (N, n) floored at std_floor times the largest one. -> (n,)."""
+    std = tau.std(dim=0) if tau.shape[0] > 1 else tau.abs().mean(dim=0)
+    return std.clamp_min(std_floor * float(std.max().clamp_min(1e-12)))
+
+
+def _input_std(x: Tensor) -> Tensor:
+    """Per-column std (N, k) -> (k,), 1 for constant columns."""
+    std = x.std(dim=0) if x.shape[0] > 1 else torch.ones_like(x[0])
+    return torch.where(std > CONSTANT_STD, std, torch.ones_like(std))
+
+
+class InverseDynamicsModel(nn.Module, abc.ABC):
+    """tau = f(q, qd, qdd), trained by the per-DoF normalised torque MSE.
+
+    Args:
+        nv: number of generalized velocities (and forces).
+        std_floor: floor of the per-DoF torque std, relative to the largest, in (0, 1).
+    """
+
+    def __init__(self, nv: int, std_floor: float) -> None:
+        super().__init__()
+        if not 0.0 < std_floor < 1.0:
+            raise ValueError(f"std_floor must be in (0, 1), got {std_floor}")
+        self.nv, self.std_floor = nv, std_floor
+        self.register_buffer("tau_scale", torch.ones(nv))
+
+    @abc.abstractmethod
+    def predict_torque(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
+        """(..., nq), (..., nv), (..., nv) -> tau (..., nv)."""
+
+    def member_predictions(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
+        """Predictions of every member, (M, ..., nv); one member unless an ensemble."""
+        return self.predict_torque(q, qd, qdd).unsqueeze(0)
+
+    @torch.no_grad()
+    def fit_normalization(self, data: TensorDictBase) -> None:
+        """Set the loss's per-DoF torque scale (and model units) from the training data."""
+        tau = data[keys.TAU].to(self.tau_scale)  # (N, nv)
+        self.tau_scale.copy_(torque_scale(tau, self.std_floor))
+
+    def loss(self, batch: TensorDictBase) -> LossOutput:
+        """Normalised torque MSE on a batch with keys q, qd, qdd, tau."""
+        tau = batch[keys.TAU]  # (B, nv)
+        members = self.member_predictions(batch[keys.Q], batch[keys.QD], batch[keys.QDD])
+        loss = ((members - tau) / self.tau_scale).pow(2).mean()
+        with torch.no_grad():
+            error = members.mean(0) - tau  # (B, nv)
+            metrics = {
+                "loss": float(loss),
+                "mse": float((error / self.tau_scale).pow(2).mean()),
+                "mse_si": float(error.pow(2).mean()),
+            }
+        return LossOutput(loss=loss, metrics=metrics)
+
+
+# ---------------------------------------------------------------- feed-forward baselines
+
+
+class _FeedForwardInverse(InverseDynamicsModel):
+    """Standardised inputs [phi(q), qd, qdd] and outputs tau = net * tau_scale + tau_mean."""
+
+    def __init__(self, layout: JointLayout, activation: str, std_floor: float) -> None:
+        super().__init__(layout.nv, std_floor)
+        if activation not in MLP_ACTIVATIONS:
+            raise ValueError(
+                f"activation must be one of {tuple(MLP_ACTIVATIONS)}, got {activation!r}"
+            )
+        self.activation = activation
+        self.act = MLP_ACTIVATIONS[activation]
+        self.features = QFeatures(layout)
+        self.n_in = self.features.n_features + 2 * layout.nv
+        self.register_buffer("in_mean", torch.zeros(self.n_in))
+        self.register_buffer("in_std", torch.ones(self.n_in))
+        self.register_buffer("tau_mean", torch.zeros(layout.nv))
+
+    def inputs(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
+        """Raw network inputs [phi(q), qd, qdd]: (..., n_in)."""
+        return torch.cat([self.features(q), qd, qdd], dim=-1)
+
+    def standardised_inputs(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
+        return (self.inputs(q, qd, qdd) - self.in_mean) / self.in_std  # (..., n_in)
+
+    @torch.no_grad()
+    def fit_normalization(self, data: TensorDictBase) -> None:
+        super().fit_normalization(data)
+        dtype = self.in_mean.dtype
+        x = self.inputs(*(data[k].to(dtype) for k in (keys.Q, keys.QD, keys.QDD)))
+        self.in_mean.copy_(x.mean(dim=0))
+        self.in_std.copy_(_input_std(x))
+        self.tau_mean.copy_(data[keys.TAU].to(dtype).mean(dim=0))
+
+
+class MLPInverse(_FeedForwardInverse):
+    """The feed-forward baseline: Linear -> act -> Linear -> act -> Linear (three layers)."""
+
+    def __init__(
+        self,
+        layout: JointLayout,
+        hidden: int = 256,
+        activation: str = "silu",
+        std_floor: float = 1e-3,
+    ) -> None:
+        super().__init__(layout, activation, std_floor)
+        if hidden < 1:
+            raise ValueError(f"hidden must be >= 1, got {hidden}")
+        self.layers = nn.ModuleList(
+            [nn.Linear(self.n_in, hidden), nn.Linear(hidden, hidden), nn.Linear(hidden, self.nv)]
+        )
+
+    def predict_torque(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
+        x = self.standardised_inputs(q, qd, qdd)
+        for layer in self.layers[:-1]:
+            x = self.act(layer(x))
+        return self.layers[-1](x) * self.tau_scale + self.tau_mean  # (..., nv)
+
+
+class BatchedLinear(nn.Module):
+    """E independent linear maps: (E, B, n_in) -> (E, B, n_out), one baddbmm."""
+
+    def __init__(self, members: int, n_in: int, n_out: int) -> None:
+        super().__init__()
+        bound = 1.0 / math.sqrt(n_in)  # nn.Linear's default initialisation, per member
+        self.weight = nn.Parameter(torch.empty(members, n_in, n_out).uniform_(-bound, bound))
+        self.bias = nn.Parameter(torch.empty(members, 1, n_out).uniform_(-bound, bound))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return torch.baddbmm(self.bias, x, self.weight)
+
+
+class MLPEnsembleInverse(_FeedForwardInverse):
+    """E three-layer MLPs (as `MLPInverse`) in batched weights; predicts the members' mean."""
+
+    def __init__(
+        self,
+        layout: JointLayout,
+        ensemble_size: int = 5,
+        hidden: int = 256,
+        activation: str = "silu",
+        std_floor: float = 1e-3,
+    ) -> None:
+        super().__init__(layout, activation, std_floor)
+        if ensemble_size < 1 or hidden < 1:
+            raise ValueError(f"need ensemble_size >= 1 and hidden >= 1: {ensemble_size}, {hidden}")
+        self.ensemble_size = ensemble_size
+        sizes = (self.n_in, hidden, hidden, self.nv)
+        self.layers = nn.ModuleList(
+            BatchedLinear(ensemble_size, a, b) for a, b in zip(sizes[:-1], sizes[1:], strict=True)
+        )
+
+    def member_predictions(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
+        x = self.standardised_inputs(q, qd, qdd)  # (..., n_in)
+        lead = x.shape[:-1]
+        x = x.reshape(1, -1, self.n_in).expand(self.ensemble_size, -1, -1)  # (E, B, n_in)
+        for layer in self.layers[:-1]:
+            x = self.act(layer(x))
+        out = self.layers[-1](x) * self.tau_scale + self.tau_mean  # (E, B, nv)
+        return out.reshape(self.ensemble_size, *lead, self.nv)  # (E, ..., nv)
+
+    def predict_torque(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
+        return self.member_predictions(q, qd, qdd).mean(0)  # (..., nv)
+
+
+# ---------------------------------------------------------------- DeLaN
+
+
+class StandardizedFeatures(QFeatures):
+    """(phi(q) - mean) / std, with the matching jvp and vjp; mean and std are buffers."""
+
+    def __init__(self, layout: JointLayout) -> None:
+        super().__init__(layout)
+        self.register_buffer("mean", torch.zeros(self.n_features))
+        self.register_buffer("std", torch.ones(self.n_features))
+
+    def forward(self, q: Tensor) -> Tensor:
+        return (super().forward(q) - self.mean) / self.std
+
+    def jvp(self, q: Tensor, v: Tensor) -> Tensor:
+        return super().jvp(q, v) / self.std
+
+    def vjp(self, q: Tensor, cotangent: Tensor) -> Tensor:
+        return super().vjp(q, cotangent / self.std)
+
+    @torch.no_grad()
+    def fit(self, q: Tensor) -> None:
+        """Set mean and std from positions q (N, nq); constant features are only centred."""
+        phi = super().forward(q.to(self.mean))  # (N, n_features)
+        self.mean.copy_(phi.mean(dim=0))
+        self.std.copy_(_input_std(phi))
+
+
+class ScaledMechanics(MechanicsField):
+    """L' = S L and V' = e V over another mechanics field: M' = S M S, g' = e g.
+
+    ``inertia_scale`` s (n,) > 0 and ``energy_scale`` e > 0 are buffers (data units).
+    """
+
+    def __init__(self, inner: MechanicsField, n: int) -> None:
+        super().__init__()
+        self.inner = inner
+        self.register_buffer("inertia_scale", torch.ones(n))
+        self.register_buffer("energy_scale", torch.ones(()))
+
+    def jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
+        jet = self.inner.jet(q, qd)
+        rows = self.inertia_scale.unsqueeze(-1)  # (n, 1): scales row i of L by s_i
+        e = self.energy_scale
+
+        def pullback(d_L: Tensor, d_V: Tensor) -> Tensor:
+            return jet.pullback(rows * d_L, e * d_V)
+
+        return MechanicsJet(
+            L=rows * jet.L,
+            L_dot=rows * jet.L_dot,
+            potential_energy=e * jet.potential_energy,
+            pullback=pullback,
+        )
+
+
+class ScaledDissipation(Dissipation):
+    """d(qd) = a D qd + b F tanh(qd / v_c) with per-DoF unit buffers a, b > 0."""
+
+    def __init__(self, n: int, coulomb: bool = True, coulomb_velocity: float = 0.01) -> None:
+        super().__init__(n, coulomb=coulomb, coulomb_velocity=coulomb_velocity)
+        with torch.no_grad():  # start at softplus(0) = 0.69 viscous units, not near zero
+            self.raw_viscous.zero_()
+        self.register_buffer("viscous_scale", torch.ones(n))
+        self.register_buffer("coulomb_scale", torch.ones(n))
+
+    def forward(self, qd: Tensor) -> Tensor:
+        force = self.viscous_scale * self.viscous * qd
+        if self.raw_coulomb is not None:
+            friction = F.softplus(self.raw_coulomb) * torch.tanh(qd / self.coulomb_velocity)
+            force = force + self.coulomb_scale * friction
+        return force
+
+
+class DeLaNInverse(InverseDynamicsModel):
+    """DeLaN's inverse dynamics tau = M qdd + c + g + d, in data units (module docstring).
+
+    Args:
+        layout: joint layout (a free root gets the Euler-Poincare term).
+        hidden, layers, activation, diag_shift: the `LagrangianNetwork` (trunk of ``layers``
+            hidden layers of width ``hidden``; ``diag_shift`` > 0 bounds diag(L) from below).
+        dissipation: learn viscous friction; coulomb: also Coulomb friction.
+        std_floor: see `InverseDynamicsModel`.
+        unit_floor: floor of the qd and qdd std (relative to the largest) in the units.
+    """
+
+    def __init__(
+        self,
+        layout: JointLayout,
+        hidden: int = 128,
+        layers: int = 2,
+        activation: str = "softplus",
+        diag_shift: float = 1e-3,
+        dissipation: bool = True,
+        coulomb: bool = False,
+        std_floor: float = 1e-3,
+        unit_floor: float = 1e-2,
+    ) -> None:
+        super().__init__(layout.nv, std_floor)
+        if not 0.0 < unit_floor < 1.0:
+            raise ValueError(f"unit_floor must be in (0, 1), got {unit_floor}")
+        self.unit_floor = unit_floor
+        self.features = StandardizedFeatures(layout)
+        network = LagrangianNetwork(
+            self.features, layout.nv, hidden, layers, activation, diag_shift
+        )
+        with torch.no_grad():  # L starts diagonal (M decoupled) and V flat (no gravity)
+            head = network.trunk.head  # outputs: n diagonal, n(n-1)/2 below it, then V
+            head.weight[layout.nv :].zero_()
+            head.bias[layout.nv :].zero_()
+        self.dynamics = LagrangianDynamics(
+            field=ScaledMechanics(network, layout.nv),
+            dissipation=ScaledDissipation(layout.nv, coulomb=coulomb) if dissipation else None,
+            actuation=torch.eye(layout.nv),
+            rotational_dofs=rotational_dofs(layout),
+        )
+
+    @property
+    def mechanics(self) -> ScaledMechanics:
+        return self.dynamics.field  # type: ignore[return-value]
+
+    def predict_torque(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
+        return self.dynamics.inverse_dynamics(q, qd, qdd)  # (..., nv)
+
+    def mass_matrix_cholesky(self, q: Tensor) -> Tensor:
+        """The learned L' (M = L' L'^T) at q (..., nq): (..., nv, nv)."""
+        qd = q.new_zeros(q.shape[:-1] + (self.nv,))
+        return self.mechanics.jet(q, qd).L
+
+    def mass_matrix(self, q: Tensor) -> Tensor:
+        """The learned M(q): (..., nv, nv)."""
+        L = self.mass_matrix_cholesky(q)
+        return L @ L.transpose(-1, -2)
+
+    @torch.no_grad()
+    def fit_normalization(self, data: TensorDictBase) -> None:
+        super().fit_normalization(data)
+        dtype = self.tau_scale.dtype
+        tau, qd, qdd = (data[k].to(dtype) for k in (keys.TAU, keys.QD, keys.QDD))
+        self.features.fit(data[keys.Q])
+        sigma = self.tau_scale
+        self.mechanics.inertia_scale.copy_((sigma / self._unit(qdd)).sqrt())
+        self.mechanics.energy_scale.fill_(float(tau.pow(2).mean(dim=0).sqrt().max()))
+        friction = self.dynamics.dissipation
+        if isinstance(friction, ScaledDissipation):
+            friction.viscous_scale.copy_(sigma / self._unit(qd))
+            friction.coulomb_scale.copy_(sigma)
+
+    def _unit(self, x: Tensor) -> Tensor:
+        """Per-DoF std of x (N, n) floored at unit_floor times the largest. (n,)"""
+        return torque_scale(x, self.unit_floor)

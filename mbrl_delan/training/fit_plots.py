@@ -1,0 +1,87 @@
+"""Loss curves of inverse-dynamics fits: torque MSE per epoch, train and validation, log axes.
+
+Reads the per-epoch records of ``metrics.jsonl`` (`mbrl_delan.training.inverse_fit`:
+``<split>_mse`` normalised, ``<split>_mse_si`` in SI units). One colour per run (model), one
+line style per split: training solid, held-out time segments dashed, held-out clips dotted.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+LOSS_CURVES_PNG = "loss_curves.png"
+EPOCH = "epoch"
+SPLIT_STYLES = {"train": "-", "val_time": "--", "val_clip": ":"}
+SPLIT_LABELS = {
+    "train": "train",
+    "val_time": "val: held-out segments",
+    "val_clip": "val: held-out clips",
+}
+METRIC_LABELS = {
+    "mse": "torque MSE (normalised per DoF)",
+    "mse_si": "torque MSE (N m$^2$, N$^2$ for the root force)",
+}
+
+
+def _curve(records: list[dict[str, Any]], key: str) -> tuple[list[float], list[float]]:
+    """(epoch, value) of the records with a positive finite value for key."""
+    pairs = sorted(
+        (float(r[EPOCH]), float(r[key]))
+        for r in records
+        if isinstance(r.get(EPOCH), int | float)
+        and isinstance(r.get(key), int | float)
+        and math.isfinite(r[key])
+        and r[key] > 0
+    )
+    return [p[0] for p in pairs], [p[1] for p in pairs]
+
+
+def plot_loss_curves(
+    runs: Mapping[str, list[dict[str, Any]]],
+    path: Path,
+    metrics: tuple[str, ...] = ("mse", "mse_si"),
+    title: str | None = None,
+) -> Path | None:
+    """One panel per metric; every run (label -> metrics records) and split on each panel.
+
+    Returns the PNG's path, or None when no run has any curve.
+    """
+    fig = Figure(figsize=(5.2 * len(metrics), 4.0), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(metrics), squeeze=False)[0]
+    drawn = 0
+    colors = [f"C{i}" for i in range(10)]
+    for ax, metric in zip(axes, metrics, strict=True):
+        for i, (label, records) in enumerate(runs.items()):
+            for split, style in SPLIT_STYLES.items():
+                x, y = _curve(records, f"{split}_{metric}")
+                if not x:
+                    continue
+                ax.plot(
+                    x,
+                    y,
+                    style,
+                    color=colors[i % len(colors)],
+                    label=f"{label}: {SPLIT_LABELS[split]}",
+                )
+                drawn += 1
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("epoch")
+        ax.set_ylabel(METRIC_LABELS.get(metric, metric))
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    if not drawn:
+        return None
+    if title:
+        fig.suptitle(title)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=130)
+    return path

@@ -1,0 +1,294 @@
+"""Fitting an inverse-dynamics model on fixed splits, with every split's errors after each epoch.
+
+`fit_inverse_model` runs epochs of shuffled minibatches on the training part and, after every
+epoch, evaluates the model on each named split (``train``, ``val_time``, ``val_clip``) with
+`evaluate_torques`: normalised MSE (the loss), MSE in SI units and R^2, per DoF and overall.
+The weights after the last epoch are kept (the curves are the result; no early stopping).
+A NaN/inf loss or gradient restores the last completed epoch's weights and raises
+`TrainingDivergedError`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor
+
+from mbrl_delan import keys
+from mbrl_delan.models.inverse import DeLaNInverse, InverseDynamicsModel
+from mbrl_delan.training.fit import FitReport, TrainingDivergedError
+
+log = logging.getLogger(__name__)
+
+F64 = torch.float64
+
+
+@dataclass
+class GroupErrors:
+    """Errors over a group of DoFs."""
+
+    mse: float  # mean over the group's DoFs of the normalised MSE
+    mse_si: float  # mean over the group's DoFs of the MSE in SI units
+    r2: float  # 1 - sum of normalised SSE / sum of normalised SST over the group's DoFs
+
+    def as_dict(self) -> dict[str, float]:
+        return {"mse": self.mse, "mse_si": self.mse_si, "r2": self.r2}
+
+
+@dataclass
+class TorqueErrors:
+    """A model's torque errors on one split, per DoF.
+
+    R^2 of a group of DoFs is ``1 - sum_i SSE_i / s_i^2 / sum_i SST_i / s_i^2``, with s the
+    training torque scale of the loss and SST about the split's own mean: the share of the
+    split's (normalised) torque variance the model explains. A plain mean of per-DoF R^2
+    would be ruled by DoFs whose torque hardly varies within a split.
+    """
+
+    n: int  # samples
+    dof_mse: Tensor  # (nv,) normalised MSE per DoF
+    dof_mse_si: Tensor  # (nv,) MSE per DoF in SI units
+    dof_var: Tensor  # (nv,) normalised variance of the split's torques per DoF
+
+    @property
+    def mse(self) -> float:
+        """The loss: normalised MSE over all DoFs."""
+        return float(self.dof_mse.mean())
+
+    @property
+    def mse_si(self) -> float:
+        return float(self.dof_mse_si.mean())
+
+    @property
+    def r2(self) -> float:
+        return self.group(range(self.dof_mse.shape[0])).r2
+
+    @property
+    def dof_r2(self) -> Tensor:
+        """Per-DoF R^2 (NaN where the split's torque does not vary). (nv,)"""
+        return torch.where(self.dof_var > 0, 1.0 - self.dof_mse / self.dof_var, torch.nan)
+
+    def group(self, dofs: Sequence[int]) -> GroupErrors:
+        idx = list(dofs)
+        var = float(self.dof_var[idx].sum())
+        return GroupErrors(
+            mse=float(self.dof_mse[idx].mean()),
+            mse_si=float(self.dof_mse_si[idx].mean()),
+            r2=1.0 - float(self.dof_mse[idx].sum()) / var if var > 0 else math.nan,
+        )
+
+
+@dataclass
+class EpochResult:
+    """What one epoch did: its mean training loss and every split's errors afterwards."""
+
+    epoch: int  # counted from 1
+    train_loss: float  # sample-weighted mean minibatch loss during the epoch
+    wall_time_s: float  # since the start of the fit
+    errors: dict[str, TorqueErrors] = field(default_factory=dict)
+
+    def record(self) -> dict[str, float]:
+        """Flat record for metrics.jsonl: ``<split>_mse``, ``<split>_mse_si``, ``<split>_r2``."""
+        out: dict[str, float] = {
+            "epoch": self.epoch,
+            "train_loss": self.train_loss,
+            "wall_time_s": self.wall_time_s,
+        }
+        for split, err in self.errors.items():
+            out[f"{split}_mse"] = err.mse
+            out[f"{split}_mse_si"] = err.mse_si
+            out[f"{split}_r2"] = err.r2
+        return out
+
+
+@dataclass
+class InverseFitSettings:
+    """How `fit_inverse_model` trains."""
+
+    epochs: int = 50
+    batch_size: int = 256
+    eval_batch_size: int = 2048
+    max_grad_norm: float | None = 100.0  # clip the global gradient norm; None: no clipping
+
+    def __post_init__(self) -> None:
+        if self.epochs < 1 or self.batch_size < 1 or self.eval_batch_size < 1:
+            raise ValueError(f"epochs and batch sizes must be >= 1: {self}")
+
+
+@dataclass
+class MassMatrixCheck:
+    """Positive definiteness of a learned M over samples."""
+
+    n: int  # samples checked
+    positive_definite_fraction: float  # share where torch.linalg.cholesky_ex succeeds
+    min_eigenvalue: float  # smallest eigenvalue of M over all samples
+    max_condition: float  # largest eigenvalue ratio over all samples
+
+    def as_dict(self) -> dict[str, float]:
+        return {
+            "n": self.n,
+            "positive_definite_fraction": self.positive_definite_fraction,
+            "min_eigenvalue": self.min_eigenvalue,
+            "max_condition": self.max_condition,
+        }
+
+
+def _batches(n: int, batch_size: int, generator: torch.Generator | None) -> Iterator[Tensor]:
+    """Index tensors of minibatches (CPU); shuffled when a generator is given."""
+    if generator is None:
+        order = torch.arange(n)
+    else:
+        order = torch.randperm(n, generator=generator, device=generator.device).cpu()
+    yield from order.split(batch_size)
+
+
+@torch.no_grad()
+def evaluate_torques(
+    model: InverseDynamicsModel, data: TensorDictBase, batch_size: int = 2048
+) -> TorqueErrors:
+    """Per-DoF errors of ``model.predict_torque`` on ``data`` (N,) with q, qd, qdd, tau."""
+    model.eval()
+    n, nv = data.shape[0], model.nv
+    sse, tau_sum, tau_sq = (torch.zeros(nv, dtype=F64) for _ in range(3))
+    for idx in _batches(n, batch_size, None):
+        batch = data[idx.to(data.device)]
+        tau = batch[keys.TAU]  # (B, nv)
+        pred = model.predict_torque(batch[keys.Q], batch[keys.QD], batch[keys.QDD])
+        sse += (pred - tau).to(F64).pow(2).sum(0).cpu()
+        tau_sum += tau.to(F64).sum(0).cpu()
+        tau_sq += tau.to(F64).pow(2).sum(0).cpu()
+    count = max(n, 1)
+    mean = tau_sum / count
+    var_si = (tau_sq / count - mean.pow(2)).clamp_min(0.0)  # (nv,)
+    mse_si = sse / count
+    scale2 = model.tau_scale.detach().to(F64).cpu().pow(2)
+    return TorqueErrors(n=n, dof_mse=mse_si / scale2, dof_mse_si=mse_si, dof_var=var_si / scale2)
+
+
+@torch.no_grad()
+def check_mass_matrix(model: DeLaNInverse, q: Tensor, batch_size: int = 1024) -> MassMatrixCheck:
+    """Cholesky (``torch.linalg.cholesky_ex``) of the learned M at every q (N, nq).
+
+    M = L L^T is formed in float64 from the learned factor, so the check is not limited
+    by float32 round-off of ill-conditioned matrices.
+    """
+    model.eval()
+    ok, count = 0, 0
+    min_eig, max_cond = math.inf, 0.0
+    for idx in _batches(q.shape[0], batch_size, None):
+        L = model.mass_matrix_cholesky(q[idx.to(q.device)]).to(F64)  # (B, nv, nv)
+        M = L @ L.transpose(-1, -2)
+        info = torch.linalg.cholesky_ex(M).info  # (B,) 0 where M is positive definite
+        ok += int((info == 0).sum())
+        count += int(info.numel())
+        eig = torch.linalg.eigvalsh(M)  # (B, nv) ascending
+        min_eig = min(min_eig, float(eig[:, 0].min()))
+        max_cond = max(max_cond, float((eig[:, -1] / eig[:, 0].clamp_min(1e-300)).max()))
+    return MassMatrixCheck(
+        n=count,
+        positive_definite_fraction=ok / max(count, 1),
+        min_eigenvalue=min_eig,
+        max_condition=max_cond,
+    )
+
+
+class _Diverged(Exception):
+    def __init__(self, metric: str, value: float) -> None:
+        super().__init__(metric)
+        self.metric, self.value = metric, value
+
+
+def _train_epoch(
+    model: InverseDynamicsModel,
+    optimizer: torch.optim.Optimizer,
+    data: TensorDictBase,
+    settings: InverseFitSettings,
+    generator: torch.Generator,
+) -> float:
+    """One pass over the training data; the sample-weighted mean loss."""
+    model.train()
+    params = [p for p in model.parameters() if p.requires_grad]
+    max_norm = math.inf if settings.max_grad_norm is None else settings.max_grad_norm
+    total, count = 0.0, 0
+    for idx in _batches(data.shape[0], settings.batch_size, generator):
+        out = model.loss(data[idx.to(data.device)])
+        value = float(out.loss.detach())
+        if not math.isfinite(value):
+            raise _Diverged("train_loss", value)
+        optimizer.zero_grad(set_to_none=True)
+        out.loss.backward()
+        grad_norm = float(torch.nn.utils.clip_grad_norm_(params, max_norm))
+        if not math.isfinite(grad_norm):
+            raise _Diverged("grad_norm", grad_norm)
+        optimizer.step()
+        total += value * len(idx)
+        count += len(idx)
+    return total / max(count, 1)
+
+
+def _report(results: list[EpochResult], split_names: list[str]) -> FitReport:
+    """The epochs so far as a `FitReport` (validation loss: the last split's MSE)."""
+    val = split_names[-1] if split_names else None
+    return FitReport(
+        train_loss=[r.train_loss for r in results],
+        val_loss=[r.errors[val].mse for r in results] if val else [],
+        best_epoch=len(results) - 1,
+        epochs_run=len(results),
+    )
+
+
+def fit_inverse_model(
+    model: InverseDynamicsModel,
+    optimizer: torch.optim.Optimizer,
+    train: TensorDictBase,
+    splits: Mapping[str, TensorDictBase],
+    settings: InverseFitSettings,
+    generator: torch.Generator,
+    on_epoch: Callable[[EpochResult], None] | None = None,
+) -> list[EpochResult]:
+    """Train on ``train`` (N,) and evaluate every split in ``splits`` after each epoch.
+
+    ``model.fit_normalization(train)`` is called first. ``on_epoch`` receives each epoch's
+    result as soon as it is known (for logging).
+
+    Raises:
+        TrainingDivergedError: a loss or gradient norm became NaN/inf; the model holds the
+            weights of the last completed epoch (or the initial ones).
+        ValueError: ``train`` is empty.
+    """
+    if train.batch_dims != 1 or train.shape[0] == 0:
+        raise ValueError(f"need a non-empty flat training batch (N,), got {train.batch_size}")
+    model.fit_normalization(train)
+    results: list[EpochResult] = []
+    last_good = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    start = time.perf_counter()
+    for epoch in range(1, settings.epochs + 1):
+        try:
+            train_loss = _train_epoch(model, optimizer, train, settings, generator)
+        except _Diverged as err:
+            model.load_state_dict(last_good)
+            raise TrainingDivergedError(
+                epoch - 1, err.metric, err.value, _report(results, list(splits)), ""
+            ) from None
+        errors = {
+            name: evaluate_torques(model, part, settings.eval_batch_size)
+            for name, part in splits.items()
+        }
+        result = EpochResult(epoch, train_loss, time.perf_counter() - start, errors)
+        results.append(result)
+        last_good = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        log.info(
+            "epoch %d: train loss %.4g; %s",
+            epoch,
+            train_loss,
+            ", ".join(f"{k} mse {v.mse:.4g} (R2 {v.r2:.3f})" for k, v in errors.items()),
+        )
+        if on_epoch is not None:
+            on_epoch(result)
+    return results

@@ -1,0 +1,280 @@
+"""`python -m mbrl_delan.fit`: inverse dynamics from mocap with DeLaN, the MLP and the ensemble.
+
+End to end on the small CMU clip in tests/data (09_06, a run; see tests/data/CMU_TERMS.txt),
+held out a second time under another name as the validation clip.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+from torch import nn
+
+from mbrl_delan import keys
+from mbrl_delan.config import ConfigError
+from mbrl_delan.data.buffer import NonFiniteDataError
+from mbrl_delan.data.mocap import (
+    ClipNotFoundError,
+    build_dataset,
+    humanoid_cmu_xml,
+    save_dataset,
+)
+from mbrl_delan.fit import run, validate_fit_config
+from mbrl_delan.fit_report import main as report_main
+from mbrl_delan.models.inverse import DeLaNInverse, MLPEnsembleInverse, MLPInverse
+from mbrl_delan.systems.system import FREE, HINGE, JointLayout
+from mbrl_delan.training.fit import TrainingDivergedError
+
+ROOT = Path(__file__).parents[1]
+CONFIGS = ROOT / "configs" / "fit"
+DATA = Path(__file__).parent / "data"
+CLIP, HELD_OUT = "09_06", "09_99"
+GROUP_SIZES = {"root": 6, "legs": 14, "spine_neck_head": 18, "arms": 14, "hands": 10}
+SPLITS = ("train", "val_time", "val_clip")
+
+
+@pytest.fixture(scope="module")
+def clip_folder(tmp_path_factory) -> Path:
+    """09_06 under its own name (training) and as 09_99 (the held-out clip)."""
+    try:
+        humanoid_cmu_xml()
+    except (ModuleNotFoundError, FileNotFoundError) as err:
+        pytest.skip(f"humanoid_CMU.xml unavailable: {err}")
+    folder = tmp_path_factory.mktemp("clips")
+    for name in (CLIP, HELD_OUT):
+        (folder / f"{name}.amc").write_bytes((DATA / f"{CLIP}.amc").read_bytes())
+    (folder / "09.asf").write_bytes((DATA / "09.asf").read_bytes())
+    return folder
+
+
+def small_overrides(folder: Path) -> list[str]:
+    return [
+        "logger=none",
+        "threads=1",
+        "epochs=2",
+        "batch_size=32",
+        "lr=0.003",
+        f"data.clips=[{CLIP},{HELD_OUT}]",
+        f"data.val_clips=[{HELD_OUT}]",
+        f"data.folders=[{folder}]",
+        "data.download=false",
+        "data.samples_per_clip=120",
+        "data.split.gap_s=0.1",
+        "model.hidden=16",
+    ]
+
+
+def config(*overrides: str) -> DictConfig:
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+@pytest.fixture(scope="module")
+def fitted(clip_folder, tmp_path_factory) -> dict[str, Path]:
+    """Two epochs of each model through `run` (the entry point's body)."""
+    out = {}
+    for name in ("delan", "mlp", "ensemble"):
+        run_dir = tmp_path_factory.mktemp(f"fit_{name}")
+        run(config(*small_overrides(clip_folder), f"model={name}"), run_dir)
+        out[name] = run_dir
+    return out
+
+
+def records(run_dir: Path) -> list[dict]:
+    return [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+# ---------------------------------------------------------------- end to end
+
+
+@pytest.mark.parametrize("name", ["delan", "mlp", "ensemble"])
+def test_fit_writes_per_epoch_metrics_summary_and_figure(fitted, name: str) -> None:
+    run_dir = fitted[name]
+    recs = records(run_dir)
+    assert [r["epoch"] for r in recs] == [1, 2]
+    for r in recs:
+        for split in SPLITS:
+            for metric in ("mse", "mse_si", "r2"):
+                assert math.isfinite(r[f"{split}_{metric}"]), (split, metric)
+            assert r[f"{split}_mse"] > 0 and r[f"{split}_mse_si"] > 0
+    assert recs[1]["train_mse"] < recs[0]["train_mse"]  # it learns
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["model"] == name and summary["epochs"] == 2
+    assert set(summary["final"]) == set(SPLITS)
+    assert summary["samples"]["val_clip"] == 120 and summary["samples"]["train"] > 50
+    for split in SPLITS:
+        part = summary["final"][split]
+        assert part["mse"] == pytest.approx(recs[-1][f"{split}_mse"])
+        assert {g: None for g in part["groups"]}.keys() == GROUP_SIZES.keys()
+        assert math.isfinite(part["joint_mse_si"]) and part["r2"] <= 1.0
+    assert summary["dof_groups"] == GROUP_SIZES
+    for file in ("loss_curves.png", "model.pt", "config.yaml", "dataset_provenance.json"):
+        assert (run_dir / file).is_file(), file
+    if name == "delan":
+        assert summary["positive_definite_fraction"] == 1.0
+        assert summary["mass_matrix"]["n"] == sum(summary["samples"].values())
+        assert summary["mass_matrix"]["min_eigenvalue"] > 0
+    else:
+        assert "positive_definite_fraction" not in summary
+
+
+def test_fit_report_table_and_shared_figure(fitted, tmp_path: Path, capsys) -> None:
+    png = tmp_path / "img" / "mocap_loss.png"
+    code = report_main([str(fitted["delan"]), str(fitted["mlp"]), "--figure", str(png), "--table"])
+    assert code == 0 and png.is_file() and png.stat().st_size > 1000
+    text = capsys.readouterr().out
+    rows = [line for line in text.splitlines() if line.startswith(("| delan", "| mlp"))]
+    assert len(rows) == 6  # two models x three splits
+    assert all(any(f"| {s} |" in r for r in rows) for s in SPLITS)
+    assert report_main([str(tmp_path)]) == 2  # no runs there
+
+
+# ---------------------------------------------------------------- models
+
+
+def humanoid_layout() -> JointLayout:
+    """A free root and 56 limited hinges, as humanoid_CMU."""
+    n = 56
+    return JointLayout(
+        types=(FREE,) + (HINGE,) * n,
+        qpos_adr=(0,) + tuple(range(7, 7 + n)),
+        dof_adr=(0,) + tuple(range(6, 6 + n)),
+        limited=(False,) + (True,) * n,
+    )
+
+
+def random_batch(layout: JointLayout, n: int, seed: int = 0) -> tuple[torch.Tensor, ...]:
+    g = torch.Generator().manual_seed(seed)
+    q = torch.randn(n, layout.nq, generator=g, dtype=torch.float64)
+    q[:, 3:7] /= q[:, 3:7].norm(dim=1, keepdim=True)
+    qd = torch.randn(n, layout.nv, generator=g, dtype=torch.float64)
+    qdd = torch.randn(n, layout.nv, generator=g, dtype=torch.float64)
+    return q, qd, qdd
+
+
+def test_mlp_is_three_linear_layers_and_sees_what_delan_sees() -> None:
+    layout = humanoid_layout()
+    mlp = MLPInverse(layout, hidden=8)
+    linear = [m for m in mlp.modules() if isinstance(m, nn.Linear)]
+    assert len(linear) == 3
+    delan = DeLaNInverse(layout, hidden=8)
+    n_features = delan.mechanics.inner.features.n_features
+    assert n_features == 1 + 9 + 56  # root height, root rotation matrix, hinge angles
+    assert linear[0].in_features == n_features + 2 * layout.nv  # phi(q), qd, qdd
+    assert linear[-1].out_features == layout.nv == 62  # tau incl. the root residual
+
+
+def test_ensemble_is_vectorised_members() -> None:
+    """Batched weights compute exactly what E separate three-layer MLPs would."""
+    layout = humanoid_layout()
+    ens = MLPEnsembleInverse(layout, ensemble_size=3, hidden=8).double()
+    q, qd, qdd = random_batch(layout, 5)
+    members = ens.member_predictions(q, qd, qdd)  # (E, B, nv)
+    assert members.shape == (3, 5, 62)
+    x = ens.standardised_inputs(q, qd, qdd)
+    for e in range(3):
+        h = x
+        for i, layer in enumerate(ens.layers):
+            h = h @ layer.weight[e] + layer.bias[e]
+            h = ens.act(h) if i < 2 else h
+        torch.testing.assert_close(members[e], h * ens.tau_scale + ens.tau_mean)
+    torch.testing.assert_close(ens.predict_torque(q, qd, qdd), members.mean(0))
+    assert len(ens.layers) == 3
+
+
+def test_delan_inverse_is_the_lagrangian_equations_in_data_units() -> None:
+    """tau = M qdd + c + g + d with M = S L L^T S positive definite, whatever the units."""
+    layout = humanoid_layout()
+    torch.manual_seed(0)
+    model = DeLaNInverse(layout, hidden=16, coulomb=True).double()
+    q, qd, qdd = random_batch(layout, 4)
+    with torch.no_grad():  # leave the zero initialisation: test general weights and units
+        for p in model.parameters():
+            p.normal_(0.0, 0.05)
+        model.mechanics.inertia_scale.copy_(torch.logspace(-1, 1, 62))
+        model.mechanics.energy_scale.fill_(50.0)
+    terms = model.dynamics.terms(q, qd)
+    expected = (terms.mass_matrix @ qdd.unsqueeze(-1)).squeeze(-1) + terms.bias
+    torch.testing.assert_close(model.predict_torque(q, qd, qdd), expected)
+    s = model.mechanics.inertia_scale
+    inner = model.mechanics.inner.jet(q, qd).L
+    torch.testing.assert_close(model.mass_matrix(q), s[:, None] * (inner @ inner.mT) * s)
+    assert bool((torch.linalg.cholesky_ex(model.mass_matrix(q)).info == 0).all())
+
+
+# ---------------------------------------------------------------- errors
+
+
+def test_bad_config_value_exits_2_naming_the_key(clip_folder, tmp_path: Path) -> None:
+    cmd = [
+        sys.executable,
+        "-m",
+        "mbrl_delan.fit",
+        *small_overrides(clip_folder),
+        "model=mlp",
+        "model.hidden=0",
+        f"hydra.run.dir={tmp_path / 'bad'}",
+    ]
+    env = {**os.environ, "WANDB_MODE": "disabled"}
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert "model.hidden=0" in out.stdout + out.stderr
+    assert "Traceback" not in out.stdout + out.stderr
+    assert not (tmp_path / "bad" / "metrics.jsonl").exists()
+
+
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [
+        ("data.torques=magic", "data.torques='magic' is not valid; choose one of: inverse, pd"),
+        ("dtype=float16", "choose one of: float32, float64"),
+        ("device=tpu", "device='tpu'"),
+        ("epochs=0", "epochs=0"),
+        ("loss.std_floor=2", "loss.std_floor=2"),
+        ("data.val_clips=[02_01]", "not in data.clips"),
+        ("data.clips=[131_03]", "quote names like '131_03'"),
+        ("data.pd.gains=magic", "data.pd.gains='magic'"),
+        ("model.activation=sigmoid", "model.activation='sigmoid'"),
+    ],
+)
+def test_config_values_are_checked(clip_folder, override: str, expected: str) -> None:
+    cfg = config(*small_overrides(clip_folder), "data.torques=pd", override)
+    with pytest.raises(ConfigError, match=None) as err:
+        validate_fit_config(cfg)
+    assert expected in str(err.value)
+
+
+def test_missing_clip_names_every_place_looked(clip_folder, tmp_path: Path) -> None:
+    cfg = config(*small_overrides(clip_folder), f"data.clips=[{CLIP},09_77]", "data.val_clips=[]")
+    with pytest.raises(ClipNotFoundError) as err:
+        run(cfg, tmp_path / "run")
+    assert str(clip_folder / "09_77.amc") in str(err.value)
+    assert "downloading is off" in str(err.value)
+
+
+def test_nan_in_a_saved_dataset_is_named(clip_folder, tmp_path: Path) -> None:
+    ds = build_dataset(
+        clips=(CLIP,), val_clips=(), folders=[clip_folder], download=False, samples_per_clip=40
+    )
+    ds.data[keys.QDD][7, 3] = float("nan")
+    path = save_dataset(ds, tmp_path / "dataset")
+    cfg = config(*small_overrides(clip_folder), f"data.dataset_dir={path}")
+    with pytest.raises(NonFiniteDataError) as err:
+        run(cfg, tmp_path / "run")
+    assert "'qdd'" in str(err.value) and "(7, 3)" in str(err.value)
+
+
+def test_divergence_is_named(clip_folder, tmp_path: Path) -> None:
+    cfg = config(*small_overrides(clip_folder), "model=mlp", "lr=1e30", "max_grad_norm=null")
+    with pytest.raises(TrainingDivergedError) as err:
+        run(cfg, tmp_path / "run")
+    assert err.value.metric in ("train_loss", "grad_norm")
