@@ -6,6 +6,7 @@ and rejects a bad value at start with a message that names it and lists what is 
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -14,6 +15,7 @@ from omegaconf import DictConfig
 from mbrl_delan.envs.registry import ENV_NAMES
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
 from mbrl_delan.models.ensemble import GaussianEnsemble
 from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.cem import CEMPlanner
@@ -21,7 +23,7 @@ from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.systems.system import System
 
-MODEL_NAMES = ("delan", "ensemble")
+MODEL_NAMES = ("delan", "ensemble", "delan_ensemble")
 PLANNER_NAMES = ("cem", "icem", "mppi")
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -81,6 +83,8 @@ def validate_train_config(cfg: DictConfig) -> None:
         _at_least(path, _get(cfg, path), 0)
     if cfg.budget.random_episodes == 0:
         raise ConfigError("budget.random_episodes=0 is not valid: the first fit needs data (>= 1)")
+    if cfg.model.name == "delan":
+        _at_least("model.velocity_margin", cfg.model.velocity_margin, 1.0)
     if cfg.planner.replan_every > cfg.planner.horizon:
         raise ConfigError(
             f"planner.replan_every={cfg.planner.replan_every} is not valid; it "
@@ -88,8 +92,11 @@ def validate_train_config(cfg: DictConfig) -> None:
         )
     if not 0 < cfg.planner.discount <= 1:
         raise ConfigError(f"planner.discount={cfg.planner.discount} is not valid; use (0, 1]")
+    risk = cfg.planner.get("risk", 0.0)
+    if not isinstance(risk, int | float) or isinstance(risk, bool) or not math.isfinite(risk):
+        raise ConfigError(f"planner.risk={risk!r} is not valid; it must be a finite number")
     if (
-        cfg.model.name == "ensemble"
+        cfg.model.name in ("ensemble", "delan_ensemble")
         and cfg.model.propagation == "tsinf"
         and (cfg.model.particles % cfg.model.ensemble_size)
     ):
@@ -122,6 +129,27 @@ def build_model(cfg: DictConfig, system: System) -> WorldModel:
             loss=cfg.loss,
             dissipation=cfg.dissipation,
             coulomb=cfg.coulomb,
+            velocity_margin=cfg.velocity_margin,
+            compile_step=cfg.compile,
+        )
+    if cfg.name == "delan_ensemble":
+        return DeLaNEnsemble(
+            layout=system.layout,
+            actuation=system.actuation.float(),
+            control_dt=system.control_dt,
+            hidden=cfg.hidden,
+            layers=cfg.layers,
+            activation=cfg.activation,
+            diag_shift=cfg.diag_shift,
+            integrator=cfg.integrator,
+            substeps=cfg.substeps,
+            loss=cfg.loss,
+            dissipation=cfg.dissipation,
+            coulomb=cfg.coulomb,
+            velocity_margin=cfg.velocity_margin,
+            ensemble_size=cfg.ensemble_size,
+            propagation=cfg.propagation,
+            bootstrap=cfg.bootstrap,
         )
     return GaussianEnsemble(
         layout=system.layout,

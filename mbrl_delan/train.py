@@ -86,6 +86,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         particles=cfg.model.particles,
         discount=cfg.planner.discount,
         generator=model_gen,
+        risk=cfg.planner.get("risk", 0.0),
     )
     policy = _policy(
         cfg.planner, build_planner(cfg.planner, system, dtype), factory, cfg.seed, device

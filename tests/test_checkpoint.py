@@ -237,9 +237,13 @@ def test_plots_from_small_metrics(tmp_path):
         for it in range(6):
             record = {"env_steps": 200 * (it + 1), "train_return": 10.0 * it}
             if it % 2 == 1:
-                record |= {"eval_return_mean": 12.0 * it, "eval_return_std": 2.0,
-                           "oracle_return_mean": 80.0, "model_error_1step": 0.1 / (it + 1),
-                           "model_error_hstep": 1.0 / (it + 1)}
+                record |= {
+                    "eval_return_mean": 12.0 * it,
+                    "eval_return_std": 2.0,
+                    "oracle_return_mean": 80.0,
+                    "model_error_1step": 0.1 / (it + 1),
+                    "model_error_hstep": 1.0 / (it + 1),
+                }
             rec.log(record, iteration=it)
     paths = plot_run(tmp_path)
     assert sorted(p.name for p in paths) == ["model_error.png", "returns.png"]

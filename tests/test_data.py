@@ -146,4 +146,3 @@ def test_buffer_state_round_trip(tmp_path, memmap):
     restored.extend(extra)
     assert (all_transitions(restored) == all_transitions(buffer)).all()
     assert all_transitions(restored)[keys.Q][-1, 0] == 1000
-

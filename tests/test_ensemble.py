@@ -17,8 +17,9 @@ from mbrl_delan.systems.system import HINGE, SLIDE, JointLayout
 
 DT = 0.05
 # joint 0: unbounded hinge (sin/cos features), joint 1: slide
-HINGE_SLIDE = JointLayout(types=(HINGE, SLIDE), qpos_adr=(0, 1), dof_adr=(0, 1),
-                          limited=(False, False))
+HINGE_SLIDE = JointLayout(
+    types=(HINGE, SLIDE), qpos_adr=(0, 1), dof_adr=(0, 1), limited=(False, False)
+)
 SLIDE_1D = JointLayout(types=(SLIDE,), qpos_adr=(0,), dof_adr=(0,), limited=(False,))
 
 
@@ -30,8 +31,12 @@ def make_model(layout: JointLayout = HINGE_SLIDE, nu: int = 2, **kwargs) -> Gaus
 
 def transitions(q: Tensor, qd: Tensor, action: Tensor, q_next: Tensor, qd_next: Tensor):
     return TensorDict(
-        {keys.Q: q, keys.QD: qd, keys.ACTION: action,
-         keys.NEXT: {keys.Q: q_next, keys.QD: qd_next}},
+        {
+            keys.Q: q,
+            keys.QD: qd,
+            keys.ACTION: action,
+            keys.NEXT: {keys.Q: q_next, keys.QD: qd_next},
+        },
         batch_size=q.shape[:1],
     )
 
@@ -207,15 +212,24 @@ def test_loss_formula_and_metrics_without_bootstrap():
     data = random_data(n=64)
     model.fit_normalization(data)
     out = model.loss(data)
-    x = torch.cat([torch.sin(data[keys.Q][:, :1]), torch.cos(data[keys.Q][:, :1]),
-                   data[keys.Q][:, 1:], data[keys.QD], data[keys.ACTION]], dim=-1)
-    y = torch.cat([(data[keys.NEXT_Q] - data[keys.Q]) / DT,
-                   data[keys.NEXT_QD] - data[keys.QD]], dim=-1)
+    x = torch.cat(
+        [
+            torch.sin(data[keys.Q][:, :1]),
+            torch.cos(data[keys.Q][:, :1]),
+            data[keys.Q][:, 1:],
+            data[keys.QD],
+            data[keys.ACTION],
+        ],
+        dim=-1,
+    )
+    y = torch.cat(
+        [(data[keys.NEXT_Q] - data[keys.Q]) / DT, data[keys.NEXT_QD] - data[keys.QD]], dim=-1
+    )
     xn = (x - model.in_mean) / model.in_std
     yn = (y - model.out_mean) / model.out_std
     pred = model.forward_members(xn.expand(model.ensemble_size, -1, -1))
     var = pred.logvar.exp()
-    nll = (0.5 * ((pred.mean - yn) ** 2 / var + pred.logvar + math.log(2 * math.pi)))
+    nll = 0.5 * ((pred.mean - yn) ** 2 / var + pred.logvar + math.log(2 * math.pi))
     nll_e = nll.mean(dim=(1, 2))
     bound = 0.01 * (model.max_logvar.sum() - model.min_logvar.sum())
     l2 = 0.5 * 1e-3 * model.weights[2].square().sum() + 0.5 * 2e-3 * model.weights[3].square().sum()
@@ -249,8 +263,16 @@ def oscillator_data(n: int, seed: int) -> TensorDict:
 
 def test_training_on_a_damped_oscillator_beats_no_change():
     torch.manual_seed(0)
-    model = GaussianEnsemble(SLIDE_1D, nu=1, control_dt=DT, ensemble_size=3, hidden=32,
-                             layers=2, propagation="mean", seed=0)
+    model = GaussianEnsemble(
+        SLIDE_1D,
+        nu=1,
+        control_dt=DT,
+        ensemble_size=3,
+        hidden=32,
+        layers=2,
+        propagation="mean",
+        seed=0,
+    )
     train, test = oscillator_data(1024, seed=0), oscillator_data(256, seed=1)
     model.fit_normalization(train)
     opt = torch.optim.Adam(model.parameters(), lr=1e-2)
@@ -299,8 +321,9 @@ def test_cuda_matches_cpu(propagation):
     gpu = copy.deepcopy(model).cuda()
     with torch.no_grad():
         cpu_state = model.step(q, qd, action, generator=torch.Generator().manual_seed(0))
-        gpu_state = gpu.step(q.cuda(), qd.cuda(), action.cuda(),
-                             generator=torch.Generator().manual_seed(0))
+        gpu_state = gpu.step(
+            q.cuda(), qd.cuda(), action.cuda(), generator=torch.Generator().manual_seed(0)
+        )
         loss = gpu.loss(random_data().to("cuda")).loss
     assert gpu_state.q.device.type == "cuda" and torch.isfinite(loss)
     torch.testing.assert_close(gpu_state.q.cpu(), cpu_state.q, atol=1e-4, rtol=1e-4)

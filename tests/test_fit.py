@@ -142,8 +142,9 @@ def scalar_data(n: int = 40) -> TensorDict:
 def test_early_stopping_restores_best_weights():
     model = ScalarModel()
     opt = torch.optim.SGD(model.parameters(), lr=0.01)
-    cfg = FitConfig(batch_size=10, max_epochs=200, val_fraction=0.25, patience=3,
-                    max_grad_norm=None)
+    cfg = FitConfig(
+        batch_size=10, max_epochs=200, val_fraction=0.25, patience=3, max_grad_norm=None
+    )
     report = fit_model(model, opt, scalar_data(), cfg, torch.Generator().manual_seed(0))
     assert report.stopped_early
     assert report.epochs_run == report.best_epoch + 1 + 3
@@ -187,8 +188,12 @@ def test_nan_loss_raises_and_restores_last_good_weights():
     assert err.report.epochs_run == 3 and err.report.best_epoch == 2
     assert math.isfinite(float(model.w.detach()))
     assert float(model.w.detach()) == model.val_weights[-1]  # weights validated after epoch 2
-    assert all(math.isfinite(float(v)) for s in opt.state.values() for v in s.values()
-               if torch.is_tensor(v))
+    assert all(
+        math.isfinite(float(v))
+        for s in opt.state.values()
+        for v in s.values()
+        if torch.is_tensor(v)
+    )
 
 
 def test_nan_in_first_epoch_restores_initial_weights():

@@ -94,8 +94,14 @@ def test_conversion_matches_dm_control_parse_amc(model) -> None:
     mocap = amc_to_qpos(read_amc(AMC, skeleton), skeleton, model)
     assert mocap.qpos.shape == reference.shape == (141, 63)
     held = [model.jnt_qposadr[model.joint(n).id] for n in mocap.held]
-    assert sorted(n[:-2] for n in mocap.held) == ["lfingers", "lthumb", "lthumb", "rfingers",
-                                                  "rthumb", "rthumb"]
+    assert sorted(n[:-2] for n in mocap.held) == [
+        "lfingers",
+        "lthumb",
+        "lthumb",
+        "rfingers",
+        "rthumb",
+        "rthumb",
+    ]
     rest = np.setdiff1d(np.arange(model.nq), held)
     # root position: dm_control rounds 0.0254 / 0.45 to 0.056444 (1e-5 m here)
     np.testing.assert_allclose(mocap.qpos[:, :3], reference[:, :3], atol=5e-5)
@@ -328,8 +334,9 @@ def test_local_folder_layouts(tmp_path) -> None:
     nested.mkdir(parents=True)
     for f in (AMC, ASF):
         (nested / f.name).write_bytes(f.read_bytes())
-    files = find_clip(CLIP, folders=[tmp_path / "empty", tmp_path], cache_dir=tmp_path / "c",
-                      download=False)
+    files = find_clip(
+        CLIP, folders=[tmp_path / "empty", tmp_path], cache_dir=tmp_path / "c", download=False
+    )
     assert (files.amc, files.asf, files.source) == (nested / AMC.name, nested / ASF.name, "local")
 
 
@@ -391,8 +398,14 @@ def test_dataset_splits_provenance_and_round_trip(tmp_path, model) -> None:
         (folder / f"{name}.amc").write_bytes(AMC.read_bytes())
     (folder / ASF.name).write_bytes(ASF.read_bytes())
     ds = build_dataset(
-        clips=(CLIP, "09_99"), val_clips=("09_99",), folders=[folder], download=False,
-        samples_per_clip=150, val_time_fraction=0.25, gap_s=0.1, seed=3,
+        clips=(CLIP, "09_99"),
+        val_clips=("09_99",),
+        folders=[folder],
+        download=False,
+        samples_per_clip=150,
+        val_time_fraction=0.25,
+        gap_s=0.1,
+        seed=3,
     )
     data = ds.data
     assert ds.clips == (CLIP, "09_99") and data.batch_size == (300,)
@@ -417,8 +430,11 @@ def test_dataset_splits_provenance_and_round_trip(tmp_path, model) -> None:
     assert prov["inverse_dynamics"] == {"contacts": False, "limits": False, "passive": True}
     info = prov["clip_info"][CLIP]
     assert info["amc"] == str(folder / AMC.name) and info["source"] == "local"
-    assert info["samples"] == {"train": len(parts.train), "val_time": len(parts.val_time),
-                               "val_clip": 0}
+    assert info["samples"] == {
+        "train": len(parts.train),
+        "val_time": len(parts.val_time),
+        "val_clip": 0,
+    }
     path = save_dataset(ds, tmp_path / "saved")
     with pytest.raises(FileExistsError):
         save_dataset(ds, path)

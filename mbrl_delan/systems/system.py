@@ -59,7 +59,8 @@ class JointLayout:
     def periodic_dofs(self) -> tuple[int, ...]:
         """qpos indices of hinges without limits: their features are sin and cos."""
         return tuple(
-            a for t, a, lim in zip(self.types, self.qpos_adr, self.limited, strict=True)
+            a
+            for t, a, lim in zip(self.types, self.qpos_adr, self.limited, strict=True)
             if t == HINGE and not lim
         )
 

@@ -140,8 +140,9 @@ def load_checkpoint(
         raise CheckpointError(
             f"cannot read checkpoint {path} ({main_error}) nor its previous version {prev} ({err})"
         ) from err
-    log.warning("checkpoint %s is unreadable (%s); loaded the previous one %s", path, main_error,
-                prev)
+    log.warning(
+        "checkpoint %s is unreadable (%s); loaded the previous one %s", path, main_error, prev
+    )
     return state
 
 
@@ -187,8 +188,9 @@ def _set_cuda_state(states: list[torch.Tensor] | None) -> None:
     if states is None:
         return
     if not torch.cuda.is_available():
-        warnings.warn("checkpoint has CUDA RNG states but CUDA is unavailable; they are ignored",
-                      stacklevel=3)
+        warnings.warn(
+            "checkpoint has CUDA RNG states but CUDA is unavailable; they are ignored", stacklevel=3
+        )
         return
     if len(states) != torch.cuda.device_count():
         warnings.warn(

@@ -130,9 +130,7 @@ def _snapshot(model: WorldModel, optimizer: torch.optim.Optimizer) -> _Snapshot:
     return _Snapshot(weights, copy.deepcopy(optimizer.state_dict()))
 
 
-def _split(
-    n: int, cfg: FitConfig, generator: torch.Generator
-) -> tuple[Tensor, Tensor, bool]:
+def _split(n: int, cfg: FitConfig, generator: torch.Generator) -> tuple[Tensor, Tensor, bool]:
     """Random train / validation indices (CPU int64); the bool says val == train."""
     perm = torch.randperm(n, generator=generator, device=generator.device).cpu()
     n_val = int(round(cfg.val_fraction * n))
@@ -244,7 +242,9 @@ def fit_model(
     if on_train:
         log.warning(
             "only %d transitions: too few for a validation split (val_fraction=%s); "
-            "validating on the training data", data.shape[0], cfg.val_fraction
+            "validating on the training data",
+            data.shape[0],
+            cfg.val_fraction,
         )
     model.fit_normalization(train_data)
     best = _snapshot(model, optimizer)
@@ -272,7 +272,11 @@ def fit_model(
     model.train(was_training)
     log.info(
         "fit: %d epochs%s, best epoch %d, val loss %.4g (%d train / %d val transitions)",
-        report.epochs_run, " (stopped early)" if report.stopped_early else "",
-        report.best_epoch, report.best_val_loss, report.n_train, report.n_val,
+        report.epochs_run,
+        " (stopped early)" if report.stopped_early else "",
+        report.best_epoch,
+        report.best_val_loss,
+        report.n_train,
+        report.n_val,
     )
     return report

@@ -35,7 +35,8 @@ def _series(
 ) -> tuple[list[float], list[float]]:
     """(env_steps, value) of the records that have both, sorted by env steps."""
     pairs = sorted(
-        (r[ENV_STEPS], r[key]) for r in records
+        (r[ENV_STEPS], r[key])
+        for r in records
         if _is_number(r.get(ENV_STEPS)) and _is_number(r.get(key)) and (not positive or r[key] > 0)
     )
     return [p[0] for p in pairs], [p[1] for p in pairs]
@@ -44,7 +45,8 @@ def _series(
 def _band(records: list[dict[str, Any]]) -> tuple[list[float], list[float], list[float]]:
     """(env_steps, mean - std, mean + std) where both eval mean and std are present."""
     rows = sorted(
-        (r[ENV_STEPS], r[EVAL_RETURN_MEAN], r[EVAL_RETURN_STD]) for r in records
+        (r[ENV_STEPS], r[EVAL_RETURN_MEAN], r[EVAL_RETURN_STD])
+        for r in records
         if all(_is_number(r.get(k)) for k in (ENV_STEPS, EVAL_RETURN_MEAN, EVAL_RETURN_STD))
     )
     return [x for x, _, _ in rows], [m - s for _, m, s in rows], [m + s for _, m, s in rows]

@@ -69,7 +69,8 @@ def _truncate_metrics(path: Path, resume_iteration: int | None) -> None:
         kept: list[dict[str, Any]] = []
     else:
         kept = [
-            r for r in read_metrics(path)
+            r
+            for r in read_metrics(path)
             if isinstance(r.get(ITERATION), int) and r[ITERATION] <= resume_iteration
         ]
     lines = "".join(json.dumps(r) + "\n" for r in kept)
@@ -129,8 +130,12 @@ class Recorder:
             )
         # wandb raises many error types (usage, network, service); logging must not stop a run.
         except Exception as err:  # noqa: BLE001
-            log.warning("wandb could not start (%s: %s); logging to %s only",
-                        type(err).__name__, err, self.metrics_path)
+            log.warning(
+                "wandb could not start (%s: %s); logging to %s only",
+                type(err).__name__,
+                err,
+                self.metrics_path,
+            )
             return None
         if run is not None and getattr(run, "id", None):
             id_file.write_text(str(run.id))
