@@ -127,7 +127,6 @@ def _validate_model(cfg: DictConfig) -> None:
         _number("model.layers", cfg.layers, 1)
         _choice("model.activation", cfg.activation, DELAN_ACTIVATIONS)
         _number("model.diag_shift", cfg.diag_shift, 0.0, open_low=True)
-        _number("model.unit_floor", cfg.unit_floor, 0.0, 1.0, open_low=True)
     else:
         _choice("model.activation", cfg.activation, tuple(MLP_ACTIVATIONS))
     if cfg.name == "ensemble":
@@ -236,7 +235,6 @@ def build_inverse_model(
             dissipation=cfg.dissipation,
             coulomb=cfg.coulomb,
             std_floor=std_floor,
-            unit_floor=cfg.unit_floor,
         )
     if cfg.name == "mlp":
         return MLPInverse(layout, hidden=cfg.hidden, activation=cfg.activation, std_floor=std_floor)

@@ -198,3 +198,40 @@ def test_inertia_scaling_sets_units_from_the_data() -> None:
     torch.testing.assert_close(field.row_scale[[0, 2]], inertia.sqrt())
     torch.testing.assert_close(field.row_scale[1], inertia.log().mean().exp().sqrt())
     assert float(field.energy_scale) == pytest.approx(float(tau.std(0).max()))
+
+
+def test_held_still_coordinates_are_only_centred() -> None:
+    """A plain coordinate that does not move in the data gets std 1, not a tiny std that
+    would multiply its feature derivative (and DeLaN's Coriolis terms) by ~1 / std."""
+    features = QFeatures(MIXED)
+    q = _data()[keys.Q].double()
+    q[:, 0] = 0.7 + 1e-12 * torch.randn(q.shape[0], dtype=torch.float64)  # cart held still
+    features.standardize(q)
+    assert float(features.plain_std[0]) == 1.0
+    assert float(features.plain_mean[0]) == pytest.approx(0.7)
+    assert float(features.plain_std[1]) == pytest.approx(float(q[:, 4].std()))  # root height
+
+
+def test_inertia_scaling_treats_round_off_motion_as_held_still() -> None:
+    """A DoF whose qdd and qd are round-off (a joint held still in the data) gets the others'
+    geometric-mean units, not std(tau) / 1e-14; the viscous unit uses rms(qd)."""
+    model = DeLaN(MIXED, torch.eye(NV), control_dt=0.02, inertia_scaling=True).double()
+    data = _data().to(torch.float64)
+    n = data.shape[0]
+    g = torch.Generator().manual_seed(5)
+    data[keys.ACTION] = torch.randn(n, NV, generator=g, dtype=torch.float64)
+    data[keys.QDD] = 3.0 * torch.randn(n, NV, generator=g, dtype=torch.float64)
+    data[keys.QDD][:, 1] *= 1e-14
+    data[keys.QD][:, 1] *= 1e-15
+    data[keys.QD][:, 3] += 4.0  # a mean speed: the viscous unit follows rms, not std
+    model.fit_normalization(data)
+    tau, qdd, qd = data[keys.ACTION], data[keys.QDD], data[keys.QD]
+    others = [i for i in range(NV) if i != 1]
+    inertia = tau[:, others].std(0) / qdd[:, others].std(0)
+    field, friction = model.dynamics.field, model.dynamics.dissipation
+    torch.testing.assert_close(field.row_scale[others], inertia.sqrt())
+    torch.testing.assert_close(field.row_scale[1], inertia.log().mean().exp().sqrt())
+    viscous = tau[:, others].std(0) / qd[:, others].pow(2).mean(0).sqrt()
+    torch.testing.assert_close(friction.viscous_scale[others], viscous)
+    torch.testing.assert_close(friction.viscous_scale[1], viscous.log().mean().exp())
+    torch.testing.assert_close(friction.coulomb_scale, tau.std(0))

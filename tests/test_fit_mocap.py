@@ -167,7 +167,7 @@ def test_mlp_is_three_linear_layers_and_sees_what_delan_sees() -> None:
     linear = [m for m in mlp.modules() if isinstance(m, nn.Linear)]
     assert len(linear) == 3
     delan = DeLaNInverse(layout, hidden=8)
-    n_features = delan.mechanics.inner.features.n_features
+    n_features = delan.mechanics.features.n_features
     assert n_features == 1 + 9 + 56  # root height, root rotation matrix, hinge angles
     assert linear[0].in_features == n_features + 2 * layout.nv  # phi(q), qd, qdd
     assert linear[-1].out_features == layout.nv == 62  # tau incl. the root residual
@@ -192,23 +192,51 @@ def test_ensemble_is_vectorised_members() -> None:
 
 
 def test_delan_inverse_is_the_lagrangian_equations_in_data_units() -> None:
-    """tau = M qdd + c + g + d with M = S L L^T S positive definite, whatever the units."""
+    """tau = M qdd + c + g + d with M = D L~ L~^T D positive definite, whatever the units."""
     layout = humanoid_layout()
     torch.manual_seed(0)
     model = DeLaNInverse(layout, hidden=16, coulomb=True).double()
     q, qd, qdd = random_batch(layout, 4)
+    field = model.mechanics
     with torch.no_grad():  # leave the zero initialisation: test general weights and units
         for p in model.parameters():
             p.normal_(0.0, 0.05)
-        model.mechanics.inertia_scale.copy_(torch.logspace(-1, 1, 62))
-        model.mechanics.energy_scale.fill_(50.0)
+        inner = model.mass_matrix(q)  # unit scales still 1
+        field.row_scale.copy_(torch.logspace(-1, 1, 62))
+        field.energy_scale.fill_(50.0)
     terms = model.dynamics.terms(q, qd)
     expected = (terms.mass_matrix @ qdd.unsqueeze(-1)).squeeze(-1) + terms.bias
     torch.testing.assert_close(model.predict_torque(q, qd, qdd), expected)
-    s = model.mechanics.inertia_scale
-    inner = model.mechanics.inner.jet(q, qd).L
-    torch.testing.assert_close(model.mass_matrix(q), s[:, None] * (inner @ inner.mT) * s)
+    d = field.row_scale
+    torch.testing.assert_close(model.mass_matrix(q), d[:, None] * inner * d)
     assert bool((torch.linalg.cholesky_ex(model.mass_matrix(q)).info == 0).all())
+
+
+def test_delan_inverse_units_come_from_delan(clip_folder) -> None:
+    """fit_normalization on mocap data (tau as the action, no next state) sets DeLaN's units:
+    finite and positive, the held-still clavicles and fingers (whose qdd std is round-off or
+    0) at the others' geometric mean and their features only centred."""
+    data = build_dataset(
+        clips=(CLIP,), val_clips=(), folders=[clip_folder], download=False, samples_per_clip=200
+    ).data.select(keys.Q, keys.QD, keys.QDD, keys.TAU)
+    torch.manual_seed(0)
+    model = DeLaNInverse(humanoid_layout(), hidden=16).double()
+    model.fit_normalization(data)
+    field, friction = model.mechanics, model.dynamics.dissipation
+    held = data[keys.QDD].std(0) < 1e-9 * data[keys.QDD].std(0).max()  # clavicles, fingers
+    assert int(held.sum()) == 10
+    for units in (field.row_scale, friction.viscous_scale, friction.coulomb_scale):
+        assert torch.isfinite(units).all() and (units > 0).all()
+    moving = field.row_scale[~held]
+    torch.testing.assert_close(field.row_scale[held].log(), moving.log().mean().expand(10))
+    assert float(field.energy_scale) == pytest.approx(float(data[keys.TAU].std(0).max()))
+    assert float(field.row_scale.max()) < 10.0  # sqrt of the root's ~55 kg, not round-off
+    features = field.features  # held-still hinges: only centred, not divided by ~0
+    plain_v = features.plain_v.tolist()
+    held_plain = [plain_v.index(i) for i in held.nonzero().flatten().tolist()]
+    assert (features.plain_std[held_plain] == 1.0).all()
+    with torch.no_grad():
+        assert math.isfinite(float(model.loss(data).loss))
 
 
 # ---------------------------------------------------------------- errors

@@ -25,6 +25,8 @@ Suite = Callable[["SuiteOptions"], Iterator[BenchRecord]]
 _SUITES = {
     "delan": "mbrl_delan.benchmarks.delan:run_delan_suite",
     "identify": "mbrl_delan.benchmarks.identify:run_identify_suite",
+    "mocap": "mbrl_delan.benchmarks.mocap:run_mocap_suite",
+    "identify_humanoid": "mbrl_delan.benchmarks.humanoid_identify:run_identify_humanoid_suite",
     "planner": "mbrl_delan.benchmarks.planner:run_planner_suite",
 }
 SUITE_NAMES = tuple(_SUITES)

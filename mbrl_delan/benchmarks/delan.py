@@ -27,7 +27,6 @@ A figure whose single call is predicted (from trial calls at smaller batches) to
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import time
 from collections.abc import Callable, Iterator
@@ -55,6 +54,7 @@ from mbrl_delan.benchmarks import (
 )
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.models.delan import DeLaN, LagrangianNetwork
+from mbrl_delan.systems.external import humanoid_cmu_xml
 from mbrl_delan.systems.system import HINGE, JointLayout
 
 log = logging.getLogger(__name__)
@@ -442,11 +442,10 @@ class MujocoSystem:
 
 def humanoid_cmu_path() -> Path | None:
     """dm_control's suite/humanoid_CMU.xml when dm_control is installed, else None."""
-    spec = importlib.util.find_spec("dm_control")
-    if spec is None or spec.origin is None:
+    try:
+        return humanoid_cmu_xml()
+    except (ModuleNotFoundError, FileNotFoundError):
         return None
-    path = Path(spec.origin).parent / "suite" / "humanoid_CMU.xml"
-    return path if path.is_file() else None
 
 
 def mujoco_system(nv: int, humanoid: bool = True) -> MujocoSystem:

@@ -47,10 +47,8 @@ import statistics
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any
 
-import gymnasium
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor, nn
@@ -78,6 +76,7 @@ from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.oracle import MujocoObjectiveFactory, mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.systems.external import humanoid_v5_xml
 from mbrl_delan.systems.system import State, System, load_system
 from mbrl_delan.tasks.base import Task
 
@@ -222,11 +221,6 @@ class Case:
     qd0: Tensor  # (nv,)
 
 
-def humanoid_v5_path() -> Path:
-    """gymnasium's Humanoid-v5 MJCF (`envs/mujoco/assets/humanoid.xml`)."""
-    return Path(gymnasium.__file__).parent / "envs" / "mujoco" / "assets" / "humanoid.xml"
-
-
 def build_delan(system: System) -> DeLaN:
     """DeLaN as `config.build_model` builds it from configs/model/delan.yaml."""
     return DeLaN(system.layout, system.actuation.float(), system.control_dt, **DELAN_SETTINGS)
@@ -241,7 +235,7 @@ def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
     """The world-model case `name` (one of `PLANNER_MODELS`), its model on `device`."""
     torch.manual_seed(seed)
     if name == "humanoid_delan":
-        system = load_system(humanoid_v5_path(), frame_skip=HUMANOID_FRAME_SKIP, name="humanoid")
+        system = load_system(humanoid_v5_xml(), frame_skip=HUMANOID_FRAME_SKIP, name="humanoid")
         task: Task = StandTask(torch.from_numpy(system.mj_model().qpos0.copy()), system.nv)
     else:
         parts = make_env_parts("pendulum")

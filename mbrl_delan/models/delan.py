@@ -116,6 +116,13 @@ class LagrangianNetwork(MechanicsField):
         row_of_entry[torch.arange(n) * (n + 1)] = n  # diagonal entries: unscaled (slot n)
         self.register_buffer("row_of_entry", row_of_entry, persistent=False)
 
+    @torch.no_grad()
+    def start_diagonal(self) -> None:
+        """Zero the heads of L's off-diagonal entries and of V: M starts diagonal, g at 0."""
+        head = self.trunk.head
+        head.weight[self.n :].zero_()
+        head.bias[self.n :].zero_()
+
     def _matrix_head(self) -> tuple[Tensor, Tensor]:
         """The L head laid out as the matrix L, row-major: weight (n*n, hidden), bias (n*n,).
 
@@ -160,23 +167,32 @@ class LagrangianNetwork(MechanicsField):
 
 
 class Dissipation(nn.Module):
-    """d(q, qd) = D qd + F tanh(qd / v_c), with D = softplus(.) and F = softplus(.) per DoF."""
+    """d(q, qd) = D qd + F tanh(qd / v_c), D = a softplus(.), F = b softplus(.) per DoF.
 
-    def __init__(self, n: int, coulomb: bool = True, coulomb_velocity: float = 0.01) -> None:
+    a and b (`viscous_scale`, `coulomb_scale`, buffers, 1 by default) are positive units set
+    from data (`DeLaN.fit_normalization` with `inertia_scaling`): d stays dissipative.
+    """
+
+    def __init__(
+        self, n: int, coulomb: bool = True, coulomb_velocity: float = 0.01, raw_init: float = -4.0
+    ) -> None:
         super().__init__()
-        self.raw_viscous = nn.Parameter(torch.full((n,), -4.0))
-        self.raw_coulomb = nn.Parameter(torch.full((n,), -6.0)) if coulomb else None
+        self.raw_viscous = nn.Parameter(torch.full((n,), raw_init))
+        self.raw_coulomb = nn.Parameter(torch.full((n,), raw_init - 2.0)) if coulomb else None
         self.coulomb_velocity = coulomb_velocity
+        self.register_buffer("viscous_scale", torch.ones(n))
+        self.register_buffer("coulomb_scale", torch.ones(n))
 
     @property
     def viscous(self) -> Tensor:
         """Learned viscous damping per DoF, (n,)."""
-        return F.softplus(self.raw_viscous)
+        return self.viscous_scale * F.softplus(self.raw_viscous)
 
     def forward(self, qd: Tensor) -> Tensor:
         force = self.viscous * qd
         if self.raw_coulomb is not None:
-            force = force + F.softplus(self.raw_coulomb) * torch.tanh(qd / self.coulomb_velocity)
+            coulomb = self.coulomb_scale * F.softplus(self.raw_coulomb)
+            force = force + coulomb * torch.tanh(qd / self.coulomb_velocity)
         return force
 
 
@@ -277,6 +293,20 @@ def rotational_dofs(layout: JointLayout) -> Tensor:
     return torch.tensor(rows, dtype=torch.long) if rows else torch.zeros(0, 3, dtype=torch.long)
 
 
+CONSTANT_RATIO = 1e-6  # a per-DoF spread below this fraction of the largest: not varying
+
+
+def _varies(spread: Tensor) -> Tensor:
+    """(n,) bool: spread_i >= CONSTANT_RATIO * max(spread) and > 0."""
+    return (spread > 0) & (spread >= CONSTANT_RATIO * spread.max())
+
+
+def _fill_geometric(units: Tensor, known: Tensor) -> Tensor:
+    """units where known, the geometric mean of the known ones elsewhere. (n,)"""
+    fill = units[known].log().mean().exp()
+    return torch.where(known, units, fill)
+
+
 def _scale(x: Tensor, floor_ratio: float = 1e-2) -> Tensor:
     """Per-column std with a floor relative to the largest (unactuated DoFs have std 0)."""
     std = x.std(dim=0) if x.shape[0] > 1 else x.abs().mean(dim=0)
@@ -300,6 +330,11 @@ class DeLaN(WorldModel):
     `velocity_margin` times the largest |qd| in the data per DoF; `step` evaluates the
     dynamics at velocities clamped to it and clamps the velocity it returns, so any finite
     state and action give a finite next state.
+
+    `inertia_scaling`: `fit_normalization` also sets units for M, V and the friction from
+    the data (see `_fit_inertia_scale`); for systems whose inertias span decades
+    (humanoids). `diagonal_init`: L's off-diagonal and V heads start at zero (M diagonal,
+    g = 0) and the viscous friction at softplus(0) = 0.69 of its unit, not near 0.
     """
 
     def __init__(
@@ -321,6 +356,7 @@ class DeLaN(WorldModel):
         max_velocity: float = 100.0,
         compile_step: bool = False,
         inertia_scaling: bool = False,
+        diagonal_init: bool = False,
     ) -> None:
         super().__init__()
         if integrator not in INTEGRATORS:
@@ -342,12 +378,16 @@ class DeLaN(WorldModel):
         features = QFeatures(layout)
         self.layout, self.control_dt = layout, control_dt
         self.integrator, self.substeps, self.loss_kind = integrator, substeps, loss
+        network = LagrangianNetwork(features, n, hidden, layers, activation, diag_shift)
+        raw_init = 0.0 if diagonal_init else -4.0
         self.dynamics = LagrangianDynamics(
-            field=LagrangianNetwork(features, n, hidden, layers, activation, diag_shift),
-            dissipation=Dissipation(n, coulomb=coulomb) if dissipation else None,
+            field=network,
+            dissipation=Dissipation(n, coulomb=coulomb, raw_init=raw_init) if dissipation else None,
             actuation=actuation.to(torch.get_default_dtype()),
             rotational_dofs=rotational_dofs(layout),
         )
+        if diagonal_init:
+            network.start_diagonal()
         for name in ("q_scale", "qd_scale", "tau_scale"):
             self.register_buffer(name, torch.ones(n))
         self.register_buffer("velocity_limit", torch.full((n,), float(max_velocity)))
@@ -401,23 +441,34 @@ class DeLaN(WorldModel):
         self.velocity_limit.copy_(self.velocity_margin * speed)
 
     def _fit_inertia_scale(self, data: TensorDictBase, tau: Tensor) -> None:
-        """Units for M and V from the data: M = D L~ L~^T D with D_i^2 = std(tau_i) / std(qdd_i)
-        (an inertia per DoF; an unactuated DoF gets the geometric mean of the others), and
-        V in units of the largest torque std. Starts M near the data's inertia scale, which
-        matters when it spans decades (a humanoid: 40 kg root, 0.02 kg m^2 wrists)."""
+        """Units from the data, all positive constants (the structure is kept):
+
+        - M = D L~ L~^T D with D_i^2 = std(tau_i) / std(qdd_i), an inertia per DoF (qdd from
+          the data's `qdd`, else finite differences);
+        - V in units of the largest torque std;
+        - viscous friction in std(tau_i) / rms(qd_i), Coulomb friction in std(tau_i).
+
+        A DoF whose torque, qdd or qd does not vary (spread below `CONSTANT_RATIO` of the
+        largest: unactuated, or held still, e.g. round-off motion) gets the geometric mean of
+        the others' units. Starts M near the data's inertia scale, which matters when it
+        spans decades (a humanoid: 40 kg root, 0.02 kg m^2 wrists).
+        """
         qdd = data.get(keys.QDD, None)
         if qdd is None:
             qdd = (data[keys.NEXT_QD] - data[keys.QD]) / self.control_dt
+        qd = data[keys.QD].to(tau.dtype)
         tau_std, qdd_std = tau.std(dim=0), qdd.to(tau.dtype).std(dim=0)
-        known = (tau_std > 1e-8 * tau_std.max()) & (qdd_std > 0)
+        qd_rms = qd.pow(2).mean(dim=0).sqrt()
+        known = _varies(tau_std) & _varies(qdd_std) & _varies(qd.std(dim=0))
         if not known.any():
             return
-        inertia = torch.ones_like(tau_std)
-        inertia[known] = tau_std[known] / qdd_std[known]
-        inertia[~known] = inertia[known].log().mean().exp()
         field = self.dynamics.field
-        field.row_scale.copy_(inertia.sqrt())
+        field.row_scale.copy_(_fill_geometric(tau_std / qdd_std, known).sqrt())
         field.energy_scale.fill_(float(tau_std.max()))
+        dissipation = self.dynamics.dissipation
+        if dissipation is not None:
+            dissipation.viscous_scale.copy_(_fill_geometric(tau_std / qd_rms, known))
+            dissipation.coulomb_scale.copy_(_fill_geometric(tau_std, _varies(tau_std)))
 
     def _torque_scale(self, tau: Tensor) -> Tensor:
         """Per-DoF torque std; unactuated DoFs get `unactuated_torque_scale` x the largest."""

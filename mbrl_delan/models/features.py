@@ -3,7 +3,8 @@
 Per joint (MuJoCo layout):
 - unlimited hinge: (sin q, cos q);
 - limited hinge, slide: q standardised with the training data's mean and std (set by
-  `standardize`) and softly bounded, b tanh(z / b) with b = `PLAIN_BOUND`: about z within
+  `standardize`; a coordinate that does not move in the data is only centred) and softly
+  bounded, b tanh(z / b) with b = `PLAIN_BOUND`: about z within
   the data, never beyond +-b, so a far-away position cannot blow up the network;
 - ball: the 9 entries of its rotation matrix R (smooth, and blind to the quaternion's sign);
 - free: the root height z and R; the x/y position is left out (the physics does not depend
@@ -24,6 +25,7 @@ from torch import Tensor, nn
 from mbrl_delan.systems.system import BALL, FREE, HINGE, JointLayout
 
 PLAIN_BOUND = 5.0  # plain features saturate at +-5 standard deviations of the data
+PLAIN_MIN_STD = 1e-3  # a plain coordinate with a smaller std in the data is held still
 
 
 def rotation_matrix(quat: Tensor) -> Tensor:
@@ -96,11 +98,16 @@ class QFeatures(nn.Module):
 
     @torch.no_grad()
     def standardize(self, q: Tensor) -> None:
-        """Set the plain features' mean and std from positions (N, nq) (std floored at 1e-3)."""
+        """Set the plain features' mean and std from positions (N, nq).
+
+        A coordinate whose std is below `PLAIN_MIN_STD` does not move in the data (a joint
+        held still): it is only centred (std 1), so its feature's derivative stays O(1)
+        instead of 1 / PLAIN_MIN_STD (which would blow up DeLaN's Coriolis terms)."""
         plain = _take(q.reshape(-1, q.shape[-1]), self.plain_q).to(self.plain_mean.dtype)
         if self.n_plain and plain.shape[0] > 1:
+            std = plain.std(dim=0)  # (n_plain,)
             self.plain_mean.copy_(plain.mean(dim=0))
-            self.plain_std.copy_(plain.std(dim=0).clamp_min(1e-3))
+            self.plain_std.copy_(torch.where(std >= PLAIN_MIN_STD, std, torch.ones_like(std)))
 
     def _plain(self, q: Tensor) -> tuple[Tensor, Tensor]:
         """Bounded standardised plain features and their derivative per unit of q. (..., m)"""

@@ -3,9 +3,9 @@
 One interface (`InverseDynamicsModel`: `predict_torque`, `loss`, `fit_normalization`) and
 three models:
 
-- `DeLaNInverse`: ``tau = M(q) qdd + c(q, qd) + g(q) + d(qd)`` by the `LagrangianDynamics` of
-  `mbrl_delan.models.delan` over a `LagrangianNetwork` (free root and Euler-Poincare term
-  included), in per-DoF units set from the data (below);
+- `DeLaNInverse`: ``tau = M(q) qdd + c(q, qd) + g(q) + d(qd)`` by a `DeLaN` of
+  `mbrl_delan.models.delan` (free root and Euler-Poincare term included) with actuation
+  B = I, in per-DoF units set from the data (below);
 - `MLPInverse`: the paper's feed-forward baseline, three linear layers
   ``[phi(q), qd, qdd] -> tau``;
 - `MLPEnsembleInverse`: E such MLPs with batched weight tensors ``(E, in, out)`` (one
@@ -19,7 +19,9 @@ and momentum); the 56 joint torques alone are the columns 6: of the prediction.
 Same information for every model: phi(q) (`QFeatures`: the root height and rotation matrix,
 hinge angles; not the x/y position), qd and qdd. The MLPs get them concatenated and
 standardised with the training mean and std (constant columns, e.g. the uncaptured fingers,
-are only centred); DeLaN's networks see phi(q), while qd and qdd enter through the equations.
+are only centred); DeLaN's networks see phi(q) (its plain entries, the hinge angles and root
+height, standardised and softly bounded by `QFeatures.standardize`; the rotation-matrix entries
+as they are), while qd and qdd enter through the equations.
 
 Loss (the same for every model): the per-DoF normalised torque MSE
 
@@ -32,22 +34,11 @@ for the root force). An ensemble's loss averages its members' losses (each membe
 trained); its metrics are those of the mean prediction.
 
 DeLaN's units. Torques span 0.02 (fingers) to 500 (root vertical force), accelerations 0 to
-50 and inertias 0.01 to 52; the networks' outputs are O(1). Instead of normalising outputs
-(which would break the structure), the mechanics is reparametrised with fixed positive
-scales set by `fit_normalization` from the training data:
-
-- ``M = S L L^T S`` with ``S = diag(s)``, ``s_i^2 = sigma_tau_i / sigma_qdd_i`` (an inertia
-  unit per DoF; sigma_qdd floored at ``unit_floor`` times its largest, for DoFs that never
-  move): ``S L`` is still lower-triangular with a positive diagonal, so M stays symmetric
-  positive definite, and c is derived from this M exactly;
-- ``V = e V_net`` with ``e`` the largest RMS torque (an energy unit);
-- at initialisation the heads of L's off-diagonal entries and of V are zero: M starts
-  diagonal (a random dense M couples the fingers to the whole body's accelerations) and g
-  starts at zero;
-- viscous and Coulomb friction in units ``sigma_tau_i / sigma_qd_i`` and ``sigma_tau_i``
-  (still dissipative: the scales are positive); the viscous coefficients start at
-  softplus(0) = 0.69 units (humanoid_CMU's dampers, 5 N m s/rad, are about one unit: the
-  default near-zero start would take thousands of Adam steps to get there).
+50 and inertias 0.01 to 52; the networks' outputs are O(1). `DeLaNInverse` builds its `DeLaN`
+with ``inertia_scaling=True`` and ``diagonal_init=True``: `fit_normalization` gives M, V and
+the friction fixed positive per-DoF units from the training data (the structure, and M's
+positive definiteness, are kept), and training starts from a diagonal M, g = 0 and viscous
+friction of 0.69 units. The definitions are in `DeLaN`'s docstring (`mbrl_delan.models.delan`).
 """
 
 from __future__ import annotations
@@ -57,20 +48,13 @@ import math
 from collections.abc import Callable
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torch import Tensor, nn
 from torch.nn import functional as F
 
 from mbrl_delan import keys
 from mbrl_delan.models.base import LossOutput
-from mbrl_delan.models.delan import (
-    Dissipation,
-    LagrangianDynamics,
-    LagrangianNetwork,
-    MechanicsField,
-    MechanicsJet,
-    rotational_dofs,
-)
+from mbrl_delan.models.delan import DeLaN, LagrangianDynamics, LagrangianNetwork
 from mbrl_delan.models.features import QFeatures
 from mbrl_delan.systems.system import JointLayout
 
@@ -252,87 +236,21 @@ class MLPEnsembleInverse(_FeedForwardInverse):
 # ---------------------------------------------------------------- DeLaN
 
 
-class StandardizedFeatures(QFeatures):
-    """(phi(q) - mean) / std, with the matching jvp and vjp; mean and std are buffers."""
-
-    def __init__(self, layout: JointLayout) -> None:
-        super().__init__(layout)
-        self.register_buffer("mean", torch.zeros(self.n_features))
-        self.register_buffer("std", torch.ones(self.n_features))
-
-    def forward(self, q: Tensor) -> Tensor:
-        return (super().forward(q) - self.mean) / self.std
-
-    def jvp(self, q: Tensor, v: Tensor) -> Tensor:
-        return super().jvp(q, v) / self.std
-
-    def vjp(self, q: Tensor, cotangent: Tensor) -> Tensor:
-        return super().vjp(q, cotangent / self.std)
-
-    @torch.no_grad()
-    def fit(self, q: Tensor) -> None:
-        """Set mean and std from positions q (N, nq); constant features are only centred."""
-        phi = super().forward(q.to(self.mean))  # (N, n_features)
-        self.mean.copy_(phi.mean(dim=0))
-        self.std.copy_(_input_std(phi))
-
-
-class ScaledMechanics(MechanicsField):
-    """L' = S L and V' = e V over another mechanics field: M' = S M S, g' = e g.
-
-    ``inertia_scale`` s (n,) > 0 and ``energy_scale`` e > 0 are buffers (data units).
-    """
-
-    def __init__(self, inner: MechanicsField, n: int) -> None:
-        super().__init__()
-        self.inner = inner
-        self.register_buffer("inertia_scale", torch.ones(n))
-        self.register_buffer("energy_scale", torch.ones(()))
-
-    def jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
-        jet = self.inner.jet(q, qd)
-        rows = self.inertia_scale.unsqueeze(-1)  # (n, 1): scales row i of L by s_i
-        e = self.energy_scale
-
-        def pullback(d_L: Tensor, d_V: Tensor) -> Tensor:
-            return jet.pullback(rows * d_L, e * d_V)
-
-        return MechanicsJet(
-            L=rows * jet.L,
-            L_dot=rows * jet.L_dot,
-            potential_energy=e * jet.potential_energy,
-            pullback=pullback,
-        )
-
-
-class ScaledDissipation(Dissipation):
-    """d(qd) = a D qd + b F tanh(qd / v_c) with per-DoF unit buffers a, b > 0."""
-
-    def __init__(self, n: int, coulomb: bool = True, coulomb_velocity: float = 0.01) -> None:
-        super().__init__(n, coulomb=coulomb, coulomb_velocity=coulomb_velocity)
-        with torch.no_grad():  # start at softplus(0) = 0.69 viscous units, not near zero
-            self.raw_viscous.zero_()
-        self.register_buffer("viscous_scale", torch.ones(n))
-        self.register_buffer("coulomb_scale", torch.ones(n))
-
-    def forward(self, qd: Tensor) -> Tensor:
-        force = self.viscous_scale * self.viscous * qd
-        if self.raw_coulomb is not None:
-            friction = F.softplus(self.raw_coulomb) * torch.tanh(qd / self.coulomb_velocity)
-            force = force + self.coulomb_scale * friction
-        return force
-
-
 class DeLaNInverse(InverseDynamicsModel):
     """DeLaN's inverse dynamics tau = M qdd + c + g + d, in data units (module docstring).
+
+    The mechanics is a `DeLaN` with actuation B = I (its action is tau), ``loss="inverse"``,
+    ``inertia_scaling`` and ``diagonal_init``; the loss is `InverseDynamicsModel`'s.
 
     Args:
         layout: joint layout (a free root gets the Euler-Poincare term).
         hidden, layers, activation, diag_shift: the `LagrangianNetwork` (trunk of ``layers``
-            hidden layers of width ``hidden``; ``diag_shift`` > 0 bounds diag(L) from below).
+            hidden layers of width ``hidden``; ``diag_shift`` > 0 bounds diag(L) from below,
+            in each DoF's inertia unit).
         dissipation: learn viscous friction; coulomb: also Coulomb friction.
         std_floor: see `InverseDynamicsModel`.
-        unit_floor: floor of the qd and qdd std (relative to the largest) in the units.
+        control_dt: DeLaN's step (s); only used for finite-difference accelerations when the
+            data lack ``qdd`` (humanoid_CMU's timestep by default).
     """
 
     def __init__(
@@ -345,36 +263,38 @@ class DeLaNInverse(InverseDynamicsModel):
         dissipation: bool = True,
         coulomb: bool = False,
         std_floor: float = 1e-3,
-        unit_floor: float = 1e-2,
+        control_dt: float = 0.002,
     ) -> None:
         super().__init__(layout.nv, std_floor)
-        if not 0.0 < unit_floor < 1.0:
-            raise ValueError(f"unit_floor must be in (0, 1), got {unit_floor}")
-        self.unit_floor = unit_floor
-        self.features = StandardizedFeatures(layout)
-        network = LagrangianNetwork(
-            self.features, layout.nv, hidden, layers, activation, diag_shift
-        )
-        with torch.no_grad():  # L starts diagonal (M decoupled) and V flat (no gravity)
-            head = network.trunk.head  # outputs: n diagonal, n(n-1)/2 below it, then V
-            head.weight[layout.nv :].zero_()
-            head.bias[layout.nv :].zero_()
-        self.dynamics = LagrangianDynamics(
-            field=ScaledMechanics(network, layout.nv),
-            dissipation=ScaledDissipation(layout.nv, coulomb=coulomb) if dissipation else None,
-            actuation=torch.eye(layout.nv),
-            rotational_dofs=rotational_dofs(layout),
+        self.delan = DeLaN(
+            layout,
+            torch.eye(layout.nv),
+            control_dt=control_dt,
+            hidden=hidden,
+            layers=layers,
+            activation=activation,
+            diag_shift=diag_shift,
+            loss="inverse",
+            dissipation=dissipation,
+            coulomb=coulomb,
+            inertia_scaling=True,
+            diagonal_init=True,
         )
 
     @property
-    def mechanics(self) -> ScaledMechanics:
-        return self.dynamics.field  # type: ignore[return-value]
+    def dynamics(self) -> LagrangianDynamics:
+        return self.delan.dynamics
+
+    @property
+    def mechanics(self) -> LagrangianNetwork:
+        """The scaled `LagrangianNetwork` (``row_scale``, ``energy_scale``, ``features``)."""
+        return self.delan.dynamics.field  # type: ignore[return-value]
 
     def predict_torque(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
         return self.dynamics.inverse_dynamics(q, qd, qdd)  # (..., nv)
 
     def mass_matrix_cholesky(self, q: Tensor) -> Tensor:
-        """The learned L' (M = L' L'^T) at q (..., nq): (..., nv, nv)."""
+        """The learned factor L (M = L L^T, units included) at q (..., nq): (..., nv, nv)."""
         qd = q.new_zeros(q.shape[:-1] + (self.nv,))
         return self.mechanics.jet(q, qd).L
 
@@ -385,18 +305,13 @@ class DeLaNInverse(InverseDynamicsModel):
 
     @torch.no_grad()
     def fit_normalization(self, data: TensorDictBase) -> None:
+        """The loss's torque scale, and DeLaN's units and feature statistics (with tau as
+        the action: B = I)."""
         super().fit_normalization(data)
         dtype = self.tau_scale.dtype
-        tau, qd, qdd = (data[k].to(dtype) for k in (keys.TAU, keys.QD, keys.QDD))
-        self.features.fit(data[keys.Q])
-        sigma = self.tau_scale
-        self.mechanics.inertia_scale.copy_((sigma / self._unit(qdd)).sqrt())
-        self.mechanics.energy_scale.fill_(float(tau.pow(2).mean(dim=0).sqrt().max()))
-        friction = self.dynamics.dissipation
-        if isinstance(friction, ScaledDissipation):
-            friction.viscous_scale.copy_(sigma / self._unit(qd))
-            friction.coulomb_scale.copy_(sigma)
-
-    def _unit(self, x: Tensor) -> Tensor:
-        """Per-DoF std of x (N, n) floored at unit_floor times the largest. (n,)"""
-        return torque_scale(x, self.unit_floor)
+        inputs = TensorDict(
+            {k: data[k].to(dtype) for k in (keys.Q, keys.QD, keys.QDD)},
+            batch_size=data.batch_size,
+        )
+        inputs[keys.ACTION] = data[keys.TAU].to(dtype)  # (N, nv)
+        self.delan.fit_normalization(inputs)

@@ -204,14 +204,16 @@ class _Diverged(Exception):
         self.metric, self.value = metric, value
 
 
-def _train_epoch(
+def train_epoch(
     model: InverseDynamicsModel,
     optimizer: torch.optim.Optimizer,
     data: TensorDictBase,
     settings: InverseFitSettings,
     generator: torch.Generator,
 ) -> float:
-    """One pass over the training data; the sample-weighted mean loss."""
+    """One pass over the training data (shuffled minibatches: loss, backward, gradient
+    clipping, optimiser step); the sample-weighted mean loss. A NaN/inf loss or gradient
+    norm raises (`fit_inverse_model` turns it into `TrainingDivergedError`)."""
     model.train()
     params = [p for p in model.parameters() if p.requires_grad]
     max_norm = math.inf if settings.max_grad_norm is None else settings.max_grad_norm
@@ -270,7 +272,7 @@ def fit_inverse_model(
     start = time.perf_counter()
     for epoch in range(1, settings.epochs + 1):
         try:
-            train_loss = _train_epoch(model, optimizer, train, settings, generator)
+            train_loss = train_epoch(model, optimizer, train, settings, generator)
         except _Diverged as err:
             model.load_state_dict(last_good)
             raise TrainingDivergedError(

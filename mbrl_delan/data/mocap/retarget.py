@@ -34,7 +34,6 @@ the dataset drops samples near such glitches.
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -48,6 +47,7 @@ from scipy.spatial.transform import Rotation
 from torch import Tensor
 
 from mbrl_delan.data.mocap.amc import AmcMotion, AsfSkeleton, read_amc, read_asf
+from mbrl_delan.systems.external import humanoid_cmu_xml
 from mbrl_delan.systems.posarith import differentiate_pos, quat_mul
 from mbrl_delan.systems.system import FREE, HINGE, JointLayout
 
@@ -59,20 +59,6 @@ UNCAPTURED_BONES = ("rfingers", "lfingers", "rthumb", "lthumb")
 _INCH = 0.0254
 _Y_UP_TO_Z_UP = np.array([np.cos(np.pi / 4), np.sin(np.pi / 4), 0.0, 0.0])  # Rx(+90 deg)
 _AXES = {"X": 0, "Y": 1, "Z": 2}
-
-
-def humanoid_cmu_xml() -> Path:
-    """Path of dm_control's ``suite/humanoid_CMU.xml`` (dm_control is located, not imported)."""
-    spec = importlib.util.find_spec("dm_control")
-    if spec is None or not spec.submodule_search_locations:
-        raise ModuleNotFoundError(
-            "dm_control is not installed; it ships humanoid_CMU.xml (pip install dm-control), "
-            "or pass the path of a humanoid_CMU.xml"
-        )
-    path = Path(next(iter(spec.submodule_search_locations))) / "suite" / "humanoid_CMU.xml"
-    if not path.is_file():
-        raise FileNotFoundError(f"dm_control has no {path}")
-    return path
 
 
 def joint_layout(model: mujoco.MjModel) -> JointLayout:

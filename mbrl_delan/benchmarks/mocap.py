@@ -1,0 +1,376 @@
+"""Suite `mocap`: how fast the mocap pipeline and the inverse-dynamics fits run (issue 5).
+
+Three kinds of figure, on the settings of ``python -m mbrl_delan.fit`` (`MocapBenchConfig`
+mirrors `configs/fit`; a test keeps the copies equal):
+
+- `retarget_frames_per_s`: AMC frames retargeted onto humanoid_CMU per second: for every clip
+  of the dataset, `read_asf`, `read_amc` and `retarget` (filter, spline resampling to the
+  model timestep, qd and qdd), the MjModel loaded once beforehand. Work per call: the clips'
+  AMC frames together.
+- `dataset_build_s`: seconds of one `build_dataset` call with the config's clips and settings
+  (finding the files, reading, retargeting, glitch detection, `mj_inverse`, splitting and
+  subsampling), clips from local folders only (no download).
+- `fit_samples_per_s` (one record per model: delan, mlp, ensemble): training samples per
+  second of one epoch of `train_epoch` (what `fit_inverse_model` runs each epoch: shuffled
+  minibatches of the config's batch size, loss, backward, gradient clipping, Adam step) on
+  the training split of the dataset just built, after `fit_normalization`; samples per epoch
+  / seconds per epoch.
+
+`SuiteOptions.quick`: the one small clip of tests/data (09_06) and tiny sizes
+(`MocapBenchConfig.quick`). Clips that are not found give `value: null` records with a note.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import torch
+from tensordict import TensorDict
+
+from mbrl_delan import keys
+from mbrl_delan.benchmarks import (
+    SuiteOptions,
+    Timing,
+    TimingConfig,
+    host_fields,
+    synchronizer,
+    time_call,
+)
+from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.data.mocap import (
+    ClipFiles,
+    ClipNotFoundError,
+    FilterSettings,
+    MocapDataset,
+    build_dataset,
+    find_clip,
+    humanoid_cmu_xml,
+    read_amc,
+    read_asf,
+    retarget,
+    split_dataset,
+)
+from mbrl_delan.data.mocap.retarget import joint_layout
+from mbrl_delan.models.inverse import (
+    MODEL_NAMES,
+    DeLaNInverse,
+    InverseDynamicsModel,
+    MLPEnsembleInverse,
+    MLPInverse,
+)
+from mbrl_delan.systems.system import JointLayout
+from mbrl_delan.training.inverse_fit import InverseFitSettings, train_epoch
+
+log = logging.getLogger(__name__)
+
+SUITE = "mocap"
+METRICS = ("retarget_frames_per_s", "dataset_build_s", "fit_samples_per_s")
+REPO_ROOT = Path(__file__).resolve().parents[2]
+TEST_DATA = REPO_ROOT / "tests" / "data"
+QUICK_CLIP = "09_06"
+# configs/fit/data/cmu_mocap.yaml's clips (not data.mocap.DEFAULT_CLIPS, an older list)
+FIT_CLIPS = (
+    "02_01", "02_02", "05_01", "07_03", "07_05", "09_06", "09_12", "05_02", "05_04",
+    "05_07", "55_02", "93_charleston1", "acro_backflip", "131_03", "131_07",
+)  # fmt: skip
+FIT_VAL_CLIPS = ("02_02", "05_07", "131_07")
+BUILD_MAX_REPEATS = 3  # one build takes seconds: at most this many timed builds
+BUILD_MAX_WARMUP = 1
+
+
+@dataclass(frozen=True)
+class MocapBenchConfig:
+    """The fit entry point's data, model and training settings (configs/fit defaults).
+
+    ``folders`` relative to the repository root (``fit`` resolves the same strings against
+    its working directory, normally the repository root).
+    """
+
+    clips: tuple[str, ...] = FIT_CLIPS
+    val_clips: tuple[str, ...] = FIT_VAL_CLIPS
+    folders: tuple[str, ...] = ("../shared/data/cmu_mocap", "data/cmu_mocap")
+    samples_per_clip: int | None = 1000
+    filter: FilterSettings = field(default_factory=FilterSettings)
+    val_time_fraction: float = 0.2
+    gap_s: float = 0.25
+    split_seed: int = 0
+    glitch_deg: float = 60.0
+    glitch_pad_s: float = 0.25
+    passive: bool = True
+    # training (configs/fit/config.yaml)
+    batch_size: int = 256
+    lr: float = 1e-3
+    max_grad_norm: float | None = 100.0
+    std_floor: float = 1e-3
+    dtype: torch.dtype = torch.float32
+    seed: int = 0
+    # models (configs/fit/model/*.yaml)
+    models: tuple[str, ...] = MODEL_NAMES
+    delan_hidden: int = 128
+    delan_layers: int = 2
+    delan_activation: str = "softplus"
+    delan_diag_shift: float = 1e-3
+    delan_dissipation: bool = True
+    delan_coulomb: bool = False
+    mlp_hidden: int = 256
+    mlp_activation: str = "silu"
+    ensemble_size: int = 5
+    ensemble_hidden: int = 256
+    ensemble_activation: str = "silu"
+
+    @classmethod
+    def quick(cls) -> MocapBenchConfig:
+        """The small clip of tests/data and tiny networks (seconds in all)."""
+        return cls(
+            clips=(QUICK_CLIP,),
+            val_clips=(),
+            folders=(str(TEST_DATA),),
+            samples_per_clip=64,
+            gap_s=0.1,
+            batch_size=16,
+            delan_hidden=16,
+            mlp_hidden=16,
+            ensemble_size=2,
+            ensemble_hidden=16,
+        )
+
+    def resolved_folders(self) -> list[Path]:
+        """The clip folders, relative ones against the repository root."""
+        paths = map(Path, self.folders)
+        return [(p if p.is_absolute() else REPO_ROOT / p).resolve() for p in paths]
+
+
+# ----------------------------------------------------------------------------- data
+
+
+def find_clips(cfg: MocapBenchConfig) -> list[ClipFiles]:
+    """Every clip's files from the local folders or the cache (no download)."""
+    folders = cfg.resolved_folders()
+    return [find_clip(name, folders=folders, download=False) for name in cfg.clips]
+
+
+def count_frames(files: list[ClipFiles]) -> int:
+    """AMC frames of all clips together."""
+    return sum(read_amc(f.amc, read_asf(f.asf)).n_frames for f in files)
+
+
+def retarget_call(
+    files: list[ClipFiles], model: mujoco.MjModel, settings: FilterSettings
+) -> Callable[[], int]:
+    """A call that reads and retargets every clip; returns the samples produced."""
+
+    def call() -> int:
+        samples = 0
+        for f in files:
+            skeleton = read_asf(f.asf)
+            clip = retarget(read_amc(f.amc, skeleton), skeleton, model, settings, name=f.name)
+            samples += len(clip)
+        return samples
+
+    return call
+
+
+class DatasetBuilder:
+    """A call that builds the dataset as ``fit`` does; keeps the last one built."""
+
+    def __init__(self, cfg: MocapBenchConfig) -> None:
+        self.cfg = cfg
+        self.last: MocapDataset | None = None
+
+    def __call__(self) -> MocapDataset:
+        cfg = self.cfg
+        self.last = build_dataset(
+            clips=cfg.clips,
+            val_clips=cfg.val_clips,
+            folders=cfg.resolved_folders(),
+            download=False,
+            settings=cfg.filter,
+            samples_per_clip=cfg.samples_per_clip,
+            val_time_fraction=cfg.val_time_fraction,
+            gap_s=cfg.gap_s,
+            glitch_deg=cfg.glitch_deg,
+            glitch_pad_s=cfg.glitch_pad_s,
+            passive=cfg.passive,
+            seed=cfg.split_seed,
+        )
+        return self.last
+
+
+def training_split(dataset: MocapDataset, device: torch.device, dtype: torch.dtype) -> TensorDict:
+    """The training part: q, qd, qdd, tau on the device in the training dtype. (N,)"""
+    train = split_dataset(dataset).train
+    return train.select(keys.Q, keys.QD, keys.QDD, keys.TAU).to(device=device, dtype=dtype)
+
+
+# ----------------------------------------------------------------------------- fitting
+
+
+def make_inverse_model(
+    name: str, layout: JointLayout, cfg: MocapBenchConfig
+) -> InverseDynamicsModel:
+    """The inverse-dynamics model ``name`` with the config's settings (as ``fit`` builds it)."""
+    if name == "delan":
+        return DeLaNInverse(
+            layout,
+            hidden=cfg.delan_hidden,
+            layers=cfg.delan_layers,
+            activation=cfg.delan_activation,
+            diag_shift=cfg.delan_diag_shift,
+            dissipation=cfg.delan_dissipation,
+            coulomb=cfg.delan_coulomb,
+            std_floor=cfg.std_floor,
+        )
+    if name == "mlp":
+        return MLPInverse(
+            layout, hidden=cfg.mlp_hidden, activation=cfg.mlp_activation, std_floor=cfg.std_floor
+        )
+    if name == "ensemble":
+        return MLPEnsembleInverse(
+            layout,
+            ensemble_size=cfg.ensemble_size,
+            hidden=cfg.ensemble_hidden,
+            activation=cfg.ensemble_activation,
+            std_floor=cfg.std_floor,
+        )
+    raise ValueError(f"model must be one of {MODEL_NAMES}, got {name!r}")
+
+
+def epoch_call(
+    model: InverseDynamicsModel, train: TensorDict, cfg: MocapBenchConfig
+) -> Callable[[], float]:
+    """A call that trains ``model`` for one epoch on ``train`` (N,); returns its mean loss."""
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    settings = InverseFitSettings(
+        epochs=1, batch_size=cfg.batch_size, max_grad_norm=cfg.max_grad_norm
+    )
+    generator = torch.Generator(device=train.device).manual_seed(cfg.seed)
+    return lambda: train_epoch(model, optimizer, train, settings, generator)
+
+
+# ----------------------------------------------------------------------------- records
+
+
+def _record(
+    case: str,
+    metric: str,
+    unit: str,
+    device: str,
+    fields: dict[str, Any],
+    timing: Timing | None,
+    value: float | None,
+    note: str | None = None,
+) -> BenchRecord:
+    extra = dict(fields)
+    if timing is not None:
+        extra.update(timing.fields())
+    if note is not None:
+        extra["note"] = note
+    return BenchRecord(SUITE, case, metric, value, unit, device, extra)
+
+
+def _build_timing(timing: TimingConfig) -> TimingConfig:
+    """At most `BUILD_MAX_WARMUP` untimed and `BUILD_MAX_REPEATS` timed builds."""
+    return replace(
+        timing,
+        repeats=min(timing.repeats, BUILD_MAX_REPEATS),
+        warmup=min(timing.warmup, BUILD_MAX_WARMUP),
+    )
+
+
+def _data_fields(cfg: MocapBenchConfig, host: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "clips": list(cfg.clips),
+        "n_clips": len(cfg.clips),
+        "folders": [str(p) for p in cfg.resolved_folders()],
+        "samples_per_clip": cfg.samples_per_clip,
+        "cutoff_hz": cfg.filter.cutoff_hz,
+        **host,
+    }
+
+
+def _missing_records(
+    case: str, fields: dict[str, Any], cfg: MocapBenchConfig, device: str, note: str
+) -> Iterator[BenchRecord]:
+    """Null records for every figure when the clips (or humanoid_CMU.xml) are not there."""
+    yield _record(case, "retarget_frames_per_s", "frames/s", "cpu", fields, None, None, note)
+    yield _record(case, "dataset_build_s", "s", "cpu", fields, None, None, note)
+    for name in cfg.models:
+        fit_case = f"{name}-b{cfg.batch_size}"
+        yield _record(fit_case, "fit_samples_per_s", "samples/s", device, fields, None, None, note)
+
+
+def _fit_record(
+    name: str,
+    layout: JointLayout,
+    train: TensorDict,
+    cfg: MocapBenchConfig,
+    opts: SuiteOptions,
+    host: dict[str, Any],
+) -> BenchRecord:
+    torch.manual_seed(cfg.seed)
+    model = make_inverse_model(name, layout, cfg).to(device=opts.device, dtype=cfg.dtype)
+    model.fit_normalization(train)
+    n = int(train.shape[0])
+    fields = {
+        "model": name,
+        "batch_size": cfg.batch_size,
+        "train_samples": n,
+        "steps_per_epoch": math.ceil(n / cfg.batch_size),
+        "n_parameters": sum(p.numel() for p in model.parameters()),
+        "dtype": str(cfg.dtype).removeprefix("torch."),
+        "lr": cfg.lr,
+        **host,
+    }
+    timing = time_call(epoch_call(model, train, cfg), opts.timing, synchronizer(opts.device))
+    value = n / timing.seconds_per_call
+    case = f"{name}-b{cfg.batch_size}"
+    return _record(case, "fit_samples_per_s", "samples/s", str(opts.device), fields, timing, value)
+
+
+def run_mocap(cfg: MocapBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord]:
+    """Every figure of the suite for ``cfg``, one record at a time."""
+    host = host_fields(opts.device)
+    case = f"cmu_mocap-{len(cfg.clips)}clips"
+    fields = _data_fields(cfg, host)
+    try:
+        files = find_clips(cfg)
+        mj_model = mujoco.MjModel.from_xml_path(str(humanoid_cmu_xml()))
+    except (ClipNotFoundError, FileNotFoundError, ModuleNotFoundError) as err:
+        log.warning("mocap suite: %s", err)
+        note = f"skipped: {type(err).__name__}: {err}"
+        yield from _missing_records(case, fields, cfg, str(opts.device), note)
+        return
+    frames = count_frames(files)
+    log.info("mocap suite: retargeting %d clips (%d frames)", len(files), frames)
+    timing = time_call(retarget_call(files, mj_model, cfg.filter), opts.timing)
+    value = frames / timing.seconds_per_call
+    retarget_fields = {**fields, "frames": frames}
+    yield _record(case, "retarget_frames_per_s", "frames/s", "cpu", retarget_fields, timing, value)
+    log.info("mocap suite: building the dataset")
+    builder = DatasetBuilder(cfg)
+    timing = time_call(builder, _build_timing(opts.timing))
+    dataset = builder.last if builder.last is not None else builder()  # time_call built it
+    build_fields = {**fields, "samples": len(dataset)}
+    seconds = timing.seconds_per_call
+    yield _record(case, "dataset_build_s", "s", "cpu", build_fields, timing, seconds)
+    train = training_split(dataset, opts.device, cfg.dtype)
+    layout = joint_layout(mj_model)
+    for name in cfg.models:
+        log.info("mocap suite: one epoch of %s on %d samples", name, train.shape[0])
+        yield _fit_record(name, layout, train, cfg, opts, host)
+
+
+def suite_config(opts: SuiteOptions) -> MocapBenchConfig:
+    """The suite's settings: `MocapBenchConfig()`, or its quick sizes under ``opts.quick``."""
+    return MocapBenchConfig.quick() if opts.quick else MocapBenchConfig()
+
+
+def run_mocap_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
+    """The registered suite: `run_mocap` with `suite_config(opts)`."""
+    yield from run_mocap(suite_config(opts), opts)
