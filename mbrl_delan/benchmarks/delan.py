@@ -53,7 +53,7 @@ from mbrl_delan.benchmarks import (
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
-from mbrl_delan.models.delan import DeLaN, LagrangianNetwork
+from mbrl_delan.models.delan import DeLaN, LagrangianNetwork, compile_dynamics
 from mbrl_delan.systems.external import humanoid_cmu_xml
 from mbrl_delan.systems.system import HINGE, JointLayout
 
@@ -204,8 +204,8 @@ def _fwd(model: DeLaN) -> Make:
 
 
 def _compiled_fwd(model: DeLaN) -> Make:
-    """`forward_dynamics` through `torch.compile` (static shapes; compiled per batch size)."""
-    compiled = torch.compile(model.dynamics.forward_dynamics, dynamic=False)
+    """`forward_dynamics` through `compile_dynamics` (static shapes; compiled per batch)."""
+    compiled = compile_dynamics(model.dynamics.forward_dynamics)
 
     def make(x: Inputs) -> Callable[[], object]:
         def call() -> Tensor:

@@ -61,7 +61,7 @@ class HumanoidIdentifyConfig:
     batch, learning-rate stages, patience, dtype, seed); its state-sampling fields are unused.
     """
 
-    n_samples: int = 20_000
+    n_samples: int = 30_000
     n_test: int = 1_000
     hidden: int = 128
     layers: int = 2

@@ -21,6 +21,7 @@ from __future__ import annotations
 import abc
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -36,6 +37,17 @@ from mbrl_delan.systems.posarith import differentiate_pos
 from mbrl_delan.systems.system import BALL, FREE, JointLayout, State
 
 LOSSES = ("forward", "inverse", "both")
+
+
+def compile_dynamics(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """`torch.compile` for the model's hot path: static shapes, a C++ wrapper (less Python
+    per call), and no guards on module attributes (DeLaN resets its compiled step when it
+    is moved with `.to()`; weights updated in place are read at each call)."""
+    options = {
+        "cpp_wrapper": True,
+        "guard_filter_fn": torch.compiler.skip_guard_on_all_nn_modules_unsafe,
+    }
+    return torch.compile(fn, dynamic=False, options=options)
 
 
 @dataclass
@@ -392,6 +404,10 @@ class DeLaN(WorldModel):
             self.register_buffer(name, torch.ones(n))
         self.register_buffer("velocity_limit", torch.full((n,), float(max_velocity)))
 
+    def _apply(self, fn: Callable[..., Any], recurse: bool = True) -> DeLaN:
+        self._compiled_step = None  # a compiled step is specific to a device and dtype
+        return super()._apply(fn, recurse)
+
     def terms(self, q: Tensor, qd: Tensor) -> LagrangianTerms:
         return self.dynamics.terms(q, qd)
 
@@ -406,7 +422,7 @@ class DeLaN(WorldModel):
         `torch.compile`d copy of the step (compiled on first use, again per new shape)."""
         if self.compile_step and not torch.is_grad_enabled():
             if self._compiled_step is None:
-                self._compiled_step = torch.compile(self._step, dynamic=False)
+                self._compiled_step = compile_dynamics(self._step)
             return self._compiled_step(q, qd, action)
         return self._step(q, qd, action)
 
