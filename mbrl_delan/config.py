@@ -113,40 +113,32 @@ def _get(cfg: DictConfig, path: str) -> Any:
     return node
 
 
+def _delan_arguments(cfg: DictConfig, system: System) -> dict[str, Any]:
+    """The constructor arguments a DeLaN and every member of a DeLaN ensemble share."""
+    return dict(
+        layout=system.layout,
+        actuation=system.actuation.float(),
+        control_dt=system.control_dt,
+        hidden=cfg.hidden,
+        layers=cfg.layers,
+        activation=cfg.activation,
+        diag_shift=cfg.diag_shift,
+        integrator=cfg.integrator,
+        substeps=cfg.substeps,
+        loss=cfg.loss,
+        dissipation=cfg.dissipation,
+        coulomb=cfg.coulomb,
+        velocity_margin=cfg.velocity_margin,
+    )
+
+
 def build_model(cfg: DictConfig, system: System) -> WorldModel:
     """The world model named by `cfg.name`, with the system's layout and actuation."""
     if cfg.name == "delan":
-        return DeLaN(
-            layout=system.layout,
-            actuation=system.actuation.float(),
-            control_dt=system.control_dt,
-            hidden=cfg.hidden,
-            layers=cfg.layers,
-            activation=cfg.activation,
-            diag_shift=cfg.diag_shift,
-            integrator=cfg.integrator,
-            substeps=cfg.substeps,
-            loss=cfg.loss,
-            dissipation=cfg.dissipation,
-            coulomb=cfg.coulomb,
-            velocity_margin=cfg.velocity_margin,
-            compile_step=cfg.compile,
-        )
+        return DeLaN(**_delan_arguments(cfg, system), compile_step=cfg.compile)
     if cfg.name == "delan_ensemble":
         return DeLaNEnsemble(
-            layout=system.layout,
-            actuation=system.actuation.float(),
-            control_dt=system.control_dt,
-            hidden=cfg.hidden,
-            layers=cfg.layers,
-            activation=cfg.activation,
-            diag_shift=cfg.diag_shift,
-            integrator=cfg.integrator,
-            substeps=cfg.substeps,
-            loss=cfg.loss,
-            dissipation=cfg.dissipation,
-            coulomb=cfg.coulomb,
-            velocity_margin=cfg.velocity_margin,
+            **_delan_arguments(cfg, system),
             ensemble_size=cfg.ensemble_size,
             propagation=cfg.propagation,
             bootstrap=cfg.bootstrap,
