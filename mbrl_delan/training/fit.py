@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from torch import Tensor
+from torch import Tensor, nn
 
 from mbrl_delan.models.base import WorldModel
 
@@ -109,8 +109,8 @@ class TrainingDivergedError(RuntimeError):
         )
 
 
-class _Diverged(Exception):
-    """Internal signal carrying the offending quantity up to ``fit_model``."""
+class Diverged(Exception):
+    """A non-finite loss or gradient norm during fitting; the fit entry points catch it."""
 
     def __init__(self, metric: str, value: float, detail: str = ""):
         super().__init__(metric)
@@ -139,8 +139,8 @@ def _split(n: int, cfg: FitConfig, generator: torch.Generator) -> tuple[Tensor, 
     return perm[n_val:], perm[:n_val], False
 
 
-def _batches(
-    n: int, batch_size: int, generator: torch.Generator | None, max_batches: int | None
+def batches(
+    n: int, batch_size: int, generator: torch.Generator | None, max_batches: int | None = None
 ) -> Iterator[Tensor]:
     """Index tensors of minibatches; shuffled when a generator is given."""
     if generator is None:
@@ -158,28 +158,31 @@ def _nonfinite_metrics(metrics: dict[str, float]) -> str:
     return f" (non-finite metrics: {bad})" if bad else ""
 
 
-def _train_epoch(
-    model: WorldModel,
+def optimizer_epoch(
+    model: nn.Module,
     optimizer: torch.optim.Optimizer,
     data: TensorDictBase,
-    cfg: FitConfig,
+    batch_size: int,
+    max_grad_norm: float | None,
     generator: torch.Generator,
+    max_batches: int | None = None,
 ) -> float:
-    """One pass of optimizer steps; returns the sample-weighted mean loss."""
+    """One pass of shuffled minibatches (`model.loss`, backward, gradient clipping, optimizer
+    step); the sample-weighted mean loss. A non-finite loss or gradient norm raises `Diverged`."""
     model.train()
     params = [p for p in model.parameters() if p.requires_grad]
-    max_norm = math.inf if cfg.max_grad_norm is None else cfg.max_grad_norm
+    max_norm = math.inf if max_grad_norm is None else max_grad_norm
     total, count = 0.0, 0
-    for idx in _batches(data.shape[0], cfg.batch_size, generator, cfg.max_batches_per_epoch):
-        out = model.loss(data[idx])
+    for idx in batches(data.shape[0], batch_size, generator, max_batches):
+        out = model.loss(data[idx.to(data.device)])
         loss_value = float(out.loss.detach())
         if not math.isfinite(loss_value):
-            raise _Diverged("train_loss", loss_value, _nonfinite_metrics(out.metrics))
+            raise Diverged("train_loss", loss_value, _nonfinite_metrics(out.metrics))
         optimizer.zero_grad(set_to_none=True)
         out.loss.backward()
         grad_norm = float(torch.nn.utils.clip_grad_norm_(params, max_norm))
         if not math.isfinite(grad_norm):
-            raise _Diverged("grad_norm", grad_norm)
+            raise Diverged("grad_norm", grad_norm)
         optimizer.step()
         total += loss_value * len(idx)
         count += len(idx)
@@ -197,7 +200,7 @@ def _evaluate(
     total, count = 0.0, 0
     sums: dict[str, float] = {}
     with torch.enable_grad():
-        for idx in _batches(data.shape[0], batch_size, None, None):
+        for idx in batches(data.shape[0], batch_size, None):
             out = model.loss(data[idx])
             n = len(idx)
             total += float(out.loss.detach()) * n
@@ -210,7 +213,7 @@ def _evaluate(
 
 def _check_val(loss: float, metrics: dict[str, float]) -> None:
     if not math.isfinite(loss):
-        raise _Diverged("val_loss", loss, _nonfinite_metrics(metrics))
+        raise Diverged("val_loss", loss, _nonfinite_metrics(metrics))
 
 
 def fit_model(
@@ -251,7 +254,15 @@ def fit_model(
     epoch = 0
     try:
         for epoch in range(cfg.max_epochs):
-            train_loss = _train_epoch(model, optimizer, train_data, cfg, generator)
+            train_loss = optimizer_epoch(
+                model,
+                optimizer,
+                train_data,
+                cfg.batch_size,
+                cfg.max_grad_norm,
+                generator,
+                cfg.max_batches_per_epoch,
+            )
             val_loss, metrics = _evaluate(model, val_data, cfg.batch_size)
             _check_val(val_loss, metrics)
             report.train_loss.append(train_loss)
@@ -263,7 +274,7 @@ def fit_model(
             elif cfg.patience is not None and epoch - report.best_epoch >= cfg.patience:
                 report.stopped_early = True
                 break
-    except _Diverged as err:
+    except Diverged as err:
         model.load_state_dict(best.model)
         optimizer.load_state_dict(best.optimizer)
         model.train(was_training)

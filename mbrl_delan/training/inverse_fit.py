@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import torch
@@ -22,7 +22,13 @@ from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.models.inverse import DeLaNInverse, InverseDynamicsModel
-from mbrl_delan.training.fit import FitReport, TrainingDivergedError
+from mbrl_delan.training.fit import (
+    Diverged,
+    FitReport,
+    TrainingDivergedError,
+    batches,
+    optimizer_epoch,
+)
 
 log = logging.getLogger(__name__)
 
@@ -139,16 +145,6 @@ class MassMatrixCheck:
         }
 
 
-def _batches(n: int, batch_size: int, generator: torch.Generator | None) -> Iterator[Tensor]:
-    """Index tensors of minibatches (CPU); shuffled when a generator is given."""
-    if generator is None:
-        order = torch.arange(n)
-    else:
-        order = torch.randperm(n, generator=generator, device=generator.device).cpu()
-    yield from order.split(batch_size)
-
-
-@torch.no_grad()
 def evaluate_torques(
     model: InverseDynamicsModel, data: TensorDictBase, batch_size: int = 2048
 ) -> TorqueErrors:
@@ -156,7 +152,7 @@ def evaluate_torques(
     model.eval()
     n, nv = data.shape[0], model.nv
     sse, tau_sum, tau_sq = (torch.zeros(nv, dtype=F64) for _ in range(3))
-    for idx in _batches(n, batch_size, None):
+    for idx in batches(n, batch_size, None):
         batch = data[idx.to(data.device)]
         tau = batch[keys.TAU]  # (B, nv)
         pred = model.predict_torque(batch[keys.Q], batch[keys.QD], batch[keys.QDD])
@@ -181,7 +177,7 @@ def check_mass_matrix(model: DeLaNInverse, q: Tensor, batch_size: int = 1024) ->
     model.eval()
     ok, count = 0, 0
     min_eig, max_cond = math.inf, 0.0
-    for idx in _batches(q.shape[0], batch_size, None):
+    for idx in batches(q.shape[0], batch_size, None):
         L = model.mass_matrix_cholesky(q[idx.to(q.device)]).to(F64)  # (B, nv, nv)
         M = L @ L.transpose(-1, -2)
         info = torch.linalg.cholesky_ex(M).info  # (B,) 0 where M is positive definite
@@ -198,12 +194,6 @@ def check_mass_matrix(model: DeLaNInverse, q: Tensor, batch_size: int = 1024) ->
     )
 
 
-class _Diverged(Exception):
-    def __init__(self, metric: str, value: float) -> None:
-        super().__init__(metric)
-        self.metric, self.value = metric, value
-
-
 def train_epoch(
     model: InverseDynamicsModel,
     optimizer: torch.optim.Optimizer,
@@ -211,27 +201,12 @@ def train_epoch(
     settings: InverseFitSettings,
     generator: torch.Generator,
 ) -> float:
-    """One pass over the training data (shuffled minibatches: loss, backward, gradient
-    clipping, optimiser step); the sample-weighted mean loss. A NaN/inf loss or gradient
-    norm raises (`fit_inverse_model` turns it into `TrainingDivergedError`)."""
-    model.train()
-    params = [p for p in model.parameters() if p.requires_grad]
-    max_norm = math.inf if settings.max_grad_norm is None else settings.max_grad_norm
-    total, count = 0.0, 0
-    for idx in _batches(data.shape[0], settings.batch_size, generator):
-        out = model.loss(data[idx.to(data.device)])
-        value = float(out.loss.detach())
-        if not math.isfinite(value):
-            raise _Diverged("train_loss", value)
-        optimizer.zero_grad(set_to_none=True)
-        out.loss.backward()
-        grad_norm = float(torch.nn.utils.clip_grad_norm_(params, max_norm))
-        if not math.isfinite(grad_norm):
-            raise _Diverged("grad_norm", grad_norm)
-        optimizer.step()
-        total += value * len(idx)
-        count += len(idx)
-    return total / max(count, 1)
+    """One pass over the training data (`training.fit.optimizer_epoch`); the sample-weighted
+    mean loss. A NaN/inf loss or gradient norm raises `Diverged` (`fit_inverse_model` turns
+    it into `TrainingDivergedError`)."""
+    return optimizer_epoch(
+        model, optimizer, data, settings.batch_size, settings.max_grad_norm, generator
+    )
 
 
 def _report(results: list[EpochResult], split_names: list[str]) -> FitReport:
@@ -273,7 +248,7 @@ def fit_inverse_model(
     for epoch in range(1, settings.epochs + 1):
         try:
             train_loss = train_epoch(model, optimizer, train, settings, generator)
-        except _Diverged as err:
+        except Diverged as err:
             model.load_state_dict(last_good)
             raise TrainingDivergedError(
                 epoch - 1, err.metric, err.value, _report(results, list(splits)), ""
