@@ -1,148 +1,448 @@
-"""`python -m mbrl_delan.report DIR [DIR ...] [--figure PNG]`: runs' returns against the oracle.
+"""`python -m mbrl_delan.report DIR [DIR ...] [--out DIR]`: a sweep's results over seeds.
 
-Reads every `summary.json` below the given folders, groups runs by (env, model, planner) and
-prints a Markdown table of mean and std over seeds of the final evaluation return, the
-oracle return and their ratio. Run dirs without a `summary.json` are listed as incomplete.
-`--figure` also draws evaluation return vs env steps per group (mean and std over seeds,
-from each run's `metrics.jsonl`) with the oracle's return, one panel per env.
+Finds the training run dirs below the given folders (a sweep dir, ``runs/multirun``, single
+run dirs), groups the finished runs (those with a ``summary.json``) by (env, model, planner)
+and writes into ``--out`` (default: the first DIR; ``<DIR>/report`` when DIR is itself a run):
+
+* ``report.md`` and ``report.csv``: per group the seeds, n, mean and 95% confidence interval
+  (Student t over seeds) of the final evaluation return and of the fraction of the oracle, the
+  oracle return, the env steps to reach 90% of the oracle and the wall time;
+* ``returns.png``: evaluation return vs env steps per model x planner, mean with a 95% CI band,
+  the oracle as a dashed line, one panel per env;
+* ``model_error.png``: the one-step and H-step model errors vs env steps, same layout.
+
+Runs without a readable ``summary.json`` are listed in ``report.md`` and on the log, with the
+message of their ``crash.json`` when there is one; they never stop the report.
+See ``docs/sweeps.md`` for the formulas.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import logging
+import math
+import os
 import statistics
 from collections import defaultdict
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
+
+import yaml
+from omegaconf import OmegaConf
+from scipy import stats
+
+from mbrl_delan.sweep import CRASH_FILE, last_iteration, read_crash
+from mbrl_delan.training.recorder import METRICS_FILE, read_metrics
 
 log = logging.getLogger(__name__)
 
 SUMMARY = "summary.json"
-RUN_MARKER = "config.yaml"
+RUN_CONFIG = "config.yaml"
+RUN_FILES = (RUN_CONFIG, SUMMARY, CRASH_FILE)
+GROUP_KEYS = ("env", "model", "planner")
+REQUIRED_KEYS = (*GROUP_KEYS, "seed")
+ORACLE_FRACTION = 0.9
+CONFIDENCE = 0.95
+MODEL_ERRORS = {"model_error_1step": "one-step error", "model_error_hstep": "H-step error"}
+
+REPORT_MD = "report.md"
+REPORT_CSV = "report.csv"
+RETURNS_PNG = "returns.png"
+MODEL_ERROR_PNG = "model_error.png"
+
+COLUMNS = (
+    "env",
+    "model",
+    "planner",
+    "seeds",
+    "n",
+    "eval_return_mean",
+    "eval_return_ci95",
+    "fraction_of_oracle_mean",
+    "fraction_of_oracle_ci95",
+    "oracle_return_mean",
+    "oracle_return_ci95",
+    "steps_to_90_mean",
+    "steps_to_90_reached",
+    "env_steps_mean",
+    "wall_time_s_mean",
+)
+
+Group = tuple[str, str, str]
+
+
+# --- finding runs -------------------------------------------------------------------------
+
+
+def _is_train_config(path: Path) -> bool:
+    """Whether a saved Hydra config is one of ``mbrl_delan.train`` (it has planner and budget)."""
+    try:
+        cfg = OmegaConf.load(path)
+    except (OSError, ValueError, yaml.YAMLError) as err:
+        log.warning("unreadable %s: %s", path, err)
+        return False
+    return OmegaConf.is_dict(cfg) and "planner" in cfg and "budget" in cfg
+
+
+def is_run_dir(path: Path) -> bool:
+    """Whether ``path`` is a training run dir, finished or not.
+
+    A dir Hydra made (``.hydra/config.yaml``) is one when that config is a training config (a
+    run killed before it wrote anything is still found); any other dir is one when it holds
+    ``config.yaml``, ``summary.json`` or ``crash.json``.
+    """
+    hydra_cfg = path / ".hydra" / RUN_CONFIG
+    if hydra_cfg.is_file():
+        return _is_train_config(hydra_cfg)
+    return any((path / name).is_file() for name in RUN_FILES)
+
+
+def run_dirs(roots: Iterable[Path]) -> list[Path]:
+    """Run dirs at or below the roots, sorted; run dirs are not searched for nested runs.
+
+    Hidden folders (``.hydra``, ``.submitit``) and ``wandb`` folders are skipped.
+    """
+    found: set[Path] = set()
+    for root in roots:
+        for dirpath, dirnames, _ in os.walk(root):
+            path = Path(dirpath)
+            if is_run_dir(path):
+                found.add(path)
+                dirnames[:] = []
+            else:
+                dirnames[:] = [d for d in dirnames if not d.startswith(".") and d != "wandb"]
+    return sorted(found)
+
+
+def _load_summary(run: Path) -> dict[str, Any] | None:
+    """The run's summary with ``run_dir`` added, or None when missing, unreadable or foreign."""
+    try:
+        summary = json.loads((run / SUMMARY).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(summary, dict) or any(k not in summary for k in REQUIRED_KEYS):
+        return None
+    return {**summary, "run_dir": str(run)}
 
 
 def find_runs(roots: list[Path]) -> tuple[list[dict[str, Any]], list[Path]]:
-    """Summaries of finished runs, and run dirs that have a config but no summary."""
+    """Summaries of finished runs, and the run dirs without a usable ``summary.json``."""
     summaries, incomplete = [], []
-    for root in roots:
-        for config in sorted(root.rglob(RUN_MARKER)):
-            run = config.parent
-            if run.name == ".hydra":
-                continue
-            path = run / SUMMARY
-            if path.is_file():
-                summaries.append({**json.loads(path.read_text()), "run_dir": str(run)})
-            else:
-                incomplete.append(run)
+    for run in run_dirs(roots):
+        summary = _load_summary(run)
+        if summary is None:
+            incomplete.append(run)
+            continue
+        summaries.append(summary)
+        if (run / CRASH_FILE).is_file():
+            log.warning("%s has %s and %s: it crashed after its summary", run, SUMMARY, CRASH_FILE)
     return summaries, incomplete
 
 
-def _mean_std(values: list[float]) -> str:
+def incomplete_reason(run: Path) -> str:
+    """Why a run has no usable summary, e.g. ``crashed: ValueError: bad (after iteration 2)``."""
+    crash = read_crash(run)
+    done = last_iteration(run)
+    after = f" (after iteration {done})" if done is not None else ""
+    if crash is not None:
+        return f"crashed: {crash.get('type', '?')}: {crash.get('message', '')}{after}"
+    if (run / SUMMARY).is_file():
+        return f"{SUMMARY} unreadable or without {', '.join(REQUIRED_KEYS)}"
+    return f"no {SUMMARY}: still running, killed or timed out{after}"
+
+
+# --- statistics ---------------------------------------------------------------------------
+
+
+def _finite(values: Iterable[Any]) -> list[float]:
+    out = []
+    for v in values:
+        if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v):
+            out.append(float(v))
+    return out
+
+
+def mean_ci(values: list[float], level: float = CONFIDENCE) -> tuple[float | None, float | None]:
+    """Mean and confidence-interval half-width over seeds (Student t).
+
+    half-width = t_{(1 + level) / 2, n - 1} * s / sqrt(n), with s the sample std (ddof 1).
+    Returns (None, None) without values and (mean, None) for a single value.
+    """
     if not values:
-        return "-"
-    std = statistics.pstdev(values) if len(values) > 1 else 0.0
-    return f"{statistics.fmean(values):.3g} ± {std:.2g}"
+        return None, None
+    mean = statistics.fmean(values)
+    if len(values) < 2:
+        return mean, None
+    t = float(stats.t.ppf((1.0 + level) / 2.0, len(values) - 1))
+    return mean, t * statistics.stdev(values) / math.sqrt(len(values))
+
+
+def steps_to_fraction(
+    records: list[dict[str, Any]], oracle: float | None, fraction: float = ORACLE_FRACTION
+) -> int | None:
+    """Env steps at the first evaluation with return >= oracle - (1 - fraction) * |oracle|.
+
+    (That is ``fraction`` x oracle for a positive oracle.) Records in logged order; None when no
+    evaluation reaches it or the oracle is unknown.
+    """
+    if not _finite([oracle]):
+        return None
+    threshold = oracle - (1.0 - fraction) * abs(oracle)
+    for rec in records:
+        ret, steps = rec.get("eval_return_mean"), rec.get("env_steps")
+        if _finite([ret]) and _finite([steps]) and ret >= threshold:
+            return int(steps)
+    return None
+
+
+def _groups(summaries: list[dict[str, Any]]) -> dict[Group, list[dict[str, Any]]]:
+    groups: dict[Group, list[dict[str, Any]]] = defaultdict(list)
+    for s in summaries:
+        groups[(str(s["env"]), str(s["model"]), str(s["planner"]))].append(s)
+    return {k: sorted(v, key=lambda s: s["seed"]) for k, v in sorted(groups.items())}
+
+
+def _row(group: Group, runs: list[dict[str, Any]]) -> dict[str, Any]:
+    def col(key: str) -> list[float]:
+        return _finite(r.get(key) for r in runs)
+
+    reach = [
+        steps_to_fraction(
+            read_metrics(Path(r["run_dir"]) / METRICS_FILE), r.get("oracle_return_mean")
+        )
+        for r in runs
+    ]
+    reached = [s for s in reach if s is not None]
+    seeds = [r["seed"] for r in runs]
+    if len(set(seeds)) < len(seeds):
+        log.warning("%s: seeds %s repeat; runs of different sweeps are pooled", group, seeds)
+    row: dict[str, Any] = dict(zip(GROUP_KEYS, group, strict=True))
+    row.update(seeds=" ".join(map(str, seeds)), n=len(runs))
+    for key, name in (
+        ("eval_return_mean", "eval_return"),
+        ("fraction_of_oracle", "fraction_of_oracle"),
+        ("oracle_return_mean", "oracle_return"),
+    ):
+        row[f"{name}_mean"], row[f"{name}_ci95"] = mean_ci(col(key))
+    row["steps_to_90_mean"] = statistics.fmean(reached) if reached else None
+    row["steps_to_90_reached"] = len(reached)
+    row["env_steps_mean"] = mean_ci(col("env_steps"))[0]
+    row["wall_time_s_mean"] = mean_ci(col("wall_time_s"))[0]
+    return row
+
+
+def rows(summaries: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One dict per (env, model, planner) with the keys of ``COLUMNS``; None where n/a."""
+    return [_row(group, runs) for group, runs in _groups(summaries).items()]
+
+
+# --- tables -------------------------------------------------------------------------------
+
+
+def _pm(mean: float | None, half: float | None) -> str:
+    if mean is None:
+        return "n/a"
+    return f"{mean:.3g} ± {'n/a' if half is None else format(half, '.2g')}"
+
+
+def _plain(value: float | None, spec: str = ".3g") -> str:
+    return "n/a" if value is None else format(value, spec)
 
 
 def table(summaries: list[dict[str, Any]]) -> str:
-    """Markdown: one row per (env, model, planner), statistics over seeds."""
-    groups: dict[tuple[str, str, str], list[dict[str, Any]]] = defaultdict(list)
-    for s in summaries:
-        groups[(s["env"], s["model"], s["planner"])].append(s)
+    """Markdown: one row per (env, model, planner), mean ± 95% CI half-width over seeds."""
+    return markdown_table(rows(summaries))
+
+
+def markdown_table(table_rows: list[dict[str, Any]]) -> str:
+    """The Markdown table of ``rows``' output."""
     lines = [
-        "| env | model | planner | seeds | env steps | eval return | oracle return "
-        "| fraction of oracle | wall time (s) |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| env | model | planner | seeds | n | eval return | fraction of oracle | oracle return "
+        "| env steps to 90% of oracle (seeds reaching) | env steps | wall time (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for (env, model, planner), runs in sorted(groups.items()):
-        seeds = ",".join(str(r["seed"]) for r in sorted(runs, key=lambda r: r["seed"]))
-        col = {
-            k: [float(r[k]) for r in runs if r.get(k) is not None]
-            for k in (
-                "env_steps",
-                "eval_return_mean",
-                "oracle_return_mean",
-                "fraction_of_oracle",
-                "wall_time_s",
-            )
-        }
-        lines.append(
-            f"| {env} | {model} | {planner} | {seeds} | {_mean_std(col['env_steps'])} "
-            f"| {_mean_std(col['eval_return_mean'])} | {_mean_std(col['oracle_return_mean'])} "
-            f"| {_mean_std(col['fraction_of_oracle'])} | {_mean_std(col['wall_time_s'])} |"
-        )
+    for r in table_rows:
+        cells = [
+            r["env"],
+            r["model"],
+            r["planner"],
+            r["seeds"].replace(" ", ","),
+            str(r["n"]),
+            _pm(r["eval_return_mean"], r["eval_return_ci95"]),
+            _pm(r["fraction_of_oracle_mean"], r["fraction_of_oracle_ci95"]),
+            _pm(r["oracle_return_mean"], r["oracle_return_ci95"]),
+            f"{_plain(r['steps_to_90_mean'], '.0f')} ({r['steps_to_90_reached']}/{r['n']})",
+            _plain(r["env_steps_mean"], ".0f"),
+            _plain(r["wall_time_s_mean"], ".0f"),
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
-def _curves(summaries: list[dict[str, Any]]) -> dict[tuple[str, str, str], dict[int, list[float]]]:
-    """Evaluation returns by env step, per group, across seeds."""
-    from mbrl_delan.training.recorder import read_metrics
-
-    curves: dict[tuple[str, str, str], dict[int, list[float]]] = defaultdict(
-        lambda: defaultdict(list)
-    )
-    for s in summaries:
-        for rec in read_metrics(Path(s["run_dir"]) / "metrics.jsonl"):
-            if rec.get("eval_return_mean") is not None:
-                group = curves[(s["env"], s["model"], s["planner"])]
-                group[int(rec["env_steps"])].append(float(rec["eval_return_mean"]))
-    return curves
+def write_csv(table_rows: list[dict[str, Any]], path: Path) -> Path:
+    """``COLUMNS`` as a header, one line per group; full precision, empty cells for n/a."""
+    with path.open("w", newline="", encoding="utf-8") as f:
+        writer = csv.DictWriter(f, fieldnames=COLUMNS)
+        writer.writeheader()
+        for r in table_rows:
+            writer.writerow({k: "" if r[k] is None else r[k] for k in COLUMNS})
+    return path
 
 
-def figure(summaries: list[dict[str, Any]], path: Path) -> Path:
-    """Evaluation return vs env steps, one panel per env, mean +- std over seeds.
+def markdown(table_rows: list[dict[str, Any]], incomplete: list[Path], figures: list[Path]) -> str:
+    """The whole ``report.md``: the table, the incomplete runs and the figures."""
+    finished = sum(r["n"] for r in table_rows)
+    parts = [
+        "# Training runs",
+        f"{finished} finished runs, {len(incomplete)} incomplete.",
+        markdown_table(table_rows),
+        f"Mean ± half-width of the {CONFIDENCE:.0%} confidence interval over seeds (Student t; "
+        "n/a for one seed). Fraction of oracle: final evaluation return / the same planner's "
+        f"return on MuJoCo's dynamics, per seed. Env steps to {ORACLE_FRACTION:.0%} of oracle: "
+        "first evaluation reaching it, mean over the seeds that did.",
+        "## Incomplete runs",
+        "\n".join(f"- `{run}`: {incomplete_reason(run)}" for run in incomplete) or "None.",
+    ]
+    if figures:
+        parts += ["## Figures", " ".join(f"![{p.stem}]({p.name})" for p in figures)]
+    return "\n\n".join(parts) + "\n"
 
-    Each group's oracle (its planner on MuJoCo's dynamics, same initial states) is a dotted
-    line in the group's colour.
-    """
+
+# --- figures ------------------------------------------------------------------------------
+
+
+def curves(summaries: list[dict[str, Any]], key: str) -> dict[Group, dict[int, list[float]]]:
+    """Per group, the values of metric ``key`` by env step, one per seed that logged it."""
+    out: dict[Group, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
+    for group, runs in _groups(summaries).items():
+        for r in runs:
+            for rec in read_metrics(Path(r["run_dir"]) / METRICS_FILE):
+                if _finite([rec.get(key)]) and _finite([rec.get("env_steps")]):
+                    out[group][int(rec["env_steps"])].append(float(rec[key]))
+    return out
+
+
+def _draw_band(ax: Any, by_step: dict[int, list[float]], label: str) -> str:
+    """Mean line and 95% CI band (none where one seed); returns the line's colour."""
+    steps = sorted(by_step)
+    stat = [mean_ci(by_step[t]) for t in steps]
+    mean = [m for m, _ in stat]
+    half = [h or 0.0 for _, h in stat]
+    line = ax.plot(steps, mean, marker="o", ms=3, label=label)[0]
+    low = [m - h for m, h in zip(mean, half, strict=True)]
+    high = [m + h for m, h in zip(mean, half, strict=True)]
+    ax.fill_between(steps, low, high, color=line.get_color(), alpha=0.2, lw=0)
+    return line.get_color()
+
+
+def _figure(n_rows: int, n_cols: int) -> tuple[Any, Any]:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    curves = _curves(summaries)
-    envs = sorted({k[0] for k in curves})
-    fig = Figure(figsize=(4.2 * max(1, len(envs)), 3.4), layout="constrained")
+    fig = Figure(figsize=(4.4 * n_cols, 3.4 * n_rows), layout="constrained")
     FigureCanvasAgg(fig)
-    axes = fig.subplots(1, max(1, len(envs)), squeeze=False)[0]
-    for ax, env in zip(axes, envs, strict=False):
-        for (e, model, planner), by_step in sorted(curves.items()):
-            if e != env:
-                continue
-            steps = sorted(by_step)
-            mu = [statistics.fmean(by_step[t]) for t in steps]
-            sd = [statistics.pstdev(by_step[t]) for t in steps]
-            line = ax.plot(steps, mu, marker="o", ms=3, label=f"{model} + {planner}")[0]
-            ax.fill_between(
-                steps,
-                [m - d for m, d in zip(mu, sd, strict=True)],
-                [m + d for m, d in zip(mu, sd, strict=True)],
-                color=line.get_color(),
-                alpha=0.2,
-            )
-            oracle = [
-                float(s["oracle_return_mean"])
-                for s in summaries
-                if (s["env"], s["model"], s["planner"]) == (e, model, planner)
-            ]
-            ax.axhline(
-                statistics.fmean(oracle),
-                color=line.get_color(),
-                ls=":",
-                lw=1.2,
-                label=f"oracle: {planner} on MuJoCo",
-            )
+    return fig, fig.subplots(n_rows, n_cols, squeeze=False)
+
+
+def _oracles(summaries: list[dict[str, Any]], env: str) -> dict[str, float]:
+    """Per planner, the mean oracle return of the env's runs (the oracle has no model)."""
+    by_planner: dict[str, list[float]] = defaultdict(list)
+    for s in summaries:
+        if s["env"] == env:
+            by_planner[str(s["planner"])] += _finite([s.get("oracle_return_mean")])
+    return {p: statistics.fmean(v) for p, v in sorted(by_planner.items()) if v}
+
+
+def returns_figure(summaries: list[dict[str, Any]], path: Path) -> Path:
+    """Evaluation return vs env steps, one panel per env, one line per model x planner.
+
+    Mean and 95% CI band over seeds; the oracle of each planner (mean over its runs) is a
+    dashed grey line.
+    """
+    by_group = curves(summaries, "eval_return_mean")
+    envs = sorted({g[0] for g in by_group}) or ["no evaluations"]
+    fig, axes = _figure(1, len(envs))
+    for ax, env in zip(axes[0], envs, strict=True):
+        for group in (g for g in sorted(by_group) if g[0] == env):
+            _draw_band(ax, by_group[group], f"{group[1]} + {group[2]}")
+        for i, (planner, oracle) in enumerate(_oracles(summaries, env).items()):
+            grey = str(0.3 * (i % 3))  # black, dark grey, light grey, black, ...
+            ax.axhline(oracle, color=grey, ls="--", lw=1.2, label=f"oracle: {planner} on MuJoCo")
         ax.set(title=env, xlabel="env steps", ylabel="evaluation return")
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=150)
     return path
 
 
+def _error_panel(ax: Any, by_group: dict[Group, dict[int, list[float]]], env: str) -> None:
+    """One model-error metric of one env: a line and band per group, log axis when all > 0."""
+    groups = [g for g in sorted(by_group) if g[0] == env]
+    for group in groups:
+        _draw_band(ax, by_group[group], f"{group[1]} + {group[2]}")
+    values = [v for g in groups for vs in by_group[g].values() for v in vs]
+    if values and min(values) > 0:
+        ax.set_yscale("log")
+    if groups:
+        ax.legend(fontsize=7)
+
+
+def model_error_figure(summaries: list[dict[str, Any]], path: Path) -> Path:
+    """Model errors vs env steps: one row per metric of ``MODEL_ERRORS``, one column per env.
+
+    Mean and 95% CI band over seeds per model x planner (see ``docs/metrics.md`` for the
+    errors' definitions).
+    """
+    by_metric = {key: curves(summaries, key) for key in MODEL_ERRORS}
+    envs = sorted({g[0] for c in by_metric.values() for g in c}) or ["no model errors"]
+    fig, axes = _figure(len(MODEL_ERRORS), len(envs))
+    for ax_row, (key, name) in zip(axes, MODEL_ERRORS.items(), strict=True):
+        for ax, env in zip(ax_row, envs, strict=True):
+            _error_panel(ax, by_metric[key], env)
+            ax.set(title=f"{env}: {name}", xlabel="env steps", ylabel=key)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=150)
+    return path
+
+
+# --- entry point --------------------------------------------------------------------------
+
+
+def write_report(
+    summaries: list[dict[str, Any]],
+    table_rows: list[dict[str, Any]],
+    incomplete: list[Path],
+    out: Path,
+) -> dict[str, Path]:
+    """Write ``report.md``, ``report.csv`` and (with finished runs) the two figures to ``out``.
+
+    ``table_rows`` is ``rows(summaries)``. Returns the paths written, by kind.
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"csv": write_csv(table_rows, out / REPORT_CSV)}
+    if summaries:
+        paths["returns"] = returns_figure(summaries, out / RETURNS_PNG)
+        paths["model_error"] = model_error_figure(summaries, out / MODEL_ERROR_PNG)
+    figures = [p for k, p in paths.items() if k != "csv"]
+    paths["md"] = out / REPORT_MD
+    paths["md"].write_text(markdown(table_rows, incomplete, figures), encoding="utf-8")
+    return paths
+
+
+def default_out(root: Path) -> Path:
+    """Where the report goes without ``--out``: ``root``, or ``root/report`` for a run dir."""
+    return root / "report" if is_run_dir(root) else root
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("roots", nargs="+", type=Path, help="folders holding run dirs")
-    parser.add_argument("--figure", type=Path, default=None, help="write a PNG of the curves")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default: DIR)")
+    parser.add_argument("--figure", type=Path, default=None, help="also write returns.png here")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     missing = [r for r in args.roots if not r.is_dir()]
@@ -150,11 +450,15 @@ def main(argv: list[str] | None = None) -> int:
         log.error("not a folder: %s", ", ".join(map(str, missing)))
         return 2
     summaries, incomplete = find_runs(args.roots)
-    log.info("%s", table(summaries))
+    table_rows = rows(summaries)
+    log.info("%s", markdown_table(table_rows))
     for run in incomplete:
-        log.info("incomplete run (no %s): %s", SUMMARY, run)
+        log.warning("incomplete run %s: %s", run, incomplete_reason(run))
+    out = args.out or default_out(args.roots[0])
+    paths = write_report(summaries, table_rows, incomplete, out)
     if args.figure is not None and summaries:
-        log.info("figure: %s", figure(summaries, args.figure))
+        paths["figure"] = returns_figure(summaries, args.figure)
+    log.info("wrote %s", ", ".join(str(p) for p in paths.values()))
     return 0
 
 

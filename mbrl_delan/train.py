@@ -8,7 +8,6 @@ every round (atomically) and writes `metrics.jsonl`, `summary.json` and plots in
 from __future__ import annotations
 
 import logging
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +31,7 @@ from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.sweep import exit_or_raise, marks_crash, with_sweep_group
 from mbrl_delan.training.checkpoint import (
     CheckpointError,
     load_checkpoint,
@@ -43,6 +43,14 @@ from mbrl_delan.training.fit import FitConfig, TrainingDivergedError
 from mbrl_delan.training.loop import MBRLLoop
 from mbrl_delan.training.plots import plot_run
 from mbrl_delan.training.recorder import METRICS_FILE, Recorder, read_metrics
+from mbrl_delan.training.video import (
+    RENDER_ERRORS,
+    VideoBackendError,
+    VideoRecorder,
+    check_backend,
+    resolve_backend,
+    rollout_states,
+)
 
 log = logging.getLogger("mbrl_delan.train")
 
@@ -87,6 +95,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         discount=cfg.planner.discount,
         generator=model_gen,
         risk=cfg.planner.get("risk", 0.0),
+        compile=cfg.model.get("compile", False),
     )
     policy = _policy(
         cfg.planner, build_planner(cfg.planner, system, dtype), factory, cfg.seed, device
@@ -115,6 +124,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         seed=cfg.seed,
         error_horizon=cfg.planner.horizon,
         model_generator=model_gen,
+        keep_eval_rollouts=cfg.video_episodes if cfg.get("video", False) else 0,
     )
     return loop, oracle
 
@@ -124,11 +134,61 @@ def _save(run_dir: Path, loop: MBRLLoop, extra: dict[str, Any]) -> None:
     save_checkpoint(run_dir / CHECKPOINT, state)
 
 
+VIDEO_DIR = "videos"
+
+
+def _check_video(cfg: DictConfig) -> None:
+    """With `video=true`: check the video keys and render a test frame, before any training."""
+    if not cfg.get("video", False):
+        return
+    for key in ("video_width", "video_height"):
+        value = cfg.get(key)
+        if not isinstance(value, int) or value < 2 or value % 2:
+            raise ConfigError(f"{key}={value!r} is not valid; it must be an even integer >= 2")
+    if not isinstance(cfg.get("video_episodes"), int) or cfg.video_episodes < 1:
+        raise ConfigError(f"video_episodes={cfg.get('video_episodes')!r} is not valid; use >= 1")
+    try:
+        backend = check_backend(cfg.get("video_backend"))
+    except VideoBackendError as err:
+        raise ConfigError(f"video=true: {err}") from err
+    log.info("videos: MuJoCo renders with the %r OpenGL backend", backend)
+
+
+def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Recorder) -> None:
+    """Render the kept episodes of this round's evaluation to ``<run dir>/videos`` and wandb.
+
+    Only the final evaluation is rendered, or every one with `video_every_eval=true`. Runs after
+    the round's checkpoint: a failed video only warns and never leaves a partial MP4.
+    """
+    evaluation, k = loop.last_evaluation, loop.counters.iteration
+    if not cfg.get("video", False) or evaluation is None or not evaluation.rollouts:
+        return
+    if k < cfg.budget.iterations and not cfg.get("video_every_eval", False):
+        return
+    try:
+        with VideoRecorder(
+            loop.system.mj_model(),
+            cfg.video_width,
+            cfg.video_height,
+            fps=1.0 / loop.system.control_dt,
+            backend=resolve_backend(cfg.get("video_backend")),
+        ) as video:
+            for j, rollout in enumerate(evaluation.rollouts):
+                path = video.record(
+                    run_dir / VIDEO_DIR / f"eval_iter{k}_ep{j}.mp4", *rollout_states(rollout)
+                )
+                log.info("video: %s", path)
+                recorder.log_video(f"video/eval_ep{j}", path, k)
+    except RENDER_ERRORS as err:
+        name = type(err).__name__
+        log.warning("no video of iteration %d (%s: %s); the run goes on", k, name, err)
+
+
 def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | None]:
     """The config and run dir to use, and the checkpoint when resuming."""
     if cfg.resume is None:
         run_dir = Path(HydraConfig.get().runtime.output_dir)
-        return cfg, run_dir, None
+        return with_sweep_group(cfg), run_dir, None
     run_dir = Path(cfg.resume)
     saved = run_dir / RUN_CONFIG
     if not saved.is_file():
@@ -143,10 +203,15 @@ def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | No
     return run_cfg, run_dir, state
 
 
+@marks_crash
 def train(cfg: DictConfig) -> dict[str, Any]:
-    """Run (or resume) one training run; returns its summary."""
+    """Run (or resume) one training run; returns its summary.
+
+    When it raises, the run dir gets ``crash.json`` (see ``mbrl_delan.sweep``).
+    """
     cfg, run_dir, state = _resolve_run(cfg)
     validate_train_config(cfg)
+    _check_video(cfg)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -222,6 +287,7 @@ def _run(
         metrics["oracle_return_mean"] = oracle_mean
         recorder.log(metrics, loop.counters.iteration)
         _save(run_dir, loop, extra)
+        _write_videos(cfg, run_dir, loop, recorder)
         bar.update(1)
         bar.set_postfix(
             steps=metrics["env_steps"],
@@ -285,16 +351,16 @@ def main(cfg: DictConfig) -> float | None:
         summary = train(cfg)
     except ConfigError as err:
         log.error("config error: %s", err)
-        sys.exit(2)
+        exit_or_raise(2, err)
     except TrainingDivergedError as err:
         log.error("training diverged: %s (the last good checkpoint is kept)", err)
-        sys.exit(1)
+        exit_or_raise(1, err)
     except NonFiniteDataError as err:
         log.error("bad data: %s (not added to the buffer; the last checkpoint is kept)", err)
-        sys.exit(1)
+        exit_or_raise(1, err)
     except (CheckpointError, FileNotFoundError) as err:
         log.error("cannot resume: %s", err)
-        sys.exit(2)
+        exit_or_raise(2, err)
     return summary["eval_return_mean"]
 
 

@@ -1,9 +1,13 @@
-"""The optional compiled planning step gives the eager step's result."""
+"""The optional compiled planning step and objective give the eager results."""
 
 import pytest
 import torch
+from torch.nn import functional as F
 
-from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.envs.model_env import model_objective_factory
+from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.models.delan import SMALL_SOLVE, DeLaN, unrolled_cholesky_solve
+from mbrl_delan.models.tangent_mlp import _activate
 from mbrl_delan.systems.system import load_system
 
 
@@ -23,3 +27,38 @@ def test_compiled_step_equals_eager_step_and_is_dropped_on_dtype_change() -> Non
     torch.testing.assert_close(compiled.qd, eager.qd, rtol=1e-5, atol=1e-5)
     model.double()  # moving the model drops the compiled step (it is specific to a dtype)
     assert model._compiled_step is None
+
+
+def test_unrolled_cholesky_solve_equals_lapack() -> None:
+    g = torch.Generator().manual_seed(0)
+    for n in range(1, SMALL_SOLVE + 1):
+        a = torch.randn(5, n, n, generator=g, dtype=torch.float64)
+        L = torch.linalg.cholesky(a @ a.mT + n * torch.eye(n, dtype=torch.float64))
+        b = torch.randn(5, n, generator=g, dtype=torch.float64)
+        x = unrolled_cholesky_solve(L, b)
+        torch.testing.assert_close(x, torch.cholesky_solve(b.unsqueeze(-1), L).squeeze(-1))
+        torch.testing.assert_close((L @ L.mT @ x.unsqueeze(-1)).squeeze(-1), b)
+
+
+@pytest.mark.slow
+def test_compiled_softplus_and_slope_match_eager_at_extremes() -> None:
+    z = torch.cat([torch.linspace(-100.0, 100.0, 401), torch.tensor([0.0, -1e-8, 1e-8])])
+    value, slope = torch.compile(lambda x: _activate("softplus", x), dynamic=False)(z)
+    torch.testing.assert_close(value, F.softplus(z), rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(slope, torch.sigmoid(z), rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.slow
+def test_compiled_planning_objective_equals_eager() -> None:
+    parts = make_env_parts("pendulum")
+    torch.manual_seed(0)
+    model = DeLaN(
+        parts.system.layout, parts.system.actuation.float(), parts.system.control_dt, hidden=16
+    ).eval()
+    q0, qd0 = torch.tensor([0.3]), torch.tensor([-1.0])
+    actions = torch.randn(32, 6, 1, generator=torch.Generator().manual_seed(2))
+    eager = model_objective_factory(model, parts.task)(q0, qd0)(actions)
+    factory = model_objective_factory(model, parts.task, compile=True)
+    compiled = factory(q0, qd0)(actions)
+    assert factory._compiled is not None  # the compiled path ran
+    torch.testing.assert_close(compiled, eager, rtol=1e-5, atol=1e-5)

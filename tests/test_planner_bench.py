@@ -28,6 +28,7 @@ from mbrl_delan.benchmarks.planner import (
     LatencyPredictor,
     PlannerGrid,
     Setting,
+    _objective_factory,
     build_planner,
     grid_from_options,
     make_case,
@@ -187,10 +188,11 @@ def test_quick_suite_writes_every_figure(tmp_path: Path) -> None:
     for record in run_planner(grid, OPTS):
         writer.write(record)
     records = read_records(tmp_path / "planner.jsonl")
-    expected = {(f"{m}-mppi-n16-h3-i1", "plan_latency_ms") for m in PLANNER_MODELS}
+    assert set(grid.models) == {m for m in PLANNER_MODELS if not m.endswith("_compiled")}
+    expected = {(f"{m}-mppi-n16-h3-i1", "plan_latency_ms") for m in grid.models}
     expected |= {
         (f"{m}-torchrl_mppi-n16-h3-i1", "torchrl_plan_latency_ms")
-        for m in PLANNER_MODELS
+        for m in grid.models
         if m != "pendulum_oracle"
     }
     expected |= {(case, "realtime_factor") for case, _ in expected}
@@ -214,3 +216,12 @@ def test_quick_suite_writes_every_figure(tmp_path: Path) -> None:
     torchrl = by_key["pendulum_delan-torchrl_mppi-n16-h3-i1", "torchrl_plan_latency_ms"]
     assert torchrl["implementation"] == "torchrl" and "no warm start" in torchrl["note"]
     assert isinstance(torchrl["action_finite"], bool)
+
+
+def test_compiled_cases_compile_our_step_and_the_model_step() -> None:
+    case = make_case("pendulum_delan_compiled", torch.device("cpu"))
+    plain = make_case("pendulum_delan", torch.device("cpu"))
+    assert case.compile and case.model.compile_step
+    assert not plain.compile and not plain.model.compile_step
+    factory = _objective_factory(case, torch.device("cpu"))
+    assert factory.compile

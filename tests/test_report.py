@@ -1,9 +1,14 @@
 """`python -m mbrl_delan.report`: statistics over seeds, incomplete runs listed, not dropped."""
 
+import csv
 import json
+import math
 from pathlib import Path
 
-from mbrl_delan.report import find_runs, main, table
+import pytest
+
+from mbrl_delan.report import find_runs, main, mean_ci, steps_to_fraction, table
+from mbrl_delan.sweep import write_crash
 
 
 def make_run(root: Path, name: str, summary: dict | None) -> Path:
@@ -29,15 +34,42 @@ def summary(seed: int, ret: float, oracle: float) -> dict:
     }
 
 
-def test_table_gives_mean_and_std_over_seeds(tmp_path: Path) -> None:
+def test_table_gives_mean_and_ci_over_seeds(tmp_path: Path) -> None:
     make_run(tmp_path, "a", summary(0, 40.0, 40.0))
     make_run(tmp_path, "b", summary(1, 30.0, 40.0))
     runs, incomplete = find_runs([tmp_path])
     assert not incomplete
     row = table(runs).splitlines()[2]
-    assert "| pendulum | delan | mppi | 0,1 |" in row
-    assert "35 ± 5" in row  # mean and population std of 40 and 30
-    assert "0.875 ± 0.12" in row
+    assert "| pendulum | delan | mppi | 0,1 | 2 |" in row
+    # returns 40, 30: s = 7.071, t_{0.975, 1} = 12.706, half-width 12.706 * 7.071 / sqrt(2) = 63.5
+    assert "35 ± 64" in row
+    # fractions 1.0, 0.75: s = 0.1768, half-width 12.706 * 0.1768 / sqrt(2) = 1.59
+    assert "0.875 ± 1.6" in row
+
+
+def test_confidence_interval_of_known_values() -> None:
+    # 1, 2, 3: mean 2, s = 1; t_{0.975, 2} = 4.303 (t table), half-width 4.303 / sqrt(3) = 2.484
+    mean, half = mean_ci([1.0, 2.0, 3.0])
+    assert mean == 2.0 and half == pytest.approx(4.303 / math.sqrt(3), abs=1e-3)
+    # 0.5 .. 0.8: s = 0.1291; t_{0.975, 3} = 3.182, half-width 3.182 * 0.1291 / 2 = 0.2054
+    assert mean_ci([0.5, 0.6, 0.7, 0.8])[1] == pytest.approx(0.2054, abs=1e-4)
+    assert mean_ci([5.0]) == (5.0, None)  # one seed: no interval
+    assert mean_ci([]) == (None, None)
+
+
+def test_steps_to_90_percent_of_the_oracle() -> None:
+    records = [
+        {"iteration": 1, "env_steps": 100, "eval_return_mean": 20.0},
+        {"iteration": 2, "env_steps": 200, "train_return": 50.0},  # no evaluation this round
+        {"iteration": 3, "env_steps": 300, "eval_return_mean": 44.9},  # below 0.9 x 50 = 45
+        {"iteration": 4, "env_steps": 400, "eval_return_mean": 45.0},  # first at 45
+        {"iteration": 5, "env_steps": 500, "eval_return_mean": 30.0},
+    ]
+    assert steps_to_fraction(records, 50.0) == 400
+    assert steps_to_fraction(records, 60.0) is None  # 54 never reached
+    assert steps_to_fraction(records, None) is None
+    # a negative oracle -100: within 10 % means >= -110
+    assert steps_to_fraction([{"env_steps": 7, "eval_return_mean": -105.0}], -100.0) == 7
 
 
 def test_incomplete_runs_are_listed(tmp_path: Path, caplog) -> None:
@@ -48,6 +80,7 @@ def test_incomplete_runs_are_listed(tmp_path: Path, caplog) -> None:
     caplog.set_level("INFO")
     assert main([str(tmp_path)]) == 0
     assert "incomplete run" in caplog.text and "crashed" in caplog.text
+    assert "no summary.json" in (tmp_path / "report.md").read_text()
 
 
 def test_missing_folder_is_an_error(tmp_path: Path) -> None:
@@ -65,3 +98,84 @@ def test_figure_is_drawn_from_metrics(tmp_path: Path) -> None:
     out = tmp_path / "fig.png"
     assert main([str(tmp_path), "--figure", str(out)]) == 0
     assert out.is_file() and out.stat().st_size > 10_000
+    assert (tmp_path / "returns.png").stat().st_size > 10_000
+
+
+def write_metrics(run: Path, evals: dict[int, float], oracle: float) -> None:
+    """Iterations at 100, 200, ... env steps; an evaluation at the steps given in ``evals``."""
+    lines = []
+    for k in range(1, 5):
+        rec = {"iteration": k, "env_steps": 100 * k, "oracle_return_mean": oracle}
+        rec |= {"model_error_1step": 1.0 / k, "model_error_hstep": 2.0 / k}
+        if 100 * k in evals:
+            rec["eval_return_mean"] = evals[100 * k]
+        lines.append(json.dumps(rec))
+    (run / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+
+
+def test_report_with_a_crashed_and_an_unfinished_run(tmp_path: Path, caplog) -> None:
+    sweep = tmp_path / "sweep"
+    for seed, (ret, evals) in enumerate(
+        [(48.0, {200: 46.0, 400: 48.0}), (50.0, {200: 30.0, 400: 50.0}), (40.0, {400: 40.0})]
+    ):
+        run = make_run(sweep, f"{seed}_pendulum_delan_mppi_s{seed}", summary(seed, ret, 50.0))
+        write_metrics(run, evals, 50.0)
+    one = make_run(sweep, "3_pendulum_delan_cem_s0", {**summary(0, 20.0, 40.0), "planner": "cem"})
+    crashed = make_run(sweep, "4_pendulum_ensemble_mppi_s0", None)
+    write_metrics(crashed, {}, 50.0)
+    try:
+        raise ValueError("model exploded")
+    except ValueError as err:
+        write_crash(crashed, err)
+    unfinished = make_run(sweep, "5_pendulum_ensemble_mppi_s1", None)
+    (one / "wandb" / "offline-run-x" / "files").mkdir(parents=True)  # not a run of its own
+    (one / "wandb" / "offline-run-x" / "files" / "config.yaml").write_text("a: 1\n")
+    fit_run = tmp_path / "sweep" / "fit_run" / ".hydra"  # another program's Hydra run dir
+    fit_run.mkdir(parents=True)
+    (fit_run / "config.yaml").write_text("data:\n  name: x\n")
+
+    caplog.set_level("INFO")
+    out = tmp_path / "out"
+    assert main([str(sweep), "--out", str(out)]) == 0
+
+    text = (out / "report.md").read_text()
+    assert f"`{crashed}`: crashed: ValueError: model exploded (after iteration 4)" in text
+    assert f"`{unfinished}`: no summary.json" in text
+    assert "2 incomplete" in text and "4 finished" in text and "fit_run" not in text
+    assert "crashed: ValueError: model exploded" in caplog.text
+    assert "| pendulum | delan | cem | 0 | 1 | 20 ± n/a | 0.5 ± n/a |" in text
+    # steps to 45: seed 0 at 200, seed 1 at 400, seed 2 never -> mean 300 over 2 of 3
+    assert "| 300 (2/3) |" in text
+
+    with (out / "report.csv").open(newline="") as f:
+        rows = {r["planner"]: r for r in csv.DictReader(f)}
+    assert set(rows) == {"cem", "mppi"}
+    mppi, cem = rows["mppi"], rows["cem"]
+    assert mppi["seeds"] == "0 1 2" and mppi["n"] == "3"
+    # returns 48, 50, 40: mean 46, s = 5.292, t_{0.975, 2} = 4.303 -> half-width 13.15
+    assert float(mppi["eval_return_mean"]) == pytest.approx(46.0)
+    assert float(mppi["eval_return_ci95"]) == pytest.approx(4.303 * 5.2915 / math.sqrt(3), 1e-3)
+    assert float(mppi["fraction_of_oracle_mean"]) == pytest.approx(0.92)
+    assert float(mppi["oracle_return_mean"]) == 50.0 and float(mppi["oracle_return_ci95"]) == 0
+    assert float(mppi["steps_to_90_mean"]) == 300 and mppi["steps_to_90_reached"] == "2"
+    assert cem["eval_return_ci95"] == "" and cem["steps_to_90_mean"] == ""
+    for png in ("returns.png", "model_error.png"):
+        assert (out / png).stat().st_size > 10_000
+
+
+def test_report_without_finished_runs_still_writes_the_table(tmp_path: Path) -> None:
+    crashed = make_run(tmp_path, "crashed", None)
+    try:
+        raise RuntimeError("out of memory")
+    except RuntimeError as err:
+        write_crash(crashed, err)
+    assert main([str(tmp_path)]) == 0
+    text = (tmp_path / "report.md").read_text()
+    assert "| env | model | planner |" in text and "crashed: RuntimeError: out of memory" in text
+    assert (tmp_path / "report.csv").read_text().startswith("env,model,planner,seeds,n,")
+
+
+def test_report_of_a_single_run_dir_goes_to_its_report_folder(tmp_path: Path) -> None:
+    run = make_run(tmp_path, "run", summary(0, 40.0, 42.0))
+    assert main([str(run)]) == 0
+    assert (run / "report" / "report.md").is_file() and not (run / "report.md").exists()

@@ -32,8 +32,17 @@ _SUITES = {
 SUITE_NAMES = tuple(_SUITES)
 # world-model cases of suite planner (here so the entry point can check names without
 # importing the suite): DeLaN on the pendulum and on Humanoid-v5's layout, the MLP ensemble on
-# the pendulum, and MuJoCo's true pendulum dynamics (the oracle)
-PLANNER_MODELS = ("pendulum_delan", "humanoid_delan", "pendulum_ensemble", "pendulum_oracle")
+# the pendulum, and MuJoCo's true pendulum dynamics (the oracle); the two DeLaN cases again
+# with every control step `torch.compile`d (`model.compile=true`)
+PLANNER_MODELS = (
+    "pendulum_delan",
+    "humanoid_delan",
+    "pendulum_ensemble",
+    "pendulum_oracle",
+    "pendulum_delan_compiled",
+    "humanoid_delan_compiled",
+)
+COMPILED_SUFFIX = "_compiled"
 
 
 class UnknownSuiteError(KeyError):

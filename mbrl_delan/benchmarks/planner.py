@@ -57,6 +57,7 @@ from torchrl.modules.planners import MPPIPlanner as TorchRLMPPIPlanner
 
 from mbrl_delan import keys
 from mbrl_delan.benchmarks import (
+    COMPILED_SUFFIX,
     PLANNER_MODELS,
     SuiteOptions,
     Timing,
@@ -157,8 +158,12 @@ class PlannerGrid:
 
     @classmethod
     def quick(cls) -> PlannerGrid:
-        """Tiny sizes for tests and smoke runs: N 64, H 5, one iteration, MPPI only."""
-        return cls(planners=("mppi",), num_samples=(64,), horizons=(5,), iterations=(1,))
+        """Tiny sizes for tests and smoke runs: N 64, H 5, one iteration, MPPI only, and no
+        compiled cases (each compiles for 10-60 s)."""
+        models = tuple(m for m in PLANNER_MODELS if not m.endswith(COMPILED_SUFFIX))
+        return cls(
+            models=models, planners=("mppi",), num_samples=(64,), horizons=(5,), iterations=(1,)
+        )
 
     def settings(self) -> list[Setting]:
         """Every (N, H, iterations), cheapest first."""
@@ -219,11 +224,18 @@ class Case:
     particles: int
     q0: Tensor  # (nq,) float64 on the CPU
     qd0: Tensor  # (nv,)
+    compile: bool = False  # torch.compile each control step (ours) and the model step (TorchRL)
 
 
-def build_delan(system: System) -> DeLaN:
+def build_delan(system: System, compile_step: bool = False) -> DeLaN:
     """DeLaN as `config.build_model` builds it from configs/model/delan.yaml."""
-    return DeLaN(system.layout, system.actuation.float(), system.control_dt, **DELAN_SETTINGS)
+    return DeLaN(
+        system.layout,
+        system.actuation.float(),
+        system.control_dt,
+        compile_step=compile_step,
+        **DELAN_SETTINGS,
+    )
 
 
 def build_ensemble(system: System) -> GaussianEnsemble:
@@ -234,7 +246,9 @@ def build_ensemble(system: System) -> GaussianEnsemble:
 def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
     """The world-model case `name` (one of `PLANNER_MODELS`), its model on `device`."""
     torch.manual_seed(seed)
-    if name == "humanoid_delan":
+    compiled = name.endswith(COMPILED_SUFFIX)
+    name_base = name.removesuffix(COMPILED_SUFFIX)
+    if name_base == "humanoid_delan":
         system = load_system(humanoid_v5_xml(), frame_skip=HUMANOID_FRAME_SKIP, name="humanoid")
         task: Task = StandTask(torch.from_numpy(system.mj_model().qpos0.copy()), system.nv)
     else:
@@ -248,10 +262,10 @@ def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
     elif name == "pendulum_ensemble":
         model, particles = build_ensemble(system), ENSEMBLE_PARTICLES
     else:
-        model = build_delan(system)
+        model = build_delan(system, compile_step=compiled)
     if model is not None:
         model = model.to(device=device, dtype=DTYPE).eval()
-    return Case(name, system, task, model, particles, start.q, start.qd)
+    return Case(name, system, task, model, particles, start.q, start.qd, compile=compiled)
 
 
 # ----------------------------------------------------------------------------- planners
@@ -443,7 +457,7 @@ def _objective_factory(case: Case, device: torch.device) -> ObjectiveFactory:
         return mujoco_objective_factory(case.system, case.task, nthread=torch.get_num_threads())
     generator = torch.Generator(device=device).manual_seed(0)
     return model_objective_factory(
-        case.model, case.task, particles=case.particles, generator=generator
+        case.model, case.task, particles=case.particles, generator=generator, compile=case.compile
     )
 
 

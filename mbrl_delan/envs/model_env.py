@@ -25,9 +25,12 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 
 from mbrl_delan import keys
 from mbrl_delan.models.base import WorldModel
+from mbrl_delan.models.delan import compile_dynamics
 from mbrl_delan.planners.base import discounted_masked_return, risk_adjusted_return
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
+
+Transition = tuple[Tensor, Tensor, Tensor, Tensor]  # next q, next qd, reward, terminated
 
 
 @dataclass(frozen=True)
@@ -88,11 +91,9 @@ class ModelObjective:
         rewards, terminated = [], []
         with torch.inference_mode(), eval_mode(f.model):
             for t in range(horizon):
-                a_t = flat[:, t]  # (N*P, nu)
-                nxt = f.model.step(q, qd, a_t, generator=f.generator)
-                q, qd = nxt.q, nxt.qd
-                rewards.append(f.task.reward(q, qd, a_t))  # (N*P,)
-                terminated.append(f.task.terminated(q, qd))  # (N*P,)
+                q, qd, reward, term = f.transition(q, qd, flat[:, t])
+                rewards.append(reward)  # (N*P,)
+                terminated.append(term)  # (N*P,)
             returns = discounted_masked_return(
                 torch.stack(rewards, dim=-1), torch.stack(terminated, dim=-1), f.discount
             )  # (N*P,)
@@ -113,6 +114,7 @@ class ModelObjectiveFactory:
         generator: torch.Generator | None = None,
         dtype: torch.dtype | None = None,
         risk: float = 0.0,
+        compile: bool = False,
     ) -> None:
         if particles < 1:
             raise ValueError(f"particles must be >= 1, got {particles}")
@@ -127,6 +129,26 @@ class ModelObjectiveFactory:
         self.generator = generator
         self.dtype = dtype
         self.risk = float(risk)
+        self.compile = compile
+        self._compiled: Transition | None = None
+
+    def transition(self, q: Tensor, qd: Tensor, action: Tensor) -> Transition:
+        """One control step in the model and its task reward and termination.
+
+        (B, nq), (B, nv), (B, nu) -> next q (B, nq), next qd (B, nv), reward (B,),
+        terminated (B,). With `compile`, a `torch.compile`d copy (compiled on the first
+        call and again per new batch size; about 5-40 s each on CPU).
+        """
+        if not self.compile:
+            return self._transition(q, qd, action)
+        if self._compiled is None:
+            self._compiled = compile_dynamics(self._transition)
+        return self._compiled(q, qd, action)
+
+    def _transition(self, q: Tensor, qd: Tensor, action: Tensor) -> Transition:
+        nxt = self.model.step(q, qd, action, generator=self.generator)
+        reward = self.task.reward(nxt.q, nxt.qd, action)
+        return nxt.q, nxt.qd, reward, self.task.terminated(nxt.q, nxt.qd)
 
     def placement(self, fallback_device: torch.device) -> Placement:
         """Where to compute: the model's device and dtype (or the override dtype)."""
@@ -145,6 +167,7 @@ def model_objective_factory(
     generator: torch.Generator | None = None,
     dtype: torch.dtype | None = None,
     risk: float = 0.0,
+    compile: bool = False,
 ) -> ModelObjectiveFactory:
     """Objectives over (N, H, nu) action sequences rolled out in the learned world model.
 
@@ -159,6 +182,8 @@ def model_objective_factory(
         dtype: compute dtype override.
         risk: k in score = mean - k * std of the P particles' returns (population std, see
             `risk_adjusted_return`); 0 (default) is the plain mean, > 0 is risk-averse.
+        compile: run each control step (model step, reward, termination) as one
+            `torch.compile`d function (for deterministic models such as DeLaN).
     """
     return ModelObjectiveFactory(
         model,
@@ -168,6 +193,7 @@ def model_objective_factory(
         generator=generator,
         dtype=dtype,
         risk=risk,
+        compile=compile,
     )
 
 

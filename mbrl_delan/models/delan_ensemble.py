@@ -141,8 +141,10 @@ class DeLaNEnsemble(WorldModel):
     ) -> None:
         """Build E independently initialised members (torch's default RNG).
 
+        The arguments from ``layout`` to ``max_velocity`` are `DeLaN`'s (every member gets
+        the same).
+
         Args:
-            layout ... max_velocity: as `DeLaN` (every member gets the same).
             ensemble_size: number of members E (>= 1).
             propagation: "tsinf", "ts1" or "mean" (how `step` uses the members).
             bootstrap: in training mode each member trains on its own resample (with

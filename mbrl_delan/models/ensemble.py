@@ -112,8 +112,9 @@ class GaussianEnsemble(WorldModel):
             layers: number of hidden layers.
             activation: one of `ACTIVATIONS`.
             propagation: "tsinf", "ts1" or "mean" (how `step` uses the members).
-            min_logvar_init, max_logvar_init: initial values of the learned log-variance
-                bounds (per output dimension, normalised units).
+            min_logvar_init: initial value of the learned lower log-variance bound (per
+                output dimension, normalised units).
+            max_logvar_init: initial value of the learned upper log-variance bound.
             weight_decay: L2 coefficient(s) in the loss, one per linear layer (hidden layers
                 then the output layer) or one for all; the term is sum_l c_l/2 * ||W_l||^2.
             bootstrap: if True each member trains on its own resample of every batch.

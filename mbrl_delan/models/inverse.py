@@ -244,10 +244,12 @@ class DeLaNInverse(InverseDynamicsModel):
 
     Args:
         layout: joint layout (a free root gets the Euler-Poincare term).
-        hidden, layers, activation, diag_shift: the `LagrangianNetwork` (trunk of ``layers``
-            hidden layers of width ``hidden``; ``diag_shift`` > 0 bounds diag(L) from below,
-            in each DoF's inertia unit).
-        dissipation: learn viscous friction; coulomb: also Coulomb friction.
+        hidden: width of the `LagrangianNetwork`'s hidden layers.
+        layers: hidden layers of its trunk.
+        activation: its activation.
+        diag_shift: > 0, bounds diag(L) from below, in each DoF's inertia unit.
+        dissipation: learn viscous friction.
+        coulomb: also learn Coulomb friction.
         std_floor: see `InverseDynamicsModel`.
         control_dt: DeLaN's step (s); only used for finite-difference accelerations when the
             data lack ``qdd`` (humanoid_CMU's timestep by default).

@@ -17,12 +17,33 @@ from torch.nn import functional as F
 ACTIVATIONS = ("softplus", "tanh")
 
 
+# A linear layer with at most this many inputs is written as broadcast products when
+# compiled, so it fuses into the activation kernel instead of calling a tiny matmul.
+SMALL_FAN_IN = 4
+
+
 def _activate(name: str, z: Tensor) -> tuple[Tensor, Tensor]:
     """Activation value and its derivative at z."""
     if name == "softplus":
+        if torch.compiler.is_compiling():
+            # one exp and one log1p for both (3 transcendentals otherwise), stable for any z
+            e = torch.exp(-z.abs())
+            inv = 1.0 / (1.0 + e)
+            return z.clamp(min=0) + torch.log1p(e), torch.where(z >= 0, inv, e * inv)
         return F.softplus(z), torch.sigmoid(z)
     y = torch.tanh(z)
     return y, 1.0 - y * y
+
+
+def linear(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
+    """x W^T (+ b): (..., k) -> (..., m). Small k under compilation: broadcast products."""
+    k = weight.shape[-1]
+    if not (torch.compiler.is_compiling() and k <= SMALL_FAN_IN):
+        return F.linear(x, weight, bias)
+    out = x[..., 0:1] * weight[:, 0]
+    for i in range(1, k):
+        out = out + x[..., i : i + 1] * weight[:, i]
+    return out if bias is None else out + bias
 
 
 @dataclass
@@ -56,9 +77,9 @@ class TangentMLP(nn.Module):
         """The hidden layers only: `out` is the last hidden activation (..., hidden)."""
         slopes = []
         for layer in self.hidden:
-            x, slope = _activate(self.activation, layer(x))
+            x, slope = _activate(self.activation, linear(x, layer.weight, layer.bias))
             if dx is not None:
-                dx = slope * (dx @ layer.weight.T)
+                dx = slope * linear(dx, layer.weight)
             slopes.append(slope)
         return MLPPass(out=x, d_out=dx, slopes=slopes)
 

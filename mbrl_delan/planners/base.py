@@ -138,8 +138,9 @@ class SamplingPlanner(abc.ABC):
 
     Args:
         horizon: planning horizon H in control steps (>= 1).
-        action_low, action_high: bounds of each action dimension, shape (nu,); may be
-            infinite. Every sampled sequence is clamped into them.
+        action_low: lower bound of each action dimension, shape (nu,); may be -inf.
+            Every sampled sequence is clamped into the bounds.
+        action_high: upper bound of each action dimension, shape (nu,); may be inf.
         num_samples: sequences N evaluated per iteration (>= 1).
         iterations: refinement iterations per `plan` call (>= 1).
         init_std: standard deviation of the first iteration, a scalar or (nu,). None means

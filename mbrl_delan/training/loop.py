@@ -122,6 +122,7 @@ class LoopCounters:
 @dataclass
 class Evaluation:
     returns: list[float] = field(default_factory=list)
+    rollouts: list[TensorDict] = field(default_factory=list)  # the first `keep_rollouts` kept
 
     @property
     def mean(self) -> float:
@@ -151,6 +152,7 @@ class MBRLLoop:
         seed: int,
         error_horizon: int,
         model_generator: torch.Generator | None = None,
+        keep_eval_rollouts: int = 0,
     ) -> None:
         self.env, self.eval_env, self.system = env, eval_env, system
         self.episode_len = episode_len
@@ -160,6 +162,8 @@ class MBRLLoop:
         self.random_policy = UniformPolicy(system.ctrl_low, system.ctrl_high, seed + 2)
         self.model_generator = model_generator  # randomness of stochastic models in planning
         self.counters = LoopCounters()
+        self.keep_eval_rollouts = keep_eval_rollouts  # e.g. for videos of evaluation episodes
+        self.last_evaluation: Evaluation | None = None  # of the last `iterate`, if it evaluated
 
     @contextmanager
     def timed(self) -> Iterator[None]:
@@ -188,11 +192,18 @@ class MBRLLoop:
         data = all_transitions(self.buffer).to(next(self.model.parameters()).device)
         return fit_model(self.model, self.optimizer, data, self.fit_config, self.fit_generator)
 
-    def evaluate(self, policy: TensorDictModuleBase, episodes: int) -> Evaluation:
+    def evaluate(
+        self, policy: TensorDictModuleBase, episodes: int, keep_rollouts: int = 0
+    ) -> Evaluation:
+        """Returns of `episodes` seeded episodes; the first `keep_rollouts` rollouts are kept."""
         seeds = [EVAL_SEED_OFFSET + self.seed * 100 + i for i in range(episodes)]
-        return Evaluation(
-            [episode_return(run_episode(self.eval_env, policy, s, self.episode_len)) for s in seeds]
-        )
+        ev = Evaluation()
+        for i, s in enumerate(seeds):
+            rollout = run_episode(self.eval_env, policy, s, self.episode_len)
+            ev.returns.append(episode_return(rollout))
+            if i < keep_rollouts:
+                ev.rollouts.append(rollout)
+        return ev
 
     def iterate(self, eval_episodes: int) -> dict[str, Any]:
         """One round: collect an on-policy episode, score the model on it, refit, evaluate."""
@@ -207,6 +218,7 @@ class MBRLLoop:
         return metrics
 
     def _round(self, eval_episodes: int) -> dict[str, Any]:
+        self.last_evaluation = None
         rollout = self._collect(self.policy)
         err = model_error(self.model, self.system, rollout, self.error_horizon)
         report = self.fit()
@@ -220,7 +232,8 @@ class MBRLLoop:
             "fit_val_loss": report.best_val_loss,
         }
         if eval_episodes > 0:
-            ev = self.evaluate(self.policy, eval_episodes)
+            ev = self.evaluate(self.policy, eval_episodes, self.keep_eval_rollouts)
+            self.last_evaluation = ev
             metrics.update(eval_return_mean=ev.mean, eval_return_std=ev.std)
         return metrics
 

@@ -164,6 +164,21 @@ class Recorder:
             log.warning("wandb.log failed (%s); wandb logging is off for this run", err)
             self._wandb_run = None
 
+    def log_video(self, key: str, path: str | Path, iteration: int) -> None:
+        """Log the video file `path` (e.g. MP4) to wandb as ``wandb.Video`` under `key`.
+
+        A no-op without wandb; a wandb failure only warns (the file stays in the run dir).
+        """
+        if self._wandb_run is None:
+            return
+        try:
+            import wandb
+
+            video = wandb.Video(str(path), caption=Path(path).name, format="mp4")
+            self._wandb_run.log({key: video}, step=int(iteration))
+        except Exception as err:  # noqa: BLE001 - see _init_wandb
+            log.warning("wandb could not log the video %s (%s)", path, err)
+
     def write_summary(self, summary: Mapping[str, Any]) -> Path:
         """Write ``run_dir/summary.json`` atomically (and the wandb run summary)."""
         path = self.run_dir / SUMMARY_FILE

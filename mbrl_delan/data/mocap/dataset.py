@@ -209,7 +209,10 @@ def build_dataset(
     Args:
         clips: clip names (subject_trial), in dataset order.
         val_clips: clips held out whole (`VAL_CLIP`); each must be in ``clips``.
-        folders, cache_dir, download, url_template: where clips are looked for (`find_clip`).
+        folders: local folders looked in first (`find_clip`).
+        cache_dir: the download cache (`find_clip`).
+        download: fetch clips missing locally into the cache (`find_clip`).
+        url_template: where clips are downloaded from (`find_clip`).
         xml_path: the model; dm_control's humanoid_CMU.xml if None.
         settings: filtering and resampling (`FilterSettings()` if None).
         timestep: sample spacing (s); the model's timestep if None.

@@ -272,7 +272,8 @@ def retarget(
     """AMC motion -> samples (q, qd, qdd, next q, next qd) on the model, at its timestep.
 
     Args:
-        motion, skeleton: from `read_amc` / `read_asf`.
+        motion: from `read_amc`.
+        skeleton: from `read_asf`.
         model: humanoid_CMU (any model with one free root and hinges named bone+dof).
         settings: filter and resampling settings.
         timestep: sample spacing dt (s); the model's ``opt.timestep`` if None.

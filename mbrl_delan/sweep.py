@@ -1,0 +1,163 @@
+"""Bookkeeping of runs inside Hydra sweeps: the wandb group of a multirun, and crash markers.
+
+* ``with_sweep_group(cfg)``: in a multirun (``-m``), a run whose ``logger.group`` is null gets
+  the sweep's name as its wandb group, so the runs of one sweep are grouped together.
+* ``exit_or_raise``: how the entry point ends a failed run without stopping the sweep.
+* ``marks_crash``: decorates the training entry function; when it raises, the run dir gets
+  ``crash.json`` (written atomically) and the exception propagates unchanged. A later
+  successful (resumed) run removes the marker.
+"""
+
+from __future__ import annotations
+
+import datetime
+import functools
+import json
+import logging
+import sys
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NoReturn, TypeVar
+
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig, open_dict
+
+from mbrl_delan.training.checkpoint import atomic_write
+from mbrl_delan.training.recorder import ITERATION, METRICS_FILE, read_metrics
+
+log = logging.getLogger(__name__)
+
+CRASH_FILE = "crash.json"
+RUN_CONFIG = "config.yaml"
+TRACEBACK_CHARS = 4000  # the tail of the traceback kept in crash.json
+
+T = TypeVar("T")
+
+
+def sweep_name(sweep_dir: str | Path) -> str:
+    """The wandb group of a sweep: its folder's parent and name joined by ``_``.
+
+    ``runs/multirun/2026-11-21/18-24-22`` gives ``2026-11-21_18-24-22`` (no ``/``, which wandb
+    names avoid).
+    """
+    path = Path(sweep_dir)
+    return f"{path.parent.name}_{path.name}" if path.parent.name else path.name
+
+
+def with_sweep_group(cfg: DictConfig) -> DictConfig:
+    """``cfg`` with ``logger.group`` set to the sweep's name in a multirun when it is null.
+
+    Single runs, configs outside Hydra and explicit ``logger.group=...`` are left as they are.
+    """
+    if not HydraConfig.initialized() or cfg.get("logger") is None:
+        return cfg
+    if not in_multirun() or cfg.logger.get("group") is not None:
+        return cfg
+    with open_dict(cfg):
+        cfg.logger.group = sweep_name(HydraConfig.get().sweep.dir)
+    return cfg
+
+
+def in_multirun() -> bool:
+    """Whether this process runs a job of a Hydra multirun (``-m``)."""
+    return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+
+
+def exit_or_raise(code: int, err: BaseException) -> NoReturn:
+    """End a failed run: ``sys.exit(code)`` in a single run; in a multirun re-raise ``err``.
+
+    Hydra's launchers record an exception as that job's failure and run the other jobs (the
+    sweep then ends with it), whereas ``SystemExit`` would stop the whole sweep at once.
+    """
+    if in_multirun():
+        raise err
+    sys.exit(code)
+
+
+def crash_dir(cfg: DictConfig) -> Path | None:
+    """The run dir a crash of the training of ``cfg`` is recorded in; None when there is none.
+
+    ``resume=<dir>``: that dir if it is a run dir (has ``config.yaml``); otherwise Hydra's output
+    dir if it exists (Hydra creates it before the task starts).
+    """
+    resume = cfg.get("resume")
+    if resume:
+        run = Path(resume)
+        return run if (run / RUN_CONFIG).is_file() else None
+    if not HydraConfig.initialized():
+        return None
+    run = Path(HydraConfig.get().runtime.output_dir)
+    return run if run.is_dir() else None
+
+
+def last_iteration(run_dir: Path) -> int | None:
+    """The last loop iteration recorded in the run's ``metrics.jsonl``, or None."""
+    done = [r[ITERATION] for r in read_metrics(run_dir / METRICS_FILE) if ITERATION in r]
+    return max(done) if done else None
+
+
+def write_crash(run_dir: Path, err: BaseException) -> Path:
+    """Write ``run_dir/crash.json`` atomically.
+
+    Keys: ``type`` (the exception's class name), ``message`` (``str(err)``), ``iteration``
+    (iterations completed before the crash according to ``metrics.jsonl``; null when none),
+    ``time`` (UTC, ISO 8601) and ``traceback`` (its last ``TRACEBACK_CHARS`` characters).
+    """
+    record = {
+        "type": type(err).__name__,
+        "message": str(err),
+        "iteration": last_iteration(run_dir),
+        "time": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "traceback": "".join(traceback.format_exception(err))[-TRACEBACK_CHARS:],
+    }
+    text = json.dumps(record, indent=2) + "\n"
+    path = run_dir / CRASH_FILE
+    atomic_write(path, lambda f: f.write(text.encode("utf-8")), keep_prev=False)
+    return path
+
+
+def read_crash(run_dir: Path) -> dict[str, Any] | None:
+    """The run's ``crash.json`` as a dict; None when absent or unreadable (logged)."""
+    path = Path(run_dir) / CRASH_FILE
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as err:
+        log.warning("unreadable %s: %s", path, err)
+        return None
+    return record if isinstance(record, dict) else None
+
+
+def marks_crash(fn: Callable[[DictConfig], T]) -> Callable[[DictConfig], T]:
+    """Decorate ``fn(cfg)`` so that an exception it raises leaves ``crash.json`` in the run dir.
+
+    The exception (``KeyboardInterrupt`` included) is re-raised unchanged; a failure to write
+    the marker is logged and never hides it. On success a stale ``crash.json`` is removed.
+    """
+
+    @functools.wraps(fn)
+    def wrapper(cfg: DictConfig) -> T:
+        try:
+            result = fn(cfg)
+        except (Exception, KeyboardInterrupt) as err:
+            _record_crash(cfg, err)
+            raise
+        run = crash_dir(cfg)
+        if run is not None:
+            (run / CRASH_FILE).unlink(missing_ok=True)
+        return result
+
+    return wrapper
+
+
+def _record_crash(cfg: DictConfig, err: BaseException) -> None:
+    try:
+        run = crash_dir(cfg)
+        if run is not None:
+            path = write_crash(run, err)
+            log.info("run failed (%s: %s); wrote %s", type(err).__name__, err, path)
+    except (OSError, ValueError) as write_err:
+        log.warning("could not write %s: %s", CRASH_FILE, write_err)

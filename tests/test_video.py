@@ -1,0 +1,243 @@
+"""Videos: MuJoCo offscreen frames of states, atomic MP4 files, backend errors, `video=true` runs.
+
+Rendering tests need one OpenGL backend that works in this process: the default one (MUJOCO_GL,
+else EGL, which Mesa provides on CPU-only machines). They skip only when no backend at all can
+make a context (each is probed in its own process, since PyOpenGL binds one per process).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v2 as imageio
+import mujoco
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from mbrl_delan import keys
+from mbrl_delan.systems.system import asset_path
+from mbrl_delan.training import video as video_mod
+from mbrl_delan.training.recorder import Recorder
+from mbrl_delan.training.video import (
+    BACKENDS,
+    VideoBackendError,
+    VideoRecorder,
+    check_backend,
+    default_backend,
+    resolve_backend,
+    rollout_states,
+    write_mp4,
+)
+
+W, H = 64, 48
+
+
+def _probe(backend: str) -> str | None:
+    """None when `backend` renders in a fresh process, else the error it printed."""
+    code = f"from mbrl_delan.training.video import check_backend; check_backend({backend!r})"
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300
+    )
+    return None if out.returncode == 0 else (out.stderr.strip().splitlines() or ["?"])[-1]
+
+
+@pytest.fixture(scope="module")
+def backend() -> str:
+    """The default backend, checked in this process; skip only if no backend works anywhere."""
+    try:
+        return check_backend(None)
+    except VideoBackendError as err:
+        default_error = str(err)
+    errors = {name: _probe(name) for name in BACKENDS}
+    working = [name for name, error in errors.items() if error is None]
+    if not working:
+        pytest.skip(f"no MuJoCo OpenGL backend can make a context here: {errors}")
+    pytest.fail(f"the default backend failed ({default_error}) but {working} work: set MUJOCO_GL")
+
+
+@pytest.fixture
+def pendulum() -> mujoco.MjModel:
+    return mujoco.MjModel.from_xml_path(str(asset_path("pendulum")))
+
+
+def test_frames_depend_on_the_state(backend: str, pendulum: mujoco.MjModel) -> None:
+    with VideoRecorder(pendulum, W, H, fps=20.0, backend=backend) as rec:
+        down = rec.frame_from_state(np.zeros(1), np.zeros(1))
+        again = rec.frame_from_state(torch.zeros(1), torch.zeros(1))
+        swung = rec.frame_from_state(np.array([2.0]), np.zeros(1))
+    assert down.shape == (H, W, 3) and down.dtype == np.uint8
+    assert down.any() and swung.any()  # the pendulum is drawn, not a black frame
+    np.testing.assert_array_equal(down, again)  # same state, same picture
+    assert np.abs(down.astype(int) - swung).sum() > 0  # another state, another picture
+
+
+def test_frame_from_live_data_matches_the_state(backend: str, pendulum: mujoco.MjModel) -> None:
+    data = mujoco.MjData(pendulum)
+    data.qpos[:] = 1.0
+    mujoco.mj_forward(pendulum, data)
+    with VideoRecorder(pendulum, W, H, fps=20.0, backend=backend) as rec:
+        from_data = rec.frame_from_data(data)
+        from_state = rec.frame_from_state(np.ones(1), np.zeros(1))
+    np.testing.assert_array_equal(from_data, from_state)
+
+
+def test_mp4_round_trip(backend: str, pendulum: mujoco.MjModel, tmp_path: Path) -> None:
+    q = torch.linspace(0.0, 3.0, 7, dtype=torch.float64)[:, None]
+    with VideoRecorder(pendulum, W, H, fps=20.0, backend=backend) as rec:
+        path = rec.record(tmp_path / "clip.mp4", q, torch.zeros_like(q))
+    assert path == tmp_path / "clip.mp4"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clip.mp4"]  # no temp file left
+    reader = imageio.get_reader(path, format="FFMPEG")
+    try:
+        frames = [frame for frame in reader]
+        fps = reader.get_meta_data()["fps"]
+    finally:
+        reader.close()
+    assert len(frames) == 7 and fps == pytest.approx(20.0)
+    assert all(frame.shape == (H, W, 3) for frame in frames)
+    assert np.abs(frames[0].astype(int) - frames[-1]).mean() > 0.1
+
+
+def test_rollout_states_are_the_first_then_every_reached_state() -> None:
+    q = torch.arange(3.0)[:, None]
+    rollout = TensorDict(
+        {keys.Q: q, keys.QD: -q, "next": {keys.Q: q + 1, keys.QD: -(q + 1)}}, batch_size=[3]
+    )
+    states_q, states_qd = rollout_states(rollout)
+    assert states_q.flatten().tolist() == [0.0, 1.0, 2.0, 3.0]
+    assert states_qd.flatten().tolist() == [0.0, -1.0, -2.0, -3.0]
+
+
+def test_failed_write_keeps_the_old_file_and_leaves_no_temp(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "clip.mp4"
+    path.write_bytes(b"previous video")
+
+    class BrokenWriter:
+        def append_data(self, frame: np.ndarray) -> None:
+            raise OSError("disk full")
+
+        def close(self) -> None:
+            pass
+
+    monkeypatch.setattr(imageio, "get_writer", lambda *args, **kwargs: BrokenWriter())
+    with pytest.raises(OSError, match="disk full"):
+        write_mp4(path, np.zeros((3, H, W, 3), np.uint8), fps=10.0)
+    assert path.read_bytes() == b"previous video"
+    assert [p.name for p in tmp_path.iterdir()] == ["clip.mp4"]
+    with pytest.raises(ValueError, match="even"):
+        write_mp4(path, np.zeros((3, 5, 6, 3), np.uint8), fps=10.0)
+
+
+def test_backend_names() -> None:
+    assert resolve_backend("OSMesa") == "osmesa"
+    assert default_backend({"MUJOCO_GL": "osmesa"}) == "osmesa"
+    assert default_backend({}) in ("egl", "glfw")
+    with pytest.raises(VideoBackendError, match="egl, osmesa, glfw"):
+        resolve_backend("vulkan")
+
+
+def test_unusable_backend_gives_a_clear_error(
+    pendulum: mujoco.MjModel, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    real_import = video_mod.importlib.import_module
+
+    def missing(name: str, *args: object) -> object:
+        if name.startswith("mujoco."):  # a backend module, as if its libraries were missing
+            raise ImportError(f"no library for {name}")
+        return real_import(name, *args)
+
+    monkeypatch.setattr(video_mod.importlib, "import_module", missing)
+    with pytest.raises(VideoBackendError) as info:
+        VideoRecorder(pendulum, W, H, fps=20.0, backend="osmesa")
+    message = str(info.value)
+    assert "'osmesa'" in message and "no library for mujoco.osmesa" in message
+    assert "video_backend=egl|osmesa|glfw" in message and "MUJOCO_GL" in message
+    with pytest.raises(ValueError, match="even"):
+        VideoRecorder(pendulum, 63, H, fps=20.0, backend="egl")
+
+
+@pytest.mark.slow
+def test_video_logged_to_offline_wandb(
+    backend: str, pendulum: mujoco.MjModel, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    pytest.importorskip("wandb")
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    q = torch.zeros(4, 1)
+    with VideoRecorder(pendulum, W, H, fps=20.0, backend=backend) as rec:
+        path = rec.record(tmp_path / "videos" / "eval_iter1_ep0.mp4", q, q)
+    with Recorder(tmp_path, True, "test", None, {}) as recorder:
+        assert recorder.wandb_active
+        recorder.log({"x": 1.0}, 1)
+        recorder.log_video("video/eval_ep0", path, 1)
+    logged = list((tmp_path / "wandb").glob("offline-run-*/files/media/videos/**/*.mp4"))
+    assert len(logged) == 1 and logged[0].read_bytes() == path.read_bytes()
+
+
+# --- the entry point ---------------------------------------------------------------------
+
+TINY = [
+    "logger=none",
+    "threads=1",
+    "env.episode_len=15",
+    "env.horizon=5",
+    "planner.num_samples=32",
+    "planner.iterations=1",
+    "budget.eval_episodes=1",
+    "budget.oracle_episodes=1",
+    "budget.final_eval_episodes=1",
+    "budget.eval_every=1",
+    "fit.max_epochs=5",
+    "model.hidden=16",
+    "video=true",
+    f"video_width={W}",
+    f"video_height={H}",
+]
+
+
+def _train(
+    run_dir: Path, *overrides: str, unset: tuple[str, ...] = ()
+) -> subprocess.CompletedProcess:
+    """A tiny `video=true` training run; `unset` names environment variables to remove."""
+    cmd = [sys.executable, "-m", "mbrl_delan.train", *TINY, f"hydra.run.dir={run_dir}", *overrides]
+    env = {k: v for k, v in os.environ.items() if k not in unset}
+    env["WANDB_MODE"] = "disabled"
+    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+
+
+@pytest.mark.slow
+def test_train_with_video_writes_the_final_evaluation(backend: str, tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    out = _train(run_dir, "budget.iterations=2", f"video_backend={backend}")
+    assert out.returncode == 0, out.stdout + out.stderr
+    videos = sorted(p.name for p in (run_dir / "videos").iterdir())
+    assert videos == ["eval_iter2_ep0.mp4"]  # the final evaluation only (video_every_eval=false)
+    reader = imageio.get_reader(run_dir / "videos" / videos[0], format="FFMPEG")
+    try:
+        frames = [frame for frame in reader]
+    finally:
+        reader.close()
+    assert len(frames) == 15 + 1  # the first state, then one per control step
+    assert frames[0].shape == (H, W, 3)
+    assert (run_dir / "checkpoint.pt").is_file()
+    assert json.loads((run_dir / "summary.json").read_text())["iterations"] == 2
+
+
+@pytest.mark.slow
+def test_train_with_an_unusable_backend_stops_before_training(tmp_path: Path) -> None:
+    run_dir = tmp_path / "run"
+    out = _train(run_dir, "video_backend=glfw", unset=("DISPLAY", "WAYLAND_DISPLAY"))
+    text = out.stdout + out.stderr
+    assert out.returncode == 2, text
+    assert "OpenGL backend 'glfw'" in text and "MUJOCO_GL" in text, text
+    assert "Traceback" not in text
+    assert not (run_dir / "checkpoint.pt").exists() and not (run_dir / "metrics.jsonl").exists()
