@@ -32,7 +32,7 @@ from mbrl_delan import keys
 from mbrl_delan.models.base import LossOutput, WorldModel
 from mbrl_delan.models.features import QFeatures
 from mbrl_delan.models.integrators import INTEGRATORS, integrate
-from mbrl_delan.models.tangent_mlp import TangentMLP
+from mbrl_delan.models.tangent_mlp import TangentMLP, linear
 from mbrl_delan.systems.posarith import differentiate_pos
 from mbrl_delan.systems.system import BALL, FREE, JointLayout, State
 
@@ -157,8 +157,8 @@ class LagrangianNetwork(MechanicsField):
         n, head = self.n, self.trunk.head
         body = self.trunk.body(self.features(q), self.features.jvp(q, qd))
         weight, bias = self._matrix_head()
-        raw = F.linear(body.out, weight, bias).unflatten(-1, (n, n))  # (..., n, n), 0 above
-        d_raw = (body.d_out @ weight.T).unflatten(-1, (n, n))
+        raw = linear(body.out, weight, bias).unflatten(-1, (n, n))  # (..., n, n), 0 above
+        d_raw = linear(body.d_out, weight).unflatten(-1, (n, n))
         raw_diag = torch.diagonal(raw, dim1=-2, dim2=-1).clone()  # (..., n), unscaled
         diag_slope = self.row_scale * torch.sigmoid(raw_diag)  # d L_ii / d raw_ii
         L = raw  # fresh output of `linear`: its diagonal is replaced in place
@@ -167,13 +167,13 @@ class LagrangianNetwork(MechanicsField):
         L_dot = d_raw
         torch.diagonal(L_dot, dim1=-2, dim2=-1).mul_(diag_slope)
         v_weight, v_bias = head.weight[-1] * self.energy_scale, head.bias[-1:] * self.energy_scale
-        potential = F.linear(body.out, v_weight.unsqueeze(0), v_bias).squeeze(-1)
+        potential = linear(body.out, v_weight.unsqueeze(0), v_bias).squeeze(-1)
 
         def pullback(d_L: Tensor, d_V: Tensor) -> Tensor:
             d_diag = torch.diagonal(d_L, dim1=-2, dim2=-1)  # (..., n)
             d_hidden = (
-                d_L.flatten(-2) @ weight  # every entry as if raw; diagonal fixed below
-                + ((diag_slope - 1.0) * d_diag) @ head.weight[:n]
+                linear(d_L.flatten(-2), weight.T)  # every entry as if raw; diagonal fixed below
+                + linear((diag_slope - 1.0) * d_diag, head.weight[:n].T)
                 + d_V.unsqueeze(-1) * v_weight
             )
             return self.features.vjp(q, self.trunk.body_vjp(body, d_hidden))
