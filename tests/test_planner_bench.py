@@ -110,7 +110,8 @@ def test_suite_is_registered() -> None:
 
 def test_settings_are_the_configs_defaults() -> None:
     """The suite builds models and planners as configs/model and configs/planner say."""
-    delan = OmegaConf.load(CONFIGS / "model" / "delan.yaml")
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
+        delan = compose("config", overrides=["env=pendulum", "model=delan"]).model
     assert {k: delan[k] for k in DELAN_SETTINGS} == DELAN_SETTINGS
     ensemble = OmegaConf.load(CONFIGS / "model" / "ensemble.yaml")
     assert {k: ensemble[k] for k in ENSEMBLE_SETTINGS} == ENSEMBLE_SETTINGS
