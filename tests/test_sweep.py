@@ -11,27 +11,14 @@ from pathlib import Path
 
 import pytest
 from omegaconf import OmegaConf
+from tiny import TINY_TRAIN
 
 from mbrl_delan.report import main as report_main
 from mbrl_delan.sweep import CRASH_FILE, marks_crash, sweep_name
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
-TINY = [
-    "logger=none",
-    "threads=1",
-    "env.episode_len=15",
-    "env.horizon=5",
-    "planner.num_samples=32",
-    "planner.iterations=1",
-    "budget.iterations=1",
-    "budget.eval_episodes=1",
-    "budget.oracle_episodes=1",
-    "budget.final_eval_episodes=1",
-    "budget.eval_every=1",
-    "fit.max_epochs=5",
-    "model.hidden=16",
-]
+TINY = [*TINY_TRAIN, "budget.iterations=1"]
 
 
 def sweep(sweep_dir: Path, *overrides: str) -> subprocess.CompletedProcess:

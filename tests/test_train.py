@@ -11,23 +11,11 @@ import time
 from pathlib import Path
 
 import pytest
+from tiny import TINY_TRAIN
 
 from mbrl_delan.training.checkpoint import load_checkpoint
 
-TINY = [
-    "logger=none",
-    "threads=1",
-    "env.episode_len=15",
-    "env.horizon=5",
-    "planner.num_samples=32",
-    "planner.iterations=1",
-    "budget.eval_episodes=1",
-    "budget.oracle_episodes=1",
-    "budget.final_eval_episodes=1",
-    "budget.eval_every=1",
-    "fit.max_epochs=5",
-    "model.hidden=16",
-]
+TINY = TINY_TRAIN
 
 
 def train(

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
+from tiny import TINY_TRAIN
 
 from mbrl_delan import keys
 from mbrl_delan.systems.system import asset_path
@@ -185,23 +186,7 @@ def test_video_logged_to_offline_wandb(
 
 # --- the entry point ---------------------------------------------------------------------
 
-TINY = [
-    "logger=none",
-    "threads=1",
-    "env.episode_len=15",
-    "env.horizon=5",
-    "planner.num_samples=32",
-    "planner.iterations=1",
-    "budget.eval_episodes=1",
-    "budget.oracle_episodes=1",
-    "budget.final_eval_episodes=1",
-    "budget.eval_every=1",
-    "fit.max_epochs=5",
-    "model.hidden=16",
-    "video=true",
-    f"video_width={W}",
-    f"video_height={H}",
-]
+TINY = [*TINY_TRAIN, "video=true", f"video_width={W}", f"video_height={H}"]
 
 
 def _train(
