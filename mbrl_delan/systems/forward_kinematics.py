@@ -1,0 +1,179 @@
+"""Batched torch forward kinematics of a MuJoCo kinematic tree (no simulator in the loop).
+
+Rewards of the humanoid tasks need body and site poses for thousands of imagined states per
+control step; this walks the body tree in torch the way MuJoCo's `mj_kinematics` does:
+
+- a body with a free joint takes its position and (normalised) orientation from q;
+- any other body starts at its parent's frame moved by its own offset (`body_pos`,
+  `body_quat`), then applies its joints in order: a slide joint moves it along its axis by
+  q - qpos0; a hinge rotates it about its axis by q - qpos0 and a ball by its (normalised)
+  quaternion, both about the joint's anchor, which stays in place.
+
+Quaternions are (w, x, y, z). `tests/test_forward_kinematics.py` compares with MuJoCo's
+`xpos`, `xquat` and `site_xpos` on both humanoids.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import torch
+from torch import Tensor, nn
+
+from mbrl_delan.systems.posarith import quat_exp, quat_mul
+
+FREE, BALL, SLIDE, HINGE = (
+    int(mujoco.mjtJoint.mjJNT_FREE),
+    int(mujoco.mjtJoint.mjJNT_BALL),
+    int(mujoco.mjtJoint.mjJNT_SLIDE),
+    int(mujoco.mjtJoint.mjJNT_HINGE),
+)
+
+
+def quat_rotate(quat: Tensor, vec: Tensor) -> Tensor:
+    """Rotate vectors by unit quaternions: (..., 4), (..., 3) -> (..., 3)."""
+    w, xyz = quat[..., :1], quat[..., 1:]
+    t = 2.0 * torch.linalg.cross(xyz, vec, dim=-1)
+    return vec + w * t + torch.linalg.cross(xyz, t, dim=-1)
+
+
+def _unit(quat: Tensor) -> Tensor:
+    return quat / torch.linalg.vector_norm(quat, dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+@dataclass(frozen=True)
+class Joint:
+    """One joint of a body, as MuJoCo's model arrays give it."""
+
+    kind: int  # FREE | BALL | SLIDE | HINGE
+    qpos_adr: int  # first index in q
+    axis: tuple[float, float, float]  # in the body frame (hinge, slide)
+    anchor: tuple[float, float, float]  # `jnt_pos`, in the body frame
+    qpos0: float  # reference position (hinge, slide)
+
+
+@dataclass
+class Poses:
+    """World poses of every body and site."""
+
+    xpos: Tensor  # (..., nbody, 3) body frame origins; body 0 is the world
+    xquat: Tensor  # (..., nbody, 4) body orientations
+    site_xpos: Tensor  # (..., nsite, 3)
+
+
+class ForwardKinematics(nn.Module):
+    """q (..., nq) -> `Poses`, for a tree given as plain arrays (see `from_mujoco`).
+
+    Args:
+        parent: parent body index of each body (body 0, the world, is its own parent).
+        body_pos: (nbody, 3) offset of each body in its parent's frame.
+        body_quat: (nbody, 4) orientation of each body in its parent's frame.
+        joints: the joints of each body, in MuJoCo's order.
+        site_body: body index of each site.
+        site_pos: (nsite, 3) site offsets in their body's frame.
+    """
+
+    def __init__(
+        self,
+        parent: list[int],
+        body_pos: Tensor,
+        body_quat: Tensor,
+        joints: list[list[Joint]],
+        site_body: list[int],
+        site_pos: Tensor,
+    ) -> None:
+        super().__init__()
+        if not len(parent) == body_pos.shape[0] == body_quat.shape[0] == len(joints):
+            raise ValueError("parent, body_pos, body_quat and joints must have one row per body")
+        if any(p >= i for i, p in enumerate(parent) if i > 0):
+            raise ValueError("bodies must come after their parent (MuJoCo's tree order)")
+        self.parent, self.joints, self.site_body = parent, joints, site_body
+        self.register_buffer("body_pos", body_pos.double())
+        self.register_buffer("body_quat", body_quat.double())
+        self.register_buffer("site_pos", site_pos.double().reshape(-1, 3))
+
+    @classmethod
+    def from_mujoco(cls, model: mujoco.MjModel) -> ForwardKinematics:
+        """The tree of a compiled MuJoCo model (mocap bodies are not supported)."""
+        if model.nmocap:
+            raise ValueError("forward kinematics does not support mocap bodies")
+        joints = [
+            [
+                Joint(
+                    kind=int(model.jnt_type[j]),
+                    qpos_adr=int(model.jnt_qposadr[j]),
+                    axis=tuple(float(x) for x in model.jnt_axis[j]),
+                    anchor=tuple(float(x) for x in model.jnt_pos[j]),
+                    qpos0=float(model.qpos0[model.jnt_qposadr[j]]),
+                )
+                for j in range(model.body_jntadr[b], model.body_jntadr[b] + model.body_jntnum[b])
+            ]
+            for b in range(model.nbody)
+        ]
+        return cls(
+            parent=[int(p) for p in model.body_parentid],
+            body_pos=torch.from_numpy(model.body_pos.copy()),
+            body_quat=torch.from_numpy(model.body_quat.copy()),
+            joints=joints,
+            site_body=[int(b) for b in model.site_bodyid],
+            site_pos=torch.from_numpy(model.site_pos.copy()),
+        )
+
+    def forward(self, q: Tensor) -> Poses:
+        """Poses at positions q (..., nq), in q's dtype."""
+        batch, like = q.shape[:-1], q
+        body_pos, body_quat = self.body_pos.to(q.dtype), self.body_quat.to(q.dtype)
+        world_quat = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=q.dtype, device=q.device)
+        xpos = [like.new_zeros((*batch, 3))]
+        xquat = [world_quat.expand(*batch, 4)]
+        for b in range(1, len(self.parent)):
+            pos, quat = self._body(q, b, xpos, xquat, body_pos[b], body_quat[b])
+            xpos.append(pos)
+            xquat.append(_unit(quat))
+        xpos_t, xquat_t = torch.stack(xpos, dim=-2), torch.stack(xquat, dim=-2)
+        site_xpos = self._sites(xpos_t, xquat_t)
+        return Poses(xpos=xpos_t, xquat=xquat_t, site_xpos=site_xpos)
+
+    def _body(
+        self, q: Tensor, b: int, xpos: list[Tensor], xquat: list[Tensor], offset: Tensor,
+        rotation: Tensor,
+    ) -> tuple[Tensor, Tensor]:
+        """Position (..., 3) and orientation (..., 4) of body b from its parent's."""
+        joints = self.joints[b]
+        if len(joints) == 1 and joints[0].kind == FREE:
+            adr = joints[0].qpos_adr
+            return q[..., adr : adr + 3], _unit(q[..., adr + 3 : adr + 7])
+        p = self.parent[b]
+        pos = xpos[p] + quat_rotate(xquat[p], offset.expand_as(xpos[p]))
+        quat = quat_mul(xquat[p], rotation.expand_as(xquat[p]))
+        for joint in joints:
+            pos, quat = self._joint(q, joint, pos, quat)
+        return pos, quat
+
+    @staticmethod
+    def _joint(q: Tensor, joint: Joint, pos: Tensor, quat: Tensor) -> tuple[Tensor, Tensor]:
+        """Apply one joint to the body frame (pos (..., 3), quat (..., 4))."""
+        axis = pos.new_tensor(joint.axis).expand_as(pos)
+        anchor = pos.new_tensor(joint.anchor).expand_as(pos)
+        value = q[..., joint.qpos_adr : joint.qpos_adr + 1] - joint.qpos0  # (..., 1)
+        if joint.kind == SLIDE:
+            return pos + quat_rotate(quat, axis) * value, quat
+        if joint.kind == HINGE:
+            local = quat_exp(axis * value)
+        elif joint.kind == BALL:
+            local = _unit(q[..., joint.qpos_adr : joint.qpos_adr + 4])
+        else:
+            raise ValueError("a free joint must be its body's only joint")
+        world_anchor = pos + quat_rotate(quat, anchor)
+        quat = quat_mul(quat, local)
+        return world_anchor - quat_rotate(quat, anchor), quat
+
+    def _sites(self, xpos: Tensor, xquat: Tensor) -> Tensor:
+        """(..., nbody, 3), (..., nbody, 4) -> site positions (..., nsite, 3)."""
+        if not self.site_body:
+            return xpos[..., :0, :]
+        index = torch.tensor(self.site_body, device=xpos.device)
+        body_pos, body_quat = xpos.index_select(-2, index), xquat.index_select(-2, index)
+        offset = self.site_pos.to(xpos.dtype).expand_as(body_pos)
+        return body_pos + quat_rotate(body_quat, offset)

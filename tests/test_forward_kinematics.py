@@ -1,0 +1,69 @@
+"""Torch forward kinematics against MuJoCo's own `mj_kinematics` on both humanoids."""
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from mbrl_delan.systems.external import humanoid_cmu_xml, humanoid_v5_xml
+from mbrl_delan.systems.forward_kinematics import ForwardKinematics, quat_rotate
+from mbrl_delan.systems.system import asset_path
+
+
+def random_q(model: mujoco.MjModel, rng: np.random.Generator) -> np.ndarray:
+    """qpos0 moved by up to 1.5 rad per hinge, a random root pose (unnormalised quaternion)."""
+    q = model.qpos0.copy()
+    for j in range(model.njnt):
+        adr, kind = model.jnt_qposadr[j], model.jnt_type[j]
+        if kind == mujoco.mjtJoint.mjJNT_FREE:
+            q[adr : adr + 3] = rng.normal(0.0, 1.0, 3)
+            q[adr + 3 : adr + 7] = rng.normal(0.0, 1.0, 4) * rng.uniform(0.5, 2.0)
+        elif kind == mujoco.mjtJoint.mjJNT_BALL:
+            q[adr : adr + 4] = rng.normal(0.0, 1.0, 4)
+        else:
+            q[adr] += rng.uniform(-1.5, 1.5)
+    return q
+
+
+def mujoco_poses(model: mujoco.MjModel, q: np.ndarray) -> tuple[np.ndarray, ...]:
+    data = mujoco.MjData(model)
+    data.qpos[:] = q
+    mujoco.mj_kinematics(model, data)
+    return data.xpos.copy(), data.xquat.copy(), data.site_xpos.copy()
+
+
+def same_rotation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """|<a, b>| = 1 for unit quaternions of the same rotation (q and -q)."""
+    return (a * b).sum(-1).abs()
+
+
+@pytest.mark.parametrize("xml", [humanoid_v5_xml, humanoid_cmu_xml], ids=["humanoid_v5", "cmu"])
+def test_matches_mujoco_kinematics_on_humanoids(xml) -> None:
+    model = mujoco.MjModel.from_xml_path(str(xml()))
+    fk = ForwardKinematics.from_mujoco(model)
+    rng = np.random.default_rng(0)
+    qs = np.stack([random_q(model, rng) for _ in range(8)])
+    poses = fk(torch.from_numpy(qs))  # one batched call
+    assert poses.xpos.shape == (8, model.nbody, 3) and poses.site_xpos.shape[-2] == model.nsite
+    for i, q in enumerate(qs):
+        xpos, xquat, site_xpos = (torch.from_numpy(x) for x in mujoco_poses(model, q))
+        torch.testing.assert_close(poses.xpos[i], xpos, rtol=0, atol=1e-5)
+        alignment = same_rotation(poses.xquat[i], xquat)
+        torch.testing.assert_close(alignment, torch.ones_like(alignment), rtol=0, atol=1e-5)
+        torch.testing.assert_close(poses.site_xpos[i], site_xpos, rtol=0, atol=1e-5)
+
+
+def test_slide_joints_and_float32() -> None:
+    model = mujoco.MjModel.from_xml_path(str(asset_path("cartpole")))
+    fk = ForwardKinematics.from_mujoco(model)
+    q = random_q(model, np.random.default_rng(1))
+    xpos, _, _ = mujoco_poses(model, q)
+    poses = fk(torch.from_numpy(q).float())
+    assert poses.xpos.dtype == torch.float32
+    torch.testing.assert_close(poses.xpos, torch.from_numpy(xpos).float(), rtol=0, atol=1e-5)
+
+
+def test_quat_rotate_quarter_turn_about_z() -> None:
+    quarter = torch.tensor([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)], dtype=torch.float64)
+    out = quat_rotate(quarter, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    torch.testing.assert_close(out, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
