@@ -135,7 +135,9 @@ def _delan_arguments(cfg: DictConfig, system: System) -> dict[str, Any]:
 def build_model(cfg: DictConfig, system: System) -> WorldModel:
     """The world model named by `cfg.name`, with the system's layout and actuation."""
     if cfg.name == "delan":
-        return DeLaN(**_delan_arguments(cfg, system), compile_step=cfg.compile)
+        return DeLaN(
+            **_delan_arguments(cfg, system), compile_step=cfg.compile, residual=cfg.residual
+        )
     if cfg.name == "delan_ensemble":
         return DeLaNEnsemble(
             **_delan_arguments(cfg, system),

@@ -64,6 +64,21 @@ def test_tiny_training_run_writes_everything(finished_run: Path) -> None:
         assert (finished_run / name).is_file(), name
 
 
+@pytest.mark.slow
+def test_tiny_humanoid_stand_run_with_the_residual_delan(tmp_path: Path) -> None:
+    """Humanoid-v5 with contacts through the whole loop: free root (quaternion) states in the
+    buffer, DeLaN with its residual force (the env's default), the oracle on MuJoCo."""
+    run_dir = tmp_path / "humanoid"
+    out = train(run_dir, "env=humanoid_stand", "budget.iterations=1")
+    assert out.returncode == 0, out.stdout + out.stderr
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["env"] == "humanoid_stand" and summary["env_steps"] == 2 * 15
+    config = (run_dir / "config.yaml").read_text()
+    assert "residual: true" in config
+    rec = records(run_dir)[-1]
+    assert 0.0 <= rec["eval_return_mean"] <= 15.0 and rec["model_error_1step"] >= 0.0
+
+
 def test_sigkill_then_resume_continues_identically(finished_run: Path, tmp_path: Path) -> None:
     """A run killed mid-way and resumed matches the uninterrupted run record for record."""
     run_dir = tmp_path / "killed"

@@ -25,6 +25,8 @@ ENV_IDS: dict[str, str] = {
     "cartpole": "mbrl_delan/Cartpole-v0",
     "acrobot": "mbrl_delan/Acrobot-v0",
     "arm_reach": "mbrl_delan/ArmReach-v0",
+    "humanoid_stand": "mbrl_delan/HumanoidStand-v0",
+    "humanoid_walk": "mbrl_delan/HumanoidWalk-v0",
 }
 assert set(ENV_IDS) == set(ENV_NAMES)
 

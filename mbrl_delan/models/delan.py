@@ -322,6 +322,32 @@ def unrolled_cholesky_solve(L: Tensor, b: Tensor) -> Tensor:
     return torch.stack(x, dim=-1)
 
 
+class ResidualForce(nn.Module):
+    """r(q, qd, a): a generalized force the Lagrangian terms leave out (contacts, joint limits).
+
+    A plain MLP (SiLU) on [phi(q), qd / qd_unit, a] whose output is in units of `tau_unit`;
+    its last layer starts at zero, so a fresh model is the Lagrangian one. It adds to B a in
+    the forward and inverse dynamics and has no structure: what it learns is not energy
+    conserving, which is why it is kept apart from M, c, g and d.
+    """
+
+    def __init__(self, features: QFeatures, n: int, nu: int, hidden: int, layers: int) -> None:
+        super().__init__()
+        sizes = [features.n_features + n + nu] + [hidden] * layers
+        blocks: list[nn.Module] = []
+        for a, b in zip(sizes[:-1], sizes[1:], strict=True):
+            blocks += [nn.Linear(a, b), nn.SiLU()]
+        out = nn.Linear(hidden, n)
+        nn.init.zeros_(out.weight)
+        nn.init.zeros_(out.bias)
+        self.features = features
+        self.net = nn.Sequential(*blocks, out)
+
+    def forward(self, q: Tensor, qd: Tensor, action: Tensor, qd_unit: Tensor) -> Tensor:
+        """(..., nq), (..., nv), (..., nu), (nv,) -> (..., nv), unitless."""
+        return self.net(torch.cat([self.features(q), qd / qd_unit, action], dim=-1))
+
+
 def rotational_dofs(layout: JointLayout) -> Tensor:
     """(K, 3) velocity indices of the angular velocity of each ball and free joint."""
     rows = [
@@ -374,6 +400,10 @@ class DeLaN(WorldModel):
     the data (see `_fit_inertia_scale`); for systems whose inertias span decades
     (humanoids). `diagonal_init`: L's off-diagonal and V heads start at zero (M diagonal,
     g = 0) and the viscous friction at softplus(0) = 0.69 of its unit, not near 0.
+
+    `residual`: add a learned generalized force r(q, qd, a) (`ResidualForce`, in units of
+    `tau_scale`, zero at initialisation) to B a, for what the Lagrangian terms cannot hold:
+    contacts and joint limits.
     """
 
     def __init__(
@@ -396,6 +426,7 @@ class DeLaN(WorldModel):
         compile_step: bool = False,
         inertia_scaling: bool = False,
         diagonal_init: bool = False,
+        residual: bool = False,
     ) -> None:
         super().__init__()
         if integrator not in INTEGRATORS:
@@ -427,6 +458,8 @@ class DeLaN(WorldModel):
         )
         if diagonal_init:
             network.start_diagonal()
+        nu = actuation.shape[-1]
+        self.residual = ResidualForce(features, n, nu, hidden, layers) if residual else None
         for name in ("q_scale", "qd_scale", "tau_scale"):
             self.register_buffer(name, torch.ones(n))
         self.register_buffer("velocity_limit", torch.full((n,), float(max_velocity)))
@@ -440,7 +473,15 @@ class DeLaN(WorldModel):
 
     def acceleration(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
         """Forward dynamics under controls: (..., nq), (..., nv), (..., nu) -> (..., nv)."""
-        return self.dynamics.forward_dynamics(q, qd, self.dynamics.generalized_force(action))
+        return self.dynamics.forward_dynamics(q, qd, self.applied_force(q, qd, action))
+
+    def applied_force(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
+        """B a, plus the residual force when the model has one. (..., nv)"""
+        tau = self.dynamics.generalized_force(action)
+        if self.residual is None:
+            return tau
+        qd_unit = self.velocity_limit / self.velocity_margin  # the largest |qd| in the data
+        return tau + self.tau_scale * self.residual(q, qd, action, qd_unit)
 
     def step(
         self, q: Tensor, qd: Tensor, action: Tensor, generator: torch.Generator | None = None
@@ -454,11 +495,11 @@ class DeLaN(WorldModel):
         return self._step(q, qd, action)
 
     def _step(self, q: Tensor, qd: Tensor, action: Tensor) -> State:
-        tau = self.dynamics.generalized_force(action)
         limit = self.velocity_limit
 
         def accel(q_: Tensor, qd_: Tensor) -> Tensor:
-            return self.dynamics.forward_dynamics(q_, torch.clamp(qd_, -limit, limit), tau)
+            qd_ = torch.clamp(qd_, -limit, limit)
+            return self.dynamics.forward_dynamics(q_, qd_, self.applied_force(q_, qd_, action))
 
         nxt = integrate(self.layout, accel, q, qd, self.control_dt, self.integrator, self.substeps)
         return State(q=nxt.q, qd=torch.clamp(nxt.qd, -limit, limit))
@@ -537,7 +578,7 @@ class DeLaN(WorldModel):
             qdd = batch.get(keys.QDD, None)
             if qdd is None:
                 qdd = (batch[keys.NEXT_QD] - qd) / self.control_dt
-            tau = self.dynamics.generalized_force(action)
+            tau = self.applied_force(q, qd, action)
             e_tau = (self.dynamics.inverse_dynamics(q, qd, qdd) - tau) / self.tau_scale
             inverse = e_tau.pow(2).mean()
             metrics["inverse_mse"] = float(inverse.detach())

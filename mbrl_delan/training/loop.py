@@ -60,6 +60,15 @@ def run_episode(
         return env.rollout(max_steps, policy=policy, break_when_any_done=True)
 
 
+def _position_std(system: System, q: Tensor) -> Tensor:
+    """Per-DoF std (nv,) of positions q (T, nq): of q itself when nq == nv, else of the
+    displacement from the first state in velocity space (quaternions have no plain std)."""
+    if system.nq == system.nv:
+        return q.std(0)
+    start = q[:1].expand_as(q)
+    return differentiate_pos(system.layout, start, q, 1.0).std(0)
+
+
 def episode_return(rollout: TensorDictBase) -> float:
     return float(rollout.get(keys.NEXT_REWARD).sum())
 
@@ -79,7 +88,8 @@ def model_error(
 ) -> ModelError:
     """RMS of the state error, per DoF divided by the episode's state std, after 1 and H steps.
 
-    e_k = [dq_k / std(q), dqd_k / std(qd)] with dq = q_pred (-) q_true in velocity space;
+    e_k = [dq_k / std(q), dqd_k / std(qd)] with dq = q_pred (-) q_true in velocity space
+    (std(q) of a free or ball joint: of the displacement from the episode's first state);
     error = sqrt(mean over starts, DoFs of e^2). The H-step error rolls the model open loop
     on the episode's own actions from every start t with t + H <= T.
     """
@@ -87,7 +97,7 @@ def model_error(
     q, qd = episode[keys.Q].to(param), episode[keys.QD].to(param)  # (T, nq), (T, nv)
     action = episode[keys.ACTION].to(param)
     q_next, qd_next = episode[keys.NEXT_Q].to(param), episode[keys.NEXT_QD].to(param)
-    q_scale = q_next.std(0).clamp_min(1e-3)
+    q_scale = _position_std(system, q_next).clamp_min(1e-3)  # (nv,)
     qd_scale = qd_next.std(0).clamp_min(1e-3)
 
     def rms(q_pred: Tensor, qd_pred: Tensor, q_true: Tensor, qd_true: Tensor) -> float:
