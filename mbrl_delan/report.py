@@ -356,27 +356,44 @@ def _oracles(summaries: list[dict[str, Any]], env: str) -> dict[str, float]:
     return {p: statistics.fmean(v) for p, v in sorted(by_planner.items()) if v}
 
 
+RETURN_ROWS = {
+    "eval_return_mean": "evaluation return",
+    "train_return": "on-policy episode return",
+}
+
+
 def returns_figure(summaries: list[dict[str, Any]], path: Path) -> Path:
-    """Evaluation return vs env steps, one panel per env, one line per model x planner.
+    """Returns vs env steps, one column per env, one line per model x planner: the evaluation
+    return (top row) and the return of each round's on-policy training episode (bottom row,
+    logged every round, so it has a point per round even when evaluations are rare).
 
     Mean and 95% CI band over seeds; the oracle of each planner (mean over its runs) is a
     dashed grey line.
     """
-    by_group = curves(summaries, "eval_return_mean")
-    envs = sorted({g[0] for g in by_group}) or ["no evaluations"]
-    fig, axes = _figure(1, len(envs))
-    for ax, env in zip(axes[0], envs, strict=True):
-        for group in (g for g in sorted(by_group) if g[0] == env):
-            _draw_band(ax, by_group[group], f"{group[1]} + {group[2]}")
-        for i, (planner, oracle) in enumerate(_oracles(summaries, env).items()):
-            grey = str(0.3 * (i % 3))  # black, dark grey, light grey, black, ...
-            ax.axhline(oracle, color=grey, ls="--", lw=1.2, label=f"oracle: {planner} on MuJoCo")
-        ax.set(title=env, xlabel="env steps", ylabel="evaluation return")
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7)
+    by_row = {key: curves(summaries, key) for key in RETURN_ROWS}
+    envs = sorted({g[0] for c in by_row.values() for g in c}) or ["no returns"]
+    fig, axes = _figure(len(RETURN_ROWS), len(envs))
+    for ax_row, (key, name) in zip(axes, RETURN_ROWS.items(), strict=True):
+        for ax, env in zip(ax_row, envs, strict=True):
+            _returns_panel(ax, by_row[key], summaries, env)
+            ax.set(title=env, xlabel="env steps", ylabel=name)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=150)
     return path
+
+
+def _returns_panel(
+    ax: Any, by_group: dict[Group, dict[int, list[float]]], summaries: list[dict[str, Any]],
+    env: str,
+) -> None:
+    """One env's return curves (line and band per group) and its planners' oracle lines."""
+    for group in (g for g in sorted(by_group) if g[0] == env):
+        _draw_band(ax, by_group[group], f"{group[1]} + {group[2]}")
+    for i, (planner, oracle) in enumerate(_oracles(summaries, env).items()):
+        grey = str(0.3 * (i % 3))  # black, dark grey, light grey, black, ...
+        ax.axhline(oracle, color=grey, ls="--", lw=1.2, label=f"oracle: {planner} on MuJoCo")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7)
 
 
 def _error_panel(ax: Any, by_group: dict[Group, dict[int, list[float]]], env: str) -> None:
