@@ -23,8 +23,8 @@ from mbrl_delan.models.delan import (
 )
 from mbrl_delan.models.features import QFeatures, rotation_matrix, skew
 from mbrl_delan.models.integrators import integrate
-from mbrl_delan.systems.posarith import integrate_pos
-from mbrl_delan.systems.system import load_system
+from mbrl_delan.systems.posarith import _index_tensors, integrate_pos
+from mbrl_delan.systems.system import FREE, HINGE, JointLayout, load_system
 
 MASS, GRAVITY = 2.0, 9.81
 OFFSET = torch.tensor([0.1, -0.2, 0.15], dtype=torch.float64)  # COM in the body frame
@@ -215,3 +215,16 @@ def test_free_body_energy_conserved_without_gravity_rk4(tmp_path) -> None:
         q, qd = s.q.detach(), s.qd.detach()
     drift = (dynamics.terms(q, qd).kinetic_energy - e0).abs() / e0
     assert drift.max() < 1e-6
+
+
+def test_position_indices_cached_in_inference_mode_still_serve_autograd() -> None:
+    """The first integrate_pos call of a layout may come from planning (inference mode);
+    fitting later differentiates through the same cached indices."""
+    layout = JointLayout(types=(FREE, HINGE), qpos_adr=(0, 7), dof_adr=(0, 6), limited=(False,) * 2)
+    _index_tensors.cache_clear()  # the first call below builds the cached indices
+    q = torch.cat([torch.tensor([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]), torch.zeros(1)])
+    with torch.inference_mode():
+        integrate_pos(layout, q, torch.ones(7), 0.1)
+    qd = torch.ones(7, requires_grad=True)
+    integrate_pos(layout, q, qd, 0.1).sum().backward()
+    assert qd.grad is not None and torch.isfinite(qd.grad).all()

@@ -477,7 +477,10 @@ class DeLaN(WorldModel):
 
     def applied_force(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
         """B a, plus the residual force when the model has one. (..., nv)"""
-        tau = self.dynamics.generalized_force(action)
+        return self._with_residual(self.dynamics.generalized_force(action), q, qd, action)
+
+    def _with_residual(self, tau: Tensor, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
+        """tau + r(q, qd, a) in torque units; tau itself without a residual. (..., nv)"""
         if self.residual is None:
             return tau
         qd_unit = self.velocity_limit / self.velocity_margin  # the largest |qd| in the data
@@ -495,11 +498,13 @@ class DeLaN(WorldModel):
         return self._step(q, qd, action)
 
     def _step(self, q: Tensor, qd: Tensor, action: Tensor) -> State:
+        tau = self.dynamics.generalized_force(action)  # B a: once per step, not per stage
         limit = self.velocity_limit
 
         def accel(q_: Tensor, qd_: Tensor) -> Tensor:
             qd_ = torch.clamp(qd_, -limit, limit)
-            return self.dynamics.forward_dynamics(q_, qd_, self.applied_force(q_, qd_, action))
+            force = self._with_residual(tau, q_, qd_, action)
+            return self.dynamics.forward_dynamics(q_, qd_, force)
 
         nxt = integrate(self.layout, accel, q, qd, self.control_dt, self.integrator, self.substeps)
         return State(q=nxt.q, qd=torch.clamp(nxt.qd, -limit, limit))

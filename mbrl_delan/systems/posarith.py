@@ -70,7 +70,19 @@ def _index_plan(layout: JointLayout) -> _Index:
 def _index_tensors(
     layout: JointLayout, device: torch.device
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """(lin_q, lin_v, quat_q (K, 4), rot_v (K, 3), inverse q order, inverse v order) on device."""
+    """(lin_q, lin_v, quat_q (K, 4), rot_v (K, 3), inverse q order, inverse v order) on device.
+
+    Built as normal tensors even when first called under `torch.inference_mode` (planning):
+    the cached indices are later used in autograd (fitting), which cannot save inference
+    tensors for backward.
+    """
+    with torch.inference_mode(False):
+        return _build_index_tensors(layout, device)
+
+
+def _build_index_tensors(
+    layout: JointLayout, device: torch.device
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     plan = _index_plan(layout)
 
     def idx(values: object) -> Tensor:
