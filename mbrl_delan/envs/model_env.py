@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import torch
@@ -130,7 +130,7 @@ class ModelObjectiveFactory:
         self.dtype = dtype
         self.risk = float(risk)
         self.compile = compile
-        self._compiled: Transition | None = None
+        self._compiled: Callable[[Tensor, Tensor, Tensor], Transition] | None = None
 
     def transition(self, q: Tensor, qd: Tensor, action: Tensor) -> Transition:
         """One control step in the model and its task reward and termination.
