@@ -76,6 +76,7 @@ from mbrl_delan.training.recorder import METRICS_FILE, Recorder, read_metrics
 log = logging.getLogger("mbrl_delan.fit")
 
 DATA_NAMES = ("cmu_mocap",)
+LR_SCHEDULES = ("constant", "cosine")
 RUN_CONFIG = "config.yaml"
 PROVENANCE_FILE = "dataset_provenance.json"
 MODEL_FILE = "model.pt"
@@ -106,6 +107,11 @@ def _number(
         raise ConfigError(f"{path}={value!r} is not valid; it must be a number {bound}{limit}")
 
 
+def _flag(path: str, value: Any) -> None:
+    if not isinstance(value, bool):
+        raise ConfigError(f"{path}={value!r} is not valid; it must be true or false")
+
+
 def _clip_names(path: str, value: Any, allow_empty: bool = False) -> list[str]:
     if not isinstance(value, list | tuple | ListConfig) or (not value and not allow_empty):
         raise ConfigError(
@@ -127,6 +133,8 @@ def _validate_model(cfg: DictConfig) -> None:
         _number("model.layers", cfg.layers, 1)
         _choice("model.activation", cfg.activation, DELAN_ACTIVATIONS)
         _number("model.diag_shift", cfg.diag_shift, 0.0, open_low=True)
+        _flag("model.still_first_order", cfg.still_first_order)
+        _flag("model.tree_sparse", cfg.tree_sparse)
     else:
         _choice("model.activation", cfg.activation, tuple(MLP_ACTIVATIONS))
     if cfg.name == "ensemble":
@@ -172,9 +180,11 @@ def validate_fit_config(cfg: DictConfig) -> None:
     _number("eval_batch_size", cfg.eval_batch_size, 1)
     _number("lr", cfg.lr, 0.0, open_low=True)
     _number("weight_decay", cfg.weight_decay, 0.0)
+    _choice("lr_schedule", cfg.lr_schedule, LR_SCHEDULES)
     if cfg.max_grad_norm is not None:
         _number("max_grad_norm", cfg.max_grad_norm, 0.0, open_low=True)
     _number("loss.std_floor", cfg.loss.std_floor, 0.0, 1.0, open_low=True)
+    _flag("translation_invariant", cfg.translation_invariant)
     _validate_model(cfg.model)
     _validate_data(cfg.data)
 
@@ -222,9 +232,16 @@ def make_dataset(cfg: DictConfig) -> MocapDataset:
 
 
 def build_inverse_model(
-    cfg: DictConfig, layout: JointLayout, std_floor: float
+    cfg: DictConfig,
+    layout: JointLayout,
+    std_floor: float,
+    translation_invariant: bool = False,
+    dof_parents: Sequence[int] | None = None,
 ) -> InverseDynamicsModel:
-    """The inverse-dynamics model named by ``cfg.name``."""
+    """The inverse-dynamics model named by ``cfg.name``. `translation_invariant`: no model
+    sees the root's position (DeLaN keeps gravity's exact w z potential in its height).
+    `dof_parents`: the kinematic tree, for DeLaN's ``model.tree_sparse``."""
+    root_height = not translation_invariant
     if cfg.name == "delan":
         return DeLaNInverse(
             layout,
@@ -235,15 +252,25 @@ def build_inverse_model(
             dissipation=cfg.dissipation,
             coulomb=cfg.coulomb,
             std_floor=std_floor,
+            translation_invariant=translation_invariant,
+            still_first_order=cfg.still_first_order,
+            dof_parents=dof_parents if cfg.tree_sparse else None,
         )
     if cfg.name == "mlp":
-        return MLPInverse(layout, hidden=cfg.hidden, activation=cfg.activation, std_floor=std_floor)
+        return MLPInverse(
+            layout,
+            hidden=cfg.hidden,
+            activation=cfg.activation,
+            std_floor=std_floor,
+            root_height=root_height,
+        )
     return MLPEnsembleInverse(
         layout,
         ensemble_size=cfg.ensemble_size,
         hidden=cfg.hidden,
         activation=cfg.activation,
         std_floor=std_floor,
+        root_height=root_height,
     )
 
 
@@ -277,7 +304,13 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     parts = split_dataset(dataset)
     splits = {name: _tensors(getattr(parts, name), device, dtype) for name in SPLITS}
     mj_model = _mujoco_model(dataset)
-    model = build_inverse_model(cfg.model, joint_layout(mj_model), cfg.loss.std_floor)
+    model = build_inverse_model(
+        cfg.model,
+        joint_layout(mj_model),
+        cfg.loss.std_floor,
+        cfg.translation_invariant,
+        mj_model.dof_parentid.tolist(),
+    )
     model = model.to(device=device, dtype=dtype)
     container = OmegaConf.to_container(cfg, resolve=True)
     logger = cfg.logger
@@ -308,12 +341,15 @@ def _train(
     )
     generator = torch.Generator(device=device).manual_seed(cfg.seed)
     evaluated = {k: v for k, v in splits.items() if v.shape[0] > 0}
+    scheduler = None
+    if cfg.lr_schedule == "cosine":  # from lr down to 0 over the epochs
+        scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=cfg.epochs)
 
     def on_epoch(result: EpochResult) -> None:
         recorder.log(result.record(), result.epoch)
 
     return fit_inverse_model(
-        model, optimizer, splits["train"], evaluated, settings, generator, on_epoch
+        model, optimizer, splits["train"], evaluated, settings, generator, on_epoch, scheduler
     )
 
 

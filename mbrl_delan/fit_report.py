@@ -1,10 +1,11 @@
-"""`python -m mbrl_delan.fit_report RUN... [--figure PNG] [--table]`: compare inverse-dynamics fits.
+"""`python -m mbrl_delan.fit_report RUN... [options]`: compare inverse-dynamics fits.
 
 Reads the runs of `python -m mbrl_delan.fit` (every folder at or below the given paths that
 holds a ``summary.json`` from it), draws their training and validation torque MSE per epoch
 on the same axes (``--figure``; the paper's figure: DeLaN against the feed-forward network)
 and prints a Markdown table of the final MSE per model and split (``--table``, the default
-when no figure is asked for).
+when nothing else is asked for); ``--seeds``: mean and 95% CI over seeds per model and split,
+and each model's paired difference to the feed-forward network on the same seeds.
 """
 
 from __future__ import annotations
@@ -68,6 +69,62 @@ def table(runs: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def _metric(summary: dict[str, Any], split: str, key: str) -> float | None:
+    part = summary["final"].get(split)
+    if part is None:
+        return None
+    if key == "root_mse":
+        return part.get("groups", {}).get("root", {}).get("mse")
+    return part.get(key)
+
+
+SEED_METRICS = (("mse", "MSE (normalised)"), ("joint_mse_si", "joint MSE (SI)"),
+                ("root_mse", "root MSE (normalised)"), ("r2", "R^2"))  # fmt: skip
+
+
+def seed_table(runs: list[dict[str, Any]], baseline: str = "mlp") -> str:
+    """Markdown: per model and split, mean +- 95% CI half-width (Student t) over seeds of the
+    final errors; then, for every other model, its difference to ``baseline`` on the same
+    seeds (paired: the data split is the same for every seed)."""
+    from mbrl_delan.report import mean_ci
+
+    models = list(dict.fromkeys(s["model"] for s in runs))
+    head = " | ".join(label for _, label in SEED_METRICS)
+    lines = [f"| model | split | seeds | {head} |", "|---|---|---|" + "---|" * len(SEED_METRICS)]
+    for model in models:
+        mine = [s for s in runs if s["model"] == model]
+        for split in SPLIT_ORDER:
+            cells = [_pm(*mean_ci(_values(mine, split, key))) for key, _ in SEED_METRICS]
+            lines.append(f"| {model} | {split} | {len(mine)} | " + " | ".join(cells) + " |")
+    by_seed = {s.get("seed"): s for s in runs if s["model"] == baseline}
+    others = [m for m in models if m != baseline]
+    if by_seed and others:
+        lines += ["", f"Difference to {baseline} on the same seeds (negative: lower error):", ""]
+        lines += [f"| model | split | pairs | {head} |", lines[1]]
+        for model in others:
+            pairs = [(s, by_seed[s.get("seed")]) for s in runs
+                     if s["model"] == model and s.get("seed") in by_seed]  # fmt: skip
+            for split in SPLIT_ORDER:
+                cells = []
+                for key, _ in SEED_METRICS:
+                    diff = [a - b for a, b in (
+                        (_metric(x, split, key), _metric(y, split, key)) for x, y in pairs
+                    ) if a is not None and b is not None]  # fmt: skip
+                    cells.append(_pm(*mean_ci(diff)))
+                lines.append(f"| {model} | {split} | {len(pairs)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _values(runs: list[dict[str, Any]], split: str, key: str) -> list[float]:
+    return [v for v in (_metric(s, split, key) for s in runs) if v is not None]
+
+
+def _pm(mean: float | None, half: float | None) -> str:
+    if mean is None:
+        return "n/a"
+    return f"{mean:.4g}" if half is None else f"{mean:.4g} ± {half:.2g}"
+
+
 def figure(runs: list[dict[str, Any]], path: Path) -> Path | None:
     """Every run's train and validation curves on shared axes (normalised and SI MSE)."""
     from mbrl_delan.training.fit_plots import plot_loss_curves
@@ -83,6 +140,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--figure", type=Path, default=None, help="write the loss curves (PNG)")
     parser.add_argument("--table", action="store_true", help="print the Markdown table")
+    parser.add_argument(
+        "--seeds",
+        action="store_true",
+        help="print mean +- 95%% CI over seeds per model, and the paired difference to the mlp",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     missing = [r for r in args.runs if not r.is_dir()]
@@ -97,8 +159,10 @@ def main(argv: list[str] | None = None) -> int:
             ", ".join(map(str, args.runs)),
         )
         return 2
-    if args.table or args.figure is None:
+    if args.table or (args.figure is None and not args.seeds):
         sys.stdout.write(table(runs) + "\n")  # the command's output, for piping into a file
+    if args.seeds:
+        sys.stdout.write(seed_table(runs) + "\n")
     if args.figure is not None:
         written = figure(runs, args.figure)
         log.info("figure: %s", written if written else "nothing to draw (no metrics)")

@@ -13,6 +13,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import mujoco
+import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -30,9 +32,12 @@ from mbrl_delan.data.mocap import (
 )
 from mbrl_delan.fit import run, validate_fit_config
 from mbrl_delan.fit_report import main as report_main
+from mbrl_delan.fit_report import seed_table
+from mbrl_delan.models.delan import tree_entries
 from mbrl_delan.models.inverse import DeLaNInverse, MLPEnsembleInverse, MLPInverse
 from mbrl_delan.systems.system import FREE, HINGE, JointLayout
 from mbrl_delan.training.fit import TrainingDivergedError
+from mbrl_delan.training.inverse_fit import evaluate_torques
 
 ROOT = Path(__file__).parents[1]
 CONFIGS = ROOT / "configs" / "fit"
@@ -138,6 +143,23 @@ def test_fit_report_table_and_shared_figure(fitted, tmp_path: Path, capsys) -> N
     assert report_main([str(tmp_path)]) == 2  # no runs there
 
 
+def test_seed_table_means_and_paired_differences() -> None:
+    """Worked example: DeLaN 0.5, 0.7 and MLP 0.6, 0.6 on seeds 0, 1: means 0.6 and 0.6,
+    paired differences -0.1, +0.1 -> mean 0 +- t(0.975, 1) * 0.1414 / sqrt(2) = 1.27."""
+
+    def run(model: str, seed: int, mse: float) -> dict:
+        groups = {"root": {"mse": 2 * mse}}
+        part = {"mse": mse, "joint_mse_si": 10 * mse, "r2": 1 - mse, "groups": groups}
+        return {"model": model, "seed": seed, "final": {s: part for s in SPLITS}}
+
+    runs = [run("delan", 0, 0.5), run("delan", 1, 0.7), run("mlp", 0, 0.6), run("mlp", 1, 0.6)]
+    text = seed_table(runs)
+    assert "| delan | val_clip | 2 | 0.6 ± 1.3 | 6 ± 13 | 1.2 ± 2.5 | 0.4 ± 1.3 |" in text
+    assert "| mlp | val_clip | 2 | 0.6 ± 0 | 6 ± 0 | 1.2 ± 0 | 0.4 ± 0 |" in text
+    diff = text.split("Difference to mlp")[1]
+    assert "| delan | val_clip | 2 | 0 ± 1.3 |" in diff
+
+
 # ---------------------------------------------------------------- models
 
 
@@ -223,12 +245,18 @@ def test_delan_inverse_units_come_from_delan(clip_folder) -> None:
     model = DeLaNInverse(humanoid_layout(), hidden=16).double()
     model.fit_normalization(data)
     field, friction = model.mechanics, model.dynamics.dissipation
-    held = data[keys.QDD].std(0) < 1e-9 * data[keys.QDD].std(0).max()  # clavicles, fingers
+    qdd_std, tau_std = data[keys.QDD].std(0), data[keys.TAU].std(0)
+    held = qdd_std < 1e-9 * qdd_std.max()  # clavicles, fingers
     assert int(held.sum()) == 10
     for units in (field.row_scale, friction.viscous_scale, friction.coulomb_scale):
         assert torch.isfinite(units).all() and (units > 0).all()
-    moving = field.row_scale[~held]
-    torch.testing.assert_close(field.row_scale[held].log(), moving.log().mean().expand(10))
+    moving = ~held
+    torch.testing.assert_close(field.row_scale[moving] ** 2, (tau_std / qdd_std)[moving])
+    # held still against gravity: the torque's std over the moving DoFs' typical acceleration
+    typical_qdd = qdd_std[moving].log().mean().exp()
+    torch.testing.assert_close(field.row_scale[held] ** 2, tau_std[held] / typical_qdd)
+    fingers = held & (tau_std < 0.5)  # fingers and thumbs: inertia units near their armature
+    assert int(fingers.sum()) == 6 and float(field.row_scale[fingers].max() ** 2) < 0.05
     assert float(field.energy_scale) == pytest.approx(float(data[keys.TAU].std(0).max()))
     assert float(field.row_scale.max()) < 10.0  # sqrt of the root's ~55 kg, not round-off
     features = field.features  # held-still hinges: only centred, not divided by ~0
@@ -237,6 +265,141 @@ def test_delan_inverse_units_come_from_delan(clip_folder) -> None:
     assert (features.plain_std[held_plain] == 1.0).all()
     with torch.no_grad():
         assert math.isfinite(float(model.loss(data).loss))
+
+
+def test_translation_invariant_models_do_not_see_the_root_position() -> None:
+    """With `translation_invariant`, DeLaN's tau does not change when the root moves
+    anywhere (x, y and z): its height enters only gravity's potential w z, whose force along
+    the height is the constant w; the MLP loses its root-height input."""
+    layout = humanoid_layout()
+    torch.manual_seed(0)
+    model = DeLaNInverse(layout, hidden=16, translation_invariant=True).double()
+    plain = DeLaNInverse(layout, hidden=16).double()
+    assert model.mechanics.features.n_features == plain.mechanics.features.n_features - 1
+    with torch.no_grad():
+        for p in model.parameters():
+            p.normal_(0.0, 0.05)
+        model.mechanics.height_weight.fill_(3.0)
+        model.mechanics.energy_scale.fill_(50.0)
+    q, qd, qdd = random_batch(layout, 4)
+    moved = q.clone()
+    moved[:, :3] += torch.tensor([10.0, -3.0, 0.7], dtype=q.dtype)
+    tau = model.predict_torque(q, qd, qdd)
+    torch.testing.assert_close(model.predict_torque(moved, qd, qdd), tau)
+    terms = model.dynamics.terms(q, qd)
+    V_moved = model.dynamics.terms(moved, qd).potential_energy
+    torch.testing.assert_close(V_moved - terms.potential_energy, q.new_full((4,), 0.7 * 150.0))
+    # the gravity force along the height: 150 from w z plus the network's V (no z input)
+    without_w = terms.gravity[:, 2] - 150.0
+    with torch.no_grad():
+        model.mechanics.height_weight.zero_()
+    torch.testing.assert_close(model.dynamics.terms(q, qd).gravity[:, 2], without_w)
+    mlp = MLPInverse(layout, hidden=8, root_height=False)
+    assert mlp.n_in == MLPInverse(layout, hidden=8).n_in - 1
+
+
+def test_height_weight_starts_at_the_bodys_weight(clip_folder) -> None:
+    """w starts at the mean vertical root force (m g for a body whose mean vertical
+    acceleration is ~0), once: a second fit_normalization keeps the learned w."""
+    data = build_dataset(
+        clips=(CLIP,), val_clips=(), folders=[clip_folder], download=False, samples_per_clip=200
+    ).data.select(keys.Q, keys.QD, keys.QDD, keys.TAU)
+    model = DeLaNInverse(humanoid_layout(), hidden=16, translation_invariant=True).double()
+    model.fit_normalization(data)
+    field = model.mechanics
+    w = float(field.height_weight.detach() * field.energy_scale)
+    assert w == pytest.approx(float(data[keys.TAU][:, 2].mean()))
+    with torch.no_grad():
+        field.height_weight.add_(0.25)
+    learned = float(field.height_weight.detach())
+    model.fit_normalization(data)
+    assert float(field.height_weight.detach()) == learned
+
+
+def test_tree_sparse_mass_matrix_couples_only_one_branch() -> None:
+    """With humanoid_CMU's dof_parentid, M = U U^T has MuJoCo's own sparsity: every entry
+    that is nonzero in mj_fullM is allowed, entries between two branches are exactly 0; M is
+    positive definite and forward dynamics inverts inverse dynamics."""
+    mj = mujoco.MjModel.from_xml_path(str(humanoid_cmu_xml()))
+    parents = mj.dof_parentid.tolist()
+    rows, cols = tree_entries(parents)
+    assert bool((rows < cols).all())
+    same_branch = torch.eye(mj.nv, dtype=torch.bool)
+    same_branch[rows, cols] = True
+    same_branch |= same_branch.clone().T
+    data = mujoco.MjData(mj)
+    data.qpos[7:] = np.random.default_rng(0).normal(0.0, 0.3, mj.nq - 7)
+    mujoco.mj_forward(mj, data)
+    true_m = np.zeros((mj.nv, mj.nv))
+    mujoco.mj_fullM(mj, data, true_m)
+    assert not (np.abs(true_m) > 1e-12)[~same_branch.numpy()].any()
+    assert int(same_branch.sum()) < mj.nv * mj.nv / 2  # a real restriction (hands, feet apart)
+    torch.manual_seed(0)
+    model = DeLaNInverse(humanoid_layout(), hidden=16, dof_parents=parents).double()
+    with torch.no_grad():
+        for p in model.parameters():
+            p.normal_(0.0, 0.05)
+    q, qd, qdd = random_batch(humanoid_layout(), 3)
+    M = model.mass_matrix(q).detach()
+    assert float(M[:, ~same_branch].abs().max()) == 0.0
+    assert bool((torch.linalg.cholesky_ex(M).info == 0).all())
+    tau = model.predict_torque(q, qd, qdd)
+    torch.testing.assert_close(model.dynamics.forward_dynamics(q, qd, tau), qdd)
+
+
+def test_tree_entries_of_a_small_tree() -> None:
+    """DoFs 0-1-2 in a chain and 3-4 a second branch off 0: U's entries are the ancestors."""
+    rows, cols = tree_entries([-1, 0, 1, 0, 3])
+    assert sorted(zip(rows.tolist(), cols.tolist(), strict=True)) == [
+        (0, 1), (0, 2), (0, 3), (0, 4), (1, 2), (3, 4)
+    ]  # fmt: skip
+    with pytest.raises(ValueError, match="parents first"):
+        tree_entries([-1, 2, 0])
+
+
+def test_still_joints_enter_to_first_order() -> None:
+    """A coordinate held still in the data: M does not depend on it, V is linear in it, so
+    its generalized force s G(q) is what the gravity of a finite difference of V says."""
+    layout = humanoid_layout()
+    torch.manual_seed(0)
+    model = DeLaNInverse(layout, hidden=16, still_first_order=True).double()
+    field = model.mechanics
+    q, qd, qdd = random_batch(layout, 3)
+    fit_q = q[:1].repeat(50, 1) + 0.2 * torch.randn(50, layout.nq, dtype=q.dtype)
+    fit_q[:, 7 + 41], fit_q[:, 7 + 55] = 0.3, -0.1  # two hinges that never move (v = q - 1)
+    field.features.standardize(fit_q)
+    assert field.features.plain_still.sum() == 2
+    with torch.no_grad():
+        for p in model.parameters():
+            p.normal_(0.0, 0.05)
+        field.still_scale.uniform_(0.5, 2.0)
+    moved = q.clone()
+    moved[:, 7 + 41] += 0.4
+    torch.testing.assert_close(model.mass_matrix(moved), model.mass_matrix(q))
+    terms = model.dynamics.terms(q, qd)
+    eps = 1e-6
+    for v in (6 + 41, 6 + 55, 6 + 3):
+        up, down = q.clone(), q.clone()
+        up[:, v + 1] += eps
+        down[:, v + 1] -= eps
+        dv = model.dynamics.terms(up, qd).potential_energy
+        dv = (dv - model.dynamics.terms(down, qd).potential_energy) / (2 * eps)
+        torch.testing.assert_close(terms.gravity[:, v], dv, rtol=1e-6, atol=1e-8)
+    second = model.dynamics.terms(moved, qd).gravity[:, 6 + 41]  # V linear in the held q
+    torch.testing.assert_close(second, terms.gravity[:, 6 + 41])
+
+
+def test_evaluation_keeps_no_autograd_graph(clip_folder) -> None:
+    """Per-epoch errors are kept for every epoch: they must not hold the evaluation's graph
+    (that leaked ~0.8 GB per epoch on the default mocap set)."""
+    data = build_dataset(
+        clips=(CLIP,), val_clips=(), folders=[clip_folder], download=False, samples_per_clip=50
+    ).data
+    model = DeLaNInverse(humanoid_layout(), hidden=8).double()
+    model.fit_normalization(data)
+    errors = evaluate_torques(model, data.select(keys.Q, keys.QD, keys.QDD, keys.TAU))
+    for t in (errors.dof_mse, errors.dof_mse_si, errors.dof_var):
+        assert not t.requires_grad and t.grad_fn is None
 
 
 # ---------------------------------------------------------------- errors
@@ -272,6 +435,7 @@ def test_bad_config_value_exits_2_naming_the_key(clip_folder, tmp_path: Path) ->
         ("data.clips=[131_03]", "quote names like '131_03'"),
         ("data.pd.gains=magic", "data.pd.gains='magic'"),
         ("model.activation=sigmoid", "model.activation='sigmoid'"),
+        ("translation_invariant=maybe", "translation_invariant='maybe'"),
     ],
 )
 def test_config_values_are_checked(clip_folder, override: str, expected: str) -> None:

@@ -87,6 +87,8 @@ def test_settings_are_the_fit_configs_defaults() -> None:
         top.max_grad_norm,
         top.loss.std_floor,
     )
+    assert bench.translation_invariant == top.translation_invariant
+    assert top.lr_schedule == "constant"  # the timed epoch has no schedule
     assert str(bench.dtype) == f"torch.{top.dtype}"
     data = OmegaConf.load(CONFIGS / "fit" / "data" / "cmu_mocap.yaml")
     assert list(bench.clips) == list(data.clips)

@@ -137,12 +137,12 @@ def naive_forward_dynamics(model: DeLaN, q: Tensor, qd: Tensor, tau: Tensor) -> 
     def mass(qi: Tensor) -> tuple[Tensor, Tensor]:
         out = net.trunk(net.features(qi)).out
         L = torch.diag_embed(F.softplus(out[:n]) + net.diag_shift)
-        L = L.index_put((net.rows, net.cols), out[n:-1])
+        L = L.index_put((net.rows, net.cols), out[n : net.v_row])
         M = L @ L.T
         return M, M
 
     def potential(qi: Tensor) -> Tensor:
-        return net.trunk(net.features(qi)).out[-1]
+        return net.trunk(net.features(qi)).out[net.v_row]
 
     dM, M = vmap(jacfwd(mass, has_aux=True))(q)  # dM[b, i, j, k] = d M_ij / d q_k
     g = vmap(grad(potential))(q)

@@ -108,6 +108,7 @@ class MocapBenchConfig:
     lr: float = 1e-3
     max_grad_norm: float | None = 100.0
     std_floor: float = 1e-3
+    translation_invariant: bool = True
     dtype: torch.dtype = torch.float32
     seed: int = 0
     # models (configs/fit/model/*.yaml)
@@ -118,6 +119,8 @@ class MocapBenchConfig:
     delan_diag_shift: float = 1e-3
     delan_dissipation: bool = True
     delan_coulomb: bool = False
+    delan_still_first_order: bool = True
+    delan_tree_sparse: bool = True
     mlp_hidden: int = 256
     mlp_activation: str = "silu"
     ensemble_size: int = 5
@@ -212,9 +215,11 @@ def training_split(dataset: MocapDataset, device: torch.device, dtype: torch.dty
 
 
 def make_inverse_model(
-    name: str, layout: JointLayout, cfg: MocapBenchConfig
+    name: str, layout: JointLayout, cfg: MocapBenchConfig, dof_parents: list[int] | None = None
 ) -> InverseDynamicsModel:
-    """The inverse-dynamics model ``name`` with the config's settings (as ``fit`` builds it)."""
+    """The inverse-dynamics model ``name`` with the config's settings (as ``fit`` builds it;
+    ``dof_parents``: the MuJoCo model's ``dof_parentid``, for DeLaN's tree sparsity)."""
+    root_height = not cfg.translation_invariant
     if name == "delan":
         return DeLaNInverse(
             layout,
@@ -225,10 +230,17 @@ def make_inverse_model(
             dissipation=cfg.delan_dissipation,
             coulomb=cfg.delan_coulomb,
             std_floor=cfg.std_floor,
+            translation_invariant=cfg.translation_invariant,
+            still_first_order=cfg.delan_still_first_order,
+            dof_parents=dof_parents if cfg.delan_tree_sparse else None,
         )
     if name == "mlp":
         return MLPInverse(
-            layout, hidden=cfg.mlp_hidden, activation=cfg.mlp_activation, std_floor=cfg.std_floor
+            layout,
+            hidden=cfg.mlp_hidden,
+            activation=cfg.mlp_activation,
+            std_floor=cfg.std_floor,
+            root_height=root_height,
         )
     if name == "ensemble":
         return MLPEnsembleInverse(
@@ -237,6 +249,7 @@ def make_inverse_model(
             hidden=cfg.ensemble_hidden,
             activation=cfg.ensemble_activation,
             std_floor=cfg.std_floor,
+            root_height=root_height,
         )
     raise ValueError(f"model must be one of {MODEL_NAMES}, got {name!r}")
 
@@ -307,14 +320,15 @@ def _missing_records(
 
 def _fit_record(
     name: str,
-    layout: JointLayout,
+    mj_model: mujoco.MjModel,
     train: TensorDict,
     cfg: MocapBenchConfig,
     opts: SuiteOptions,
     host: dict[str, Any],
 ) -> BenchRecord:
     torch.manual_seed(cfg.seed)
-    model = make_inverse_model(name, layout, cfg).to(device=opts.device, dtype=cfg.dtype)
+    layout, parents = joint_layout(mj_model), mj_model.dof_parentid.tolist()
+    model = make_inverse_model(name, layout, cfg, parents).to(device=opts.device, dtype=cfg.dtype)
     model.fit_normalization(train)
     n = int(train.shape[0])
     fields = {
@@ -360,10 +374,9 @@ def run_mocap(cfg: MocapBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord
     seconds = timing.seconds_per_call
     yield _record(case, "dataset_build_s", "s", "cpu", build_fields, timing, seconds)
     train = training_split(dataset, opts.device, cfg.dtype)
-    layout = joint_layout(mj_model)
     for name in cfg.models:
         log.info("mocap suite: one epoch of %s on %d samples", name, train.shape[0])
-        yield _fit_record(name, layout, train, cfg, opts, host)
+        yield _fit_record(name, mj_model, train, cfg, opts, host)
 
 
 def suite_config(opts: SuiteOptions) -> MocapBenchConfig:

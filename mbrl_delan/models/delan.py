@@ -19,7 +19,7 @@ in tests, closed-form models of known systems, so the same equations serve both.
 from __future__ import annotations
 
 import abc
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -60,7 +60,7 @@ class MechanicsJet:
     `pullback(dL, dV)` returns (dL/dq)^T dL + (dV/dq)^T dV: one reverse pass for both.
     """
 
-    L: Tensor  # (..., n, n) lower-triangular, positive diagonal
+    L: Tensor  # (..., n, n) triangular (lower; upper if the field's `upper`), positive diagonal
     L_dot: Tensor  # (..., n, n) dL/dt = dL/dq [qd]
     potential_energy: Tensor  # (...)
     pullback: Callable[[Tensor, Tensor], Tensor]  # (..., n, n), (...) -> (..., n)
@@ -87,6 +87,8 @@ class LagrangianTerms:
 class MechanicsField(nn.Module, abc.ABC):
     """Supplies L(q) and V(q) with the derivatives the Lagrangian equations need."""
 
+    upper: bool = False  # L is upper-triangular (M = L L^T either way)
+
     @abc.abstractmethod
     def jet(self, q: Tensor, qd: Tensor) -> MechanicsJet: ...
 
@@ -96,6 +98,25 @@ class LagrangianNetwork(MechanicsField):
 
     The L head gives n diagonal entries (softplus + shift, so diag(L) > 0) and n(n-1)/2
     entries below the diagonal; the V head gives the potential energy.
+
+    `heights`: (q index, v index) of coordinates that enter V only through a learned linear
+    term, V = V_net(phi(q)) + sum_k w_k q_k: the height of a free root, whose features then
+    leave it out (uniform gravity on the whole body's mass is m g z, and nothing else in M or
+    V depends on where the body is). Its v index must be the world-frame z velocity.
+
+    `still_potential` (with features built with ``freeze_still``): coordinates held still in
+    the data (their features frozen: M and V_net do not depend on them) enter V to first
+    order about their held value, V += sum_p (q_p - q_p0) s_p G_p(phi(q)), G a third head
+    and s_p a force unit (``still_scale``). The generalized force on such a coordinate is
+    then s_p G_p: what holding it against gravity takes, as a function of the moving ones;
+    no kinetic term depends on it (its Coriolis force is not identifiable from data in which
+    it never moves, and a free network makes up large ones on new motions).
+
+    `dof_parents`: each DoF's parent DoF in the kinematic tree (-1 at the root; MuJoCo's
+    ``dof_parentid``, parents before children). L is then upper-triangular with entries
+    only at (i, j) where DoF i is an ancestor of j: the factor of a tree's mass matrix
+    without fill-in (M = U U^T with U = L^T D^1/2 of MuJoCo's M = L^T D L), so M_ij = 0
+    exactly between DoFs on different branches (a hand and a foot), as in the true M.
     """
 
     def __init__(
@@ -106,17 +127,33 @@ class LagrangianNetwork(MechanicsField):
         layers: int,
         activation: str,
         diag_shift: float,
+        heights: Sequence[tuple[int, int]] = (),
+        still_potential: bool = False,
+        dof_parents: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
         if diag_shift <= 0:
             raise ValueError(
                 f"diag_shift must be > 0 so M stays positive definite, got {diag_shift}"
             )
+        if still_potential and not features.freeze_still:
+            raise ValueError("still_potential needs features built with freeze_still=True")
         self.features, self.n, self.diag_shift = features, n, diag_shift
-        n_off = n * (n - 1) // 2
-        self.trunk = TangentMLP(features.n_features, n + n_off + 1, hidden, layers, activation)
-        rows, cols = torch.tril_indices(n, n, -1)
-        # row of [diag head rows; strictly-lower head rows; a zero row] for each entry of L
+        self.upper = dof_parents is not None
+        if dof_parents is None:
+            rows, cols = torch.tril_indices(n, n, -1)
+        else:
+            rows, cols = tree_entries(dof_parents)
+        n_off = int(rows.numel())
+        self.still_potential = still_potential
+        n_still = features.n_plain if still_potential else 0
+        self.v_row = n + n_off  # head rows: [diag L (n); lower L (n_off); V (1); G (n_still)]
+        self.trunk = TangentMLP(
+            features.n_features, n + n_off + 1 + n_still, hidden, layers, activation
+        )
+        if still_potential:
+            self.register_buffer("still_scale", torch.ones(n_still))
+        # row of [diag head rows; off-diagonal head rows; a zero row] for each entry of L
         layout = torch.full((n * n,), n + n_off, dtype=torch.long)
         layout[torch.arange(n) * (n + 1)] = torch.arange(n)
         layout[rows * n + cols] = n + torch.arange(n_off)
@@ -130,6 +167,39 @@ class LagrangianNetwork(MechanicsField):
         row_of_entry = torch.arange(n).repeat_interleave(n)
         row_of_entry[torch.arange(n) * (n + 1)] = n  # diagonal entries: unscaled (slot n)
         self.register_buffer("row_of_entry", row_of_entry, persistent=False)
+        height_q, height_v = [h[0] for h in heights], [h[1] for h in heights]
+        self.register_buffer("height_q", torch.tensor(height_q, dtype=torch.long), persistent=False)
+        self.register_buffer("height_v", torch.tensor(height_v, dtype=torch.long), persistent=False)
+        self.height_weight: nn.Parameter | None = None
+        if heights:  # w_k in units of energy_scale per metre (m g for a free root's height)
+            self.height_weight = nn.Parameter(torch.zeros(len(heights)))
+            self.register_buffer("height_started", torch.zeros((), dtype=torch.bool))
+
+    @torch.no_grad()
+    def start_height_weight(self, force: Tensor) -> None:
+        """Start w at the mean generalized force (N, n) along each height: the body's weight
+        m g when the data's mean vertical acceleration is zero. Once: later calls (refits on
+        more data) keep the learned w."""
+        if self.height_weight is not None and not bool(self.height_started):
+            mean = force.index_select(-1, self.height_v).mean(dim=0)
+            self.height_weight.copy_(mean.to(self.height_weight) / self.energy_scale)
+            self.height_started.fill_(True)
+
+    def _still_terms(self, q: Tensor, hidden: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """For the plain coordinates: the force s G (0 where not held still) (..., m), the
+        offset q_p - q_p0 (..., m) and the G head's weight in force units (m, hidden)."""
+        features, head = self.features, self.trunk.head
+        rows = slice(self.v_row + 1, None)
+        unit = (self.still_scale * features.plain_still).unsqueeze(-1)  # (m, 1)
+        weight, bias = head.weight[rows] * unit, head.bias[rows] * unit.squeeze(-1)
+        offset = q.index_select(-1, features.plain_q) - features.plain_mean
+        return linear(hidden, weight, bias), offset, weight
+
+    def _height_potential(self, q: Tensor) -> tuple[Tensor, Tensor]:
+        """sum_k w_k q_k (...) and w in SI units (K,)."""
+        assert self.height_weight is not None
+        weight = self.height_weight * self.energy_scale
+        return q.index_select(-1, self.height_q) @ weight, weight
 
     @torch.no_grad()
     def start_diagonal(self) -> None:
@@ -146,9 +216,9 @@ class LagrangianNetwork(MechanicsField):
         matmul (the entries above the diagonal meet zero rows). Costs one gather of the
         weights per call, independent of the batch.
         """
-        head = self.trunk.head
-        weight = torch.cat([head.weight[:-1], head.weight.new_zeros(1, head.in_features)])
-        bias = torch.cat([head.bias[:-1], head.bias.new_zeros(1)])
+        head, rows = self.trunk.head, self.v_row
+        weight = torch.cat([head.weight[:rows], head.weight.new_zeros(1, head.in_features)])
+        bias = torch.cat([head.bias[:rows], head.bias.new_zeros(1)])
         scale = torch.cat([self.row_scale, self.row_scale.new_ones(1)])[self.row_of_entry]
         weight = weight.index_select(0, self.layout) * scale.unsqueeze(-1)
         return weight, bias.index_select(0, self.layout) * scale
@@ -166,8 +236,16 @@ class LagrangianNetwork(MechanicsField):
         torch.diagonal(L, dim1=-2, dim2=-1).copy_(diag)
         L_dot = d_raw
         torch.diagonal(L_dot, dim1=-2, dim2=-1).mul_(diag_slope)
-        v_weight, v_bias = head.weight[-1] * self.energy_scale, head.bias[-1:] * self.energy_scale
+        v = self.v_row
+        v_weight = head.weight[v] * self.energy_scale
+        v_bias = head.bias[v : v + 1] * self.energy_scale
         potential = linear(body.out, v_weight.unsqueeze(0), v_bias).squeeze(-1)
+        if self.height_q.numel():
+            height_potential, height_weight = self._height_potential(q)
+            potential = potential + height_potential
+        if self.still_potential:
+            still_force, still_offset, still_weight = self._still_terms(q, body.out)
+            potential = potential + (still_offset * still_force).sum(-1)
 
         def pullback(d_L: Tensor, d_V: Tensor) -> Tensor:
             d_diag = torch.diagonal(d_L, dim1=-2, dim2=-1)  # (..., n)
@@ -176,7 +254,15 @@ class LagrangianNetwork(MechanicsField):
                 + linear((diag_slope - 1.0) * d_diag, head.weight[:n].T)
                 + d_V.unsqueeze(-1) * v_weight
             )
-            return self.features.vjp(q, self.trunk.body_vjp(body, d_hidden))
+            if self.still_potential:
+                d_hidden = d_hidden + linear(d_V.unsqueeze(-1) * still_offset, still_weight.T)
+            grad = self.features.vjp(q, self.trunk.body_vjp(body, d_hidden))
+            if self.still_potential:
+                still_grad = d_V.unsqueeze(-1) * still_force
+                grad = grad.index_add(-1, self.features.plain_v, still_grad)
+            if self.height_q.numel():
+                grad = grad.index_add(-1, self.height_v, d_V.unsqueeze(-1) * height_weight)
+            return grad
 
         return MechanicsJet(L=L, L_dot=L_dot, potential_energy=potential, pullback=pullback)
 
@@ -291,9 +377,13 @@ class LagrangianDynamics(nn.Module):
     def forward_dynamics(self, q: Tensor, qd: Tensor, tau: Tensor) -> Tensor:
         """qdd = M^-1 (tau - c - g - d) by two triangular solves with L. (..., n)"""
         bias, L = self._bias_and_cholesky(q, qd)
+        rhs = (tau - bias).unsqueeze(-1)  # (..., n, 1)
+        if self.field.upper:  # M = U U^T: U y = rhs, then U^T x = y
+            y = torch.linalg.solve_triangular(L, rhs, upper=True)
+            return torch.linalg.solve_triangular(L.transpose(-1, -2), y, upper=False).squeeze(-1)
         if torch.compiler.is_compiling() and L.shape[-1] <= SMALL_SOLVE:
             return unrolled_cholesky_solve(L, tau - bias)
-        return torch.cholesky_solve((tau - bias).unsqueeze(-1), L).squeeze(-1)
+        return torch.cholesky_solve(rhs, L).squeeze(-1)
 
     def generalized_force(self, action: Tensor) -> Tensor:
         """tau = B a: (..., nu) -> (..., n)."""
@@ -346,6 +436,31 @@ class ResidualForce(nn.Module):
     def forward(self, q: Tensor, qd: Tensor, action: Tensor, qd_unit: Tensor) -> Tensor:
         """(..., nq), (..., nv), (..., nu), (nv,) -> (..., nv), unitless."""
         return self.net(torch.cat([self.features(q), qd / qd_unit, action], dim=-1))
+
+
+def tree_entries(dof_parents: Sequence[int]) -> tuple[Tensor, Tensor]:
+    """(rows, cols) of the entries (i, j), i < j, where DoF i is an ancestor of DoF j."""
+    rows: list[int] = []
+    cols: list[int] = []
+    for j, parent in enumerate(dof_parents):
+        ancestors = []
+        while parent >= 0:
+            if parent >= j:
+                raise ValueError(f"dof_parents must list parents first: DoF {j} has {parent}")
+            ancestors.append(parent)
+            parent = dof_parents[parent]
+        rows += sorted(ancestors)
+        cols += [j] * len(ancestors)
+    return torch.tensor(rows, dtype=torch.long), torch.tensor(cols, dtype=torch.long)
+
+
+def free_root_heights(layout: JointLayout) -> list[tuple[int, int]]:
+    """(q index, v index) of each free joint's height z (its world-frame z velocity)."""
+    return [
+        (qa + 2, va + 2)
+        for jtype, qa, va in zip(layout.types, layout.qpos_adr, layout.dof_adr, strict=True)
+        if jtype == FREE
+    ]
 
 
 def rotational_dofs(layout: JointLayout) -> Tensor:
@@ -404,6 +519,20 @@ class DeLaN(WorldModel):
     `residual`: add a learned generalized force r(q, qd, a) (`ResidualForce`, in units of
     `tau_scale`, zero at initialisation) to B a, for what the Lagrangian terms cannot hold:
     contacts and joint limits.
+
+    `translation_invariant`: M and the network part of V do not see a free root's height
+    (its x/y never enter), and V gains an exact gravity term w z in that height, w learned
+    and started at the data's mean vertical force (`LagrangianNetwork`, ``heights``). For a
+    free-floating body under uniform gravity this is the whole dependence of M and V on the
+    root's position. The residual force still sees the height (contacts depend on it).
+
+    `still_first_order`: coordinates that do not move in the data given to
+    `fit_normalization` (motion capture's uncaptured fingers and fixed clavicles) are taken to
+    first order about their held value: M does not depend on them and V is linear in them
+    (`LagrangianNetwork`, ``still_potential``), with force units from the data's torques.
+
+    `dof_parents` (MuJoCo's ``dof_parentid``): M's factor gets the kinematic tree's
+    sparsity (`LagrangianNetwork`), so M couples only DoFs on one branch.
     """
 
     def __init__(
@@ -427,6 +556,9 @@ class DeLaN(WorldModel):
         inertia_scaling: bool = False,
         diagonal_init: bool = False,
         residual: bool = False,
+        translation_invariant: bool = False,
+        still_first_order: bool = False,
+        dof_parents: Sequence[int] | None = None,
     ) -> None:
         super().__init__()
         if integrator not in INTEGRATORS:
@@ -448,7 +580,21 @@ class DeLaN(WorldModel):
         features = QFeatures(layout)
         self.layout, self.control_dt = layout, control_dt
         self.integrator, self.substeps, self.loss_kind = integrator, substeps, loss
-        network = LagrangianNetwork(features, n, hidden, layers, activation, diag_shift)
+        heights = free_root_heights(layout) if translation_invariant else []
+        own_features = bool(heights) or still_first_order
+        network = LagrangianNetwork(
+            QFeatures(layout, root_height=not heights, freeze_still=still_first_order)
+            if own_features
+            else features,
+            n,
+            hidden,
+            layers,
+            activation,
+            diag_shift,
+            heights=heights,
+            still_potential=still_first_order,
+            dof_parents=dof_parents,
+        )
         raw_init = 0.0 if diagonal_init else -4.0
         self.dynamics = LagrangianDynamics(
             field=network,
@@ -525,7 +671,12 @@ class DeLaN(WorldModel):
             q, qd = torch.cat([q, q_next]), torch.cat([qd, qd_next])
         if self.inertia_scaling:
             self._fit_inertia_scale(data, tau)
-        self.dynamics.field.features.standardize(q)
+        field = self.dynamics.field
+        field.features.standardize(q)
+        if isinstance(field, LagrangianNetwork):
+            field.start_height_weight(tau)
+        if self.residual is not None:
+            self.residual.features.standardize(q)
         speed = qd.abs().amax(dim=0).clamp_min(1e-3)
         self.velocity_limit.copy_(self.velocity_margin * speed)
 
@@ -537,10 +688,13 @@ class DeLaN(WorldModel):
         - V in units of the largest torque std;
         - viscous friction in std(tau_i) / rms(qd_i), Coulomb friction in std(tau_i).
 
-        A DoF whose torque, qdd or qd does not vary (spread below `CONSTANT_RATIO` of the
-        largest: unactuated, or held still, e.g. round-off motion) gets the geometric mean of
-        the others' units. Starts M near the data's inertia scale, which matters when it
-        spans decades (a humanoid: 40 kg root, 0.02 kg m^2 wrists).
+        A DoF whose qdd or qd does not vary (spread below `CONSTANT_RATIO` of the largest)
+        but whose torque does is held still against gravity and its neighbours' motion (the
+        mocap's clavicles, fingers, thumbs): its inertia unit is std(tau_i) over the moving
+        DoFs' geometric-mean qdd std (the fingers: ~0.003, not the body's ~0.6). A DoF whose
+        torque does not vary either (unactuated) gets the geometric mean of the others' units,
+        as do its friction units. Starts M near the data's inertia scale, which matters when
+        it spans decades (a humanoid: 40 kg root, 0.02 kg m^2 wrists).
         """
         qdd = data.get(keys.QDD, None)
         if qdd is None:
@@ -552,8 +706,15 @@ class DeLaN(WorldModel):
         if not known.any():
             return
         field = self.dynamics.field
-        field.row_scale.copy_(_fill_geometric(tau_std / qdd_std, known).sqrt())
+        inertia = _fill_geometric(tau_std / qdd_std, known)
+        held = _varies(tau_std) & ~known  # torque without motion
+        typical_qdd = qdd_std[known].log().mean().exp()
+        inertia = torch.where(held, tau_std / typical_qdd, inertia)
+        field.row_scale.copy_(inertia.sqrt())
         field.energy_scale.fill_(float(tau_std.max()))
+        if isinstance(field, LagrangianNetwork) and field.still_potential:
+            still_tau = tau_std.index_select(0, field.features.plain_v)
+            field.still_scale.copy_(still_tau.clamp_min(CONSTANT_RATIO * float(tau_std.max())))
         dissipation = self.dynamics.dissipation
         if dissipation is not None:
             dissipation.viscous_scale.copy_(_fill_geometric(tau_std / qd_rms, known))

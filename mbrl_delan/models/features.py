@@ -8,7 +8,8 @@ Per joint (MuJoCo layout):
   the data, never beyond +-b, so a far-away position cannot blow up the network;
 - ball: the 9 entries of its rotation matrix R (smooth, and blind to the quaternion's sign);
 - free: the root height z and R; the x/y position is left out (the physics does not depend
-  on it), unless `translation_invariant=False`.
+  on it), unless `translation_invariant=False`; `root_height=False` also leaves z out (for
+  models whose only dependence on the height is gravity's linear potential, or none).
 
 DeLaN differentiates the features along a generalized velocity. Angular velocities of ball
 and free joints are body-frame (quasi-velocities), so the derivative of R along omega is
@@ -60,10 +61,19 @@ class QFeatures(nn.Module):
     """phi(q): (..., nq) -> (..., n_features), with jvp/vjp in velocity space (nv)."""
 
     def __init__(
-        self, layout: JointLayout, translation_invariant: bool = True, bound_plain: bool = True
+        self,
+        layout: JointLayout,
+        translation_invariant: bool = True,
+        bound_plain: bool = True,
+        root_height: bool = True,
+        freeze_still: bool = False,
     ) -> None:
         """`bound_plain=False` gives the plain coordinates as they are (for models that
-        standardise their inputs themselves)."""
+        standardise their inputs themselves); `root_height=False` leaves a free joint's
+        height out (with `translation_invariant`: no position of the root at all).
+        `freeze_still`: a plain coordinate that does not move in the data given to
+        `standardize` becomes a constant feature 0 with zero derivative (``plain_still``
+        marks it): nothing the network computes depends on it."""
         super().__init__()
         periodic, plain_q, plain_v, rotations, positions = [], [], [], [], []
         for jtype, qa, va, limited in zip(
@@ -72,7 +82,7 @@ class QFeatures(nn.Module):
             if jtype == HINGE and not limited:
                 periodic.append((qa, va))
             elif jtype == FREE:
-                coords = (2,) if translation_invariant else (0, 1, 2)
+                coords = ((2,) if root_height else ()) if translation_invariant else (0, 1, 2)
                 positions += [(qa + k, va + k) for k in coords]
                 rotations.append((qa + 3, va + 3))
             elif jtype == BALL:
@@ -91,9 +101,11 @@ class QFeatures(nn.Module):
         self.n_periodic, self.n_plain, self.n_rot = len(periodic), len(plain_q), len(rotations)
         self.nq, self.nv = layout.nq, layout.nv
         self.n_features = 2 * self.n_periodic + self.n_plain + 9 * self.n_rot
-        self.bound_plain = bound_plain
+        self.bound_plain, self.freeze_still = bound_plain, freeze_still
         self.register_buffer("plain_mean", torch.zeros(self.n_plain))
         self.register_buffer("plain_std", torch.ones(self.n_plain))
+        if freeze_still:  # 1: held still in the data, frozen
+            self.register_buffer("plain_still", torch.zeros(self.n_plain))
         self._index("velocity_order", self._velocity_order())
 
     @torch.no_grad()
@@ -108,6 +120,8 @@ class QFeatures(nn.Module):
             std = plain.std(dim=0)  # (n_plain,)
             self.plain_mean.copy_(plain.mean(dim=0))
             self.plain_std.copy_(torch.where(std >= PLAIN_MIN_STD, std, torch.ones_like(std)))
+            if self.freeze_still:
+                self.plain_still.copy_((std < PLAIN_MIN_STD).to(self.plain_still))
 
     def _plain(self, q: Tensor) -> tuple[Tensor, Tensor]:
         """Bounded standardised plain features and their derivative per unit of q. (..., m)"""
@@ -116,7 +130,11 @@ class QFeatures(nn.Module):
             return plain, torch.ones_like(plain)
         z = (_take(q, self.plain_q) - self.plain_mean) / self.plain_std
         bounded = torch.tanh(z / PLAIN_BOUND)
-        return PLAIN_BOUND * bounded, (1.0 - bounded * bounded) / self.plain_std
+        value, slope = PLAIN_BOUND * bounded, (1.0 - bounded * bounded) / self.plain_std
+        if self.freeze_still:
+            moving = 1.0 - self.plain_still
+            return value * moving, slope * moving
+        return value, slope
 
     def _index(self, name: str, values: list, empty_shape: tuple[int, ...] = (0,)) -> None:
         t = torch.tensor(values, dtype=torch.long) if values else torch.zeros(empty_shape).long()

@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import abc
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -132,7 +132,9 @@ class InverseDynamicsModel(nn.Module, abc.ABC):
 class _FeedForwardInverse(InverseDynamicsModel):
     """Standardised inputs [phi(q), qd, qdd] and outputs tau = net * tau_scale + tau_mean."""
 
-    def __init__(self, layout: JointLayout, activation: str, std_floor: float) -> None:
+    def __init__(
+        self, layout: JointLayout, activation: str, std_floor: float, root_height: bool
+    ) -> None:
         super().__init__(layout.nv, std_floor)
         if activation not in MLP_ACTIVATIONS:
             raise ValueError(
@@ -140,7 +142,7 @@ class _FeedForwardInverse(InverseDynamicsModel):
             )
         self.activation = activation
         self.act = MLP_ACTIVATIONS[activation]
-        self.features = QFeatures(layout)
+        self.features = QFeatures(layout, root_height=root_height)
         self.n_in = self.features.n_features + 2 * layout.nv
         self.register_buffer("in_mean", torch.zeros(self.n_in))
         self.register_buffer("in_std", torch.ones(self.n_in))
@@ -172,8 +174,9 @@ class MLPInverse(_FeedForwardInverse):
         hidden: int = 256,
         activation: str = "silu",
         std_floor: float = 1e-3,
+        root_height: bool = True,
     ) -> None:
-        super().__init__(layout, activation, std_floor)
+        super().__init__(layout, activation, std_floor, root_height)
         if hidden < 1:
             raise ValueError(f"hidden must be >= 1, got {hidden}")
         self.layers = nn.ModuleList(
@@ -210,8 +213,9 @@ class MLPEnsembleInverse(_FeedForwardInverse):
         hidden: int = 256,
         activation: str = "silu",
         std_floor: float = 1e-3,
+        root_height: bool = True,
     ) -> None:
-        super().__init__(layout, activation, std_floor)
+        super().__init__(layout, activation, std_floor, root_height)
         if ensemble_size < 1 or hidden < 1:
             raise ValueError(f"need ensemble_size >= 1 and hidden >= 1: {ensemble_size}, {hidden}")
         self.ensemble_size = ensemble_size
@@ -253,6 +257,11 @@ class DeLaNInverse(InverseDynamicsModel):
         std_floor: see `InverseDynamicsModel`.
         control_dt: DeLaN's step (s); only used for finite-difference accelerations when the
             data lack ``qdd`` (humanoid_CMU's timestep by default).
+        translation_invariant: the root's height enters only gravity's potential w z (see
+            `DeLaN`); the feed-forward models' counterpart is ``root_height=False``.
+        still_first_order: joints held still in the data (fingers, clavicles) to first order:
+            M does not depend on them, V is linear in them (see `DeLaN`).
+        dof_parents: MuJoCo's ``dof_parentid``: M gets the kinematic tree's sparsity.
     """
 
     def __init__(
@@ -266,6 +275,9 @@ class DeLaNInverse(InverseDynamicsModel):
         coulomb: bool = False,
         std_floor: float = 1e-3,
         control_dt: float = 0.002,
+        translation_invariant: bool = False,
+        still_first_order: bool = False,
+        dof_parents: Sequence[int] | None = None,
     ) -> None:
         super().__init__(layout.nv, std_floor)
         self.delan = DeLaN(
@@ -281,6 +293,9 @@ class DeLaNInverse(InverseDynamicsModel):
             coulomb=coulomb,
             inertia_scaling=True,
             diagonal_init=True,
+            translation_invariant=translation_invariant,
+            still_first_order=still_first_order,
+            dof_parents=dof_parents,
         )
 
     @property
@@ -296,7 +311,8 @@ class DeLaNInverse(InverseDynamicsModel):
         return self.dynamics.inverse_dynamics(q, qd, qdd)  # (..., nv)
 
     def mass_matrix_cholesky(self, q: Tensor) -> Tensor:
-        """The learned factor L (M = L L^T, units included) at q (..., nq): (..., nv, nv)."""
+        """The learned factor L (M = L L^T, units included; triangular) at q (..., nq):
+        (..., nv, nv)."""
         qd = q.new_zeros(q.shape[:-1] + (self.nv,))
         return self.mechanics.jet(q, qd).L
 

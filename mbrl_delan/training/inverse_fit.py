@@ -145,10 +145,14 @@ class MassMatrixCheck:
         }
 
 
+@torch.no_grad()
 def evaluate_torques(
     model: InverseDynamicsModel, data: TensorDictBase, batch_size: int = 2048
 ) -> TorqueErrors:
-    """Per-DoF errors of ``model.predict_torque`` on ``data`` (N,) with q, qd, qdd, tau."""
+    """Per-DoF errors of ``model.predict_torque`` on ``data`` (N,) with q, qd, qdd, tau.
+
+    Without autograd: the errors hold no graph (kept for every epoch, they would keep every
+    evaluation's graph alive)."""
     model.eval()
     n, nv = data.shape[0], model.nv
     sse, tau_sum, tau_sq = (torch.zeros(nv, dtype=F64) for _ in range(3))
@@ -228,11 +232,12 @@ def fit_inverse_model(
     settings: InverseFitSettings,
     generator: torch.Generator,
     on_epoch: Callable[[EpochResult], None] | None = None,
+    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None,
 ) -> list[EpochResult]:
     """Train on ``train`` (N,) and evaluate every split in ``splits`` after each epoch.
 
     ``model.fit_normalization(train)`` is called first. ``on_epoch`` receives each epoch's
-    result as soon as it is known (for logging).
+    result as soon as it is known (for logging). ``scheduler`` steps once per epoch.
 
     Raises:
         TrainingDivergedError: a loss or gradient norm became NaN/inf; the model holds the
@@ -253,6 +258,8 @@ def fit_inverse_model(
             raise TrainingDivergedError(
                 epoch - 1, err.metric, err.value, _report(results, list(splits)), ""
             ) from None
+        if scheduler is not None:
+            scheduler.step()
         errors = {
             name: evaluate_torques(model, part, settings.eval_batch_size)
             for name, part in splits.items()
