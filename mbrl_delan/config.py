@@ -141,6 +141,7 @@ def build_model(cfg: DictConfig, system: System) -> WorldModel:
     if cfg.name == "delan_ensemble":
         return DeLaNEnsemble(
             **_delan_arguments(cfg, system),
+            residual=cfg.residual,
             ensemble_size=cfg.ensemble_size,
             propagation=cfg.propagation,
             bootstrap=cfg.bootstrap,

@@ -24,11 +24,13 @@ def layout(n: int, slide_first: bool = False) -> JointLayout:
     )
 
 
-def model(n: int = 3, nu: int | None = None, seed: int = 0, **kw) -> DeLaN:
+def model(
+    n: int = 3, nu: int | None = None, seed: int = 0, slide_first: bool = True, **kw
+) -> DeLaN:
     torch.manual_seed(seed)
     nu = n if nu is None else nu
     B = torch.randn(n, nu)
-    m = DeLaN(layout(n, slide_first=True), B, control_dt=0.01, hidden=32, layers=2, **kw)
+    m = DeLaN(layout(n, slide_first=slide_first), B, control_dt=0.01, hidden=32, layers=2, **kw)
     with torch.no_grad():  # random biases too, so no symmetry of the initialisation helps
         for layer in m.modules():
             if isinstance(layer, torch.nn.Linear):
@@ -87,9 +89,11 @@ def reference_terms(m: DeLaN, q, qd):
     return torch.stack(cs), torch.stack(gs)
 
 
-def test_coriolis_and_gravity_match_autograd() -> None:
-    m = model(3)
-    q, qd = random_state(3, batch=8)
+@pytest.mark.parametrize(("n", "slide_first"), [(3, True), (1, False), (1, True)])
+def test_coriolis_and_gravity_match_autograd(n: int, slide_first: bool) -> None:
+    """Also with one DoF (a hinge; a slide), where the pullback reuses the forward tangent."""
+    m = model(n, slide_first=slide_first)
+    q, qd = random_state(n, batch=8)
     t = m.terms(q, qd)
     c_ref, g_ref = reference_terms(m, q, qd)
     torch.testing.assert_close(t.coriolis, c_ref, rtol=1e-9, atol=1e-10)

@@ -72,13 +72,13 @@ def transitions(n: int = 48, seed: int = 2) -> TensorDict:
     )
 
 
-def reference_members(loss: str = "both") -> list[DeLaN]:
+def reference_members(loss: str = "both", **options) -> list[DeLaN]:
     """E standalone DeLaN modules with independent random weights and fitted statistics."""
     data = transitions()
     members = []
     for seed in range(E):
         torch.manual_seed(100 + seed)
-        m = DeLaN(MIXED, actuation(), control_dt=0.02, loss=loss, **ARCH)
+        m = DeLaN(MIXED, actuation(), control_dt=0.02, loss=loss, **ARCH, **options)
         with torch.no_grad():  # biases and friction off their defaults too (|qdd| < 1e3)
             for p in m.parameters():
                 p.add_(0.1 * torch.randn_like(p))
@@ -106,6 +106,25 @@ def test_tsinf_equals_a_loop_over_members(batch: int) -> None:
     with torch.inference_mode():
         out = ens.step(q, qd, action)
         for b in range(batch):
+            ref = members[b % E].step(q[b], qd[b], action[b])
+            torch.testing.assert_close(out.q[b], ref.q, **TOL)
+            torch.testing.assert_close(out.qd[b], ref.qd, **TOL)
+
+
+def test_members_with_a_residual_and_translation_invariance_equal_a_loop() -> None:
+    """Every DeLaN option reaches the members: with the residual force and the height
+    potential, the ensemble's step and loss are still those of E separate DeLaNs."""
+    options = {"residual": True, "translation_invariant": True}
+    members = reference_members(**options)
+    assert members[0].residual is not None
+    ens = DeLaNEnsemble(
+        MIXED, actuation(), control_dt=0.02, ensemble_size=E, loss="both", **ARCH, **options
+    )
+    ens.load_members(members)
+    q, qd, action = states(2 * E)
+    with torch.inference_mode():
+        out = ens.step(q, qd, action)
+        for b in range(2 * E):
             ref = members[b % E].step(q[b], qd[b], action[b])
             torch.testing.assert_close(out.q[b], ref.q, **TOL)
             torch.testing.assert_close(out.qd[b], ref.qd, **TOL)

@@ -224,11 +224,17 @@ class LagrangianNetwork(MechanicsField):
         return weight, bias.index_select(0, self.layout) * scale
 
     def jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
+        """With one DoF the tangent along a unit velocity is the whole Jacobian of the
+        trunk, so the pullback is a dot product with it (no reverse pass through the trunk)."""
         n, head = self.n, self.trunk.head
-        body = self.trunk.body(self.features(q), self.features.jvp(q, qd))
+        scalar = n == 1
+        direction = torch.ones_like(qd) if scalar else qd
+        body = self.trunk.body(self.features(q), self.features.jvp(q, direction))
+        jacobian = body.d_out  # (..., hidden): d hidden / dq when scalar, else along qd
+        d_body = jacobian * qd if scalar else jacobian  # tangent of the hidden layer along qd
         weight, bias = self._matrix_head()
         raw = linear(body.out, weight, bias).unflatten(-1, (n, n))  # (..., n, n), 0 above
-        d_raw = linear(body.d_out, weight).unflatten(-1, (n, n))
+        d_raw = linear(d_body, weight).unflatten(-1, (n, n))
         raw_diag = torch.diagonal(raw, dim1=-2, dim2=-1).clone()  # (..., n), unscaled
         diag_slope = self.row_scale * torch.sigmoid(raw_diag)  # d L_ii / d raw_ii
         L = raw  # fresh output of `linear`: its diagonal is replaced in place
@@ -256,7 +262,10 @@ class LagrangianNetwork(MechanicsField):
             )
             if self.still_potential:
                 d_hidden = d_hidden + linear(d_V.unsqueeze(-1) * still_offset, still_weight.T)
-            grad = self.features.vjp(q, self.trunk.body_vjp(body, d_hidden))
+            if scalar:
+                grad = (d_hidden * jacobian).sum(-1, keepdim=True)  # (..., 1)
+            else:
+                grad = self.features.vjp(q, self.trunk.body_vjp(body, d_hidden))
             if self.still_potential:
                 still_grad = d_V.unsqueeze(-1) * still_force
                 grad = grad.index_add(-1, self.features.plain_v, still_grad)

@@ -122,34 +122,23 @@ class DeLaNEnsemble(WorldModel):
         layout: JointLayout,
         actuation: Tensor,
         control_dt: float,
-        hidden: int = 64,
-        layers: int = 2,
-        activation: str = "softplus",
-        diag_shift: float = 1e-3,
-        integrator: str = "rk4",
-        substeps: int = 1,
-        loss: str = "forward",
-        dissipation: bool = True,
-        coulomb: bool = True,
-        unactuated_torque_scale: float = 1.0,
-        velocity_margin: float = 3.0,
-        max_velocity: float = 100.0,
         ensemble_size: int = 5,
         propagation: str = "tsinf",
         bootstrap: bool = True,
         seed: int | None = None,
+        **delan_options: Any,
     ) -> None:
         """Build E independently initialised members (torch's default RNG).
 
-        The arguments from ``layout`` to ``max_velocity`` are `DeLaN`'s (every member gets
-        the same).
-
         Args:
+            layout, actuation, control_dt: as `DeLaN`'s.
             ensemble_size: number of members E (>= 1).
             propagation: "tsinf", "ts1" or "mean" (how `step` uses the members).
             bootstrap: in training mode each member trains on its own resample (with
                 replacement) of every batch; in eval mode (validation) on the whole batch.
             seed: seeds `self.generator` (bootstrap draws); None uses torch's default RNG.
+            delan_options: any other keyword argument of `DeLaN` (``hidden``, ``integrator``,
+                ``residual``, ...), the same for every member.
         """
         super().__init__()
         if ensemble_size < 1:
@@ -162,24 +151,7 @@ class DeLaNEnsemble(WorldModel):
             None if seed is None else torch.Generator().manual_seed(seed)
         )
         members = [
-            DeLaN(
-                layout,
-                actuation,
-                control_dt,
-                hidden=hidden,
-                layers=layers,
-                activation=activation,
-                diag_shift=diag_shift,
-                integrator=integrator,
-                substeps=substeps,
-                loss=loss,
-                dissipation=dissipation,
-                coulomb=coulomb,
-                unactuated_torque_scale=unactuated_torque_scale,
-                velocity_margin=velocity_margin,
-                max_velocity=max_velocity,
-            )
-            for _ in range(ensemble_size)
+            DeLaN(layout, actuation, control_dt, **delan_options) for _ in range(ensemble_size)
         ]
         self.members = self._stacked_store(members)
         # code only: its tensors are never used (every call passes the members' tensors)
