@@ -131,7 +131,9 @@ class DeLaNEnsemble(WorldModel):
         """Build E independently initialised members (torch's default RNG).
 
         Args:
-            layout, actuation, control_dt: as `DeLaN`'s.
+            layout: joint layout, as `DeLaN`'s.
+            actuation: B (nv, nu), as `DeLaN`'s.
+            control_dt: control period (s), as `DeLaN`'s.
             ensemble_size: number of members E (>= 1).
             propagation: "tsinf", "ts1" or "mean" (how `step` uses the members).
             bootstrap: in training mode each member trains on its own resample (with
