@@ -122,6 +122,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         horizons=_optional_positive_ints("horizons", values["horizons"]),
         iterations=_optional_positive_ints("iterations", values["iterations"]),
         torchrl=bool(values["torchrl"]),
+        transitions=_optional_positive_ints("transitions", values["transitions"]),
     )
 
 

@@ -129,6 +129,8 @@ def _delan_arguments(cfg: DictConfig, system: System) -> dict[str, Any]:
         dissipation=cfg.dissipation,
         coulomb=cfg.coulomb,
         velocity_margin=cfg.velocity_margin,
+        inertia_scaling=cfg.inertia_scaling,
+        diagonal_init=cfg.inertia_scaling,
     )
 
 

@@ -28,6 +28,7 @@ _SUITES = {
     "mocap": "mbrl_delan.benchmarks.mocap:run_mocap_suite",
     "identify_humanoid": "mbrl_delan.benchmarks.humanoid_identify:run_identify_humanoid_suite",
     "planner": "mbrl_delan.benchmarks.planner:run_planner_suite",
+    "humanoid": "mbrl_delan.benchmarks.humanoid:run_humanoid_suite",
 }
 SUITE_NAMES = tuple(_SUITES)
 # world-model cases of suite planner (here so the entry point can check names without
@@ -121,6 +122,8 @@ class SuiteOptions:
     horizons: tuple[int, ...] | None = None  # planning horizons H (control steps)
     iterations: tuple[int, ...] | None = None  # planner iterations per control step
     torchrl: bool = True  # also time TorchRL's MPPIPlanner / CEMPlanner where they apply
+    # suite humanoid (None: the suite's default, or its quick size under `quick`)
+    transitions: tuple[int, ...] | None = None  # training-set sizes
 
 
 def synchronizer(device: torch.device) -> Callable[[], None]:

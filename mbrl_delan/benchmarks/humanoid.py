@@ -1,0 +1,246 @@
+"""Suite `humanoid`: world models of Humanoid-v5 with contacts, by open-loop rollout error.
+
+How well does each world model of the loop predict a real humanoid (gymnasium's Humanoid-v5:
+free root + 17 hinges, contacts on, `env=humanoid_stand`'s system and task) from the same
+transitions? For each training-set size n in `sizes`:
+
+1. Data: n transitions (q, qd, action -> next q, next qd) from episodes of `env` started at
+   the task's initial states, under `PDHoldPolicy`: a PD law holding the initial pose plus
+   Gaussian control noise (the humanoid wobbles, steps and falls; an episode ends when the
+   task terminates, the head below its fall height, or after `episode_len` steps). Test
+   episodes of the same policy from other seeds (`test_transitions` in all). This is not the
+   planner's on-policy data: collecting 10k-50k planner steps takes hours on a CPU.
+2. Models, built as `python -m mbrl_delan.train env=humanoid_stand model=...` builds them
+   (`config.build_model`; settings `HumanoidBenchConfig.model_settings`, the defaults of
+   `configs/model/*.yaml` with the humanoid env's integrator and residual force): `delan`
+   (DeLaN with the residual generalized force), `delan_ensemble` (5 such members) and
+   `ensemble` (5 Gaussian MLPs, the PETS baseline), each fitted on the same n transitions
+   with `training.fit.fit_model` (Adam, early stopping on a 10% validation split).
+3. `rollout_error` at every horizon h: `training.loop.model_error`'s h-step error on every
+   test episode (open loop on the episode's own actions from every start t with t + h <= T;
+   RMS over starts and DoFs of the velocity-space state error, per DoF over the episode's
+   state std), averaged over the test episodes weighted by their number of starts.
+
+Records: case ``{model}-n{n}``, metric ``rollout_error`` (field ``horizon``), and
+``fit_s`` (seconds of the fit). Everything runs on `opts.device` except MuJoCo.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import mujoco
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+
+from mbrl_delan import keys
+from mbrl_delan.benchmarks import SuiteOptions, host_fields
+from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.config import build_model
+from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.models.base import WorldModel
+from mbrl_delan.systems.system import System
+from mbrl_delan.tasks.base import Task
+from mbrl_delan.training.fit import FitConfig, fit_model
+from mbrl_delan.training.loop import model_error
+
+log = logging.getLogger(__name__)
+
+SUITE = "humanoid"
+MODEL_CASES = ("delan", "delan_ensemble", "ensemble")
+
+# configs/model/{delan,delan_ensemble,ensemble}.yaml with configs/env/humanoid_stand.yaml's
+# model_integrator (euler), model_substeps (2), model_residual and model_inertia_scaling
+# (true); compared in a test
+_DELAN = dict(
+    hidden=64, layers=2, activation="softplus", diag_shift=0.001, integrator="euler",
+    substeps=2, loss="forward", dissipation=True, coulomb=True, velocity_margin=3.0,
+    residual=True, inertia_scaling=True, lr=0.003, weight_decay=0.0,
+)  # fmt: skip
+MODEL_SETTINGS: dict[str, dict[str, Any]] = {
+    "delan": dict(name="delan", compile=False, **_DELAN),
+    "delan_ensemble": dict(
+        name="delan_ensemble", ensemble_size=5, propagation="tsinf", bootstrap=True, **_DELAN
+    ),
+    "ensemble": dict(
+        name="ensemble", ensemble_size=5, hidden=128, layers=3, activation="silu",
+        propagation="tsinf", lr=0.001, weight_decay=0.00005,
+    ),  # fmt: skip
+}
+
+
+@dataclass(frozen=True)
+class HumanoidBenchConfig:
+    """Sizes and settings of the suite (`quick`: seconds, for tests)."""
+
+    env: str = "humanoid_stand"
+    sizes: tuple[int, ...] = (10_000, 50_000)  # training transitions
+    test_transitions: int = 2_000
+    horizons: tuple[int, ...] = (1, 10, 30)
+    models: tuple[str, ...] = MODEL_CASES
+    episode_len: int = 200  # control steps at most per data episode
+    kp: float = 100.0  # N m / rad: PD hold of the initial hinge angles
+    kd: float = 5.0  # N m s / rad
+    noise: float = 0.3  # control noise std, share of each actuator's half range
+    fit: FitConfig = field(
+        default_factory=lambda: FitConfig(batch_size=256, max_epochs=200, patience=10)
+    )
+    model_settings: dict[str, dict[str, Any]] = field(default_factory=lambda: MODEL_SETTINGS)
+    seed: int = 0
+
+    @classmethod
+    def quick(cls) -> HumanoidBenchConfig:
+        tiny = {name: {**s, "hidden": 8, "layers": 1} for name, s in MODEL_SETTINGS.items()}
+        for name in ("delan_ensemble", "ensemble"):
+            tiny[name]["ensemble_size"] = 2
+        return cls(
+            sizes=(120,),
+            test_transitions=60,
+            horizons=(1, 5),
+            episode_len=30,
+            fit=FitConfig(batch_size=32, max_epochs=2, patience=None),
+            model_settings=tiny,
+        )
+
+
+class PDHoldPolicy:
+    """ctrl = clip((kp (q0 - q) - kd qd) / gear + noise) for each actuator on its hinge.
+
+    q0: the episode's initial hinge angles. Each actuator drives the DoF where its column of
+    B (tau = B ctrl) is largest, with gear B[dof, j]; noise ~ N(0, (noise * half range)^2).
+    """
+
+    def __init__(self, system: System, kp: float, kd: float, noise: float, seed: int) -> None:
+        B = system.actuation.double().numpy()  # (nv, nu)
+        self.dof = np.abs(B).argmax(axis=0)  # (nu,)
+        self.gear = B[self.dof, np.arange(B.shape[1])]
+        self.low, self.high = system.ctrl_low.double().numpy(), system.ctrl_high.double().numpy()
+        self.kp, self.kd, self.noise = kp, kd, noise
+        self.qpos_of_dof = {}  # hinge DoF -> its qpos index
+        layout = system.layout
+        for qa, va in zip(layout.qpos_adr, layout.dof_adr, strict=True):
+            self.qpos_of_dof[va] = qa
+        self.qpos = np.array([self.qpos_of_dof[d] for d in self.dof])
+        self.rng = np.random.default_rng(seed)
+        self.q0 = np.zeros(len(self.dof))
+
+    def reset(self, qpos: np.ndarray) -> None:
+        self.q0 = qpos[self.qpos].copy()
+
+    def __call__(self, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+        torque = self.kp * (self.q0 - qpos[self.qpos]) - self.kd * qvel[self.dof]
+        half = 0.5 * (self.high - self.low)
+        ctrl = torque / self.gear + self.noise * half * self.rng.standard_normal(len(self.dof))
+        return np.clip(ctrl, self.low, self.high)
+
+
+def collect_episodes(
+    system: System, task: Task, n: int, cfg: HumanoidBenchConfig, seed: int
+) -> list[TensorDict]:
+    """Episodes (each a TensorDict (T,) of q, qd, action, next q, next qd; float64) of
+    `PDHoldPolicy` on MuJoCo, until they hold n transitions in all (the last one cut)."""
+    model = system.mj_model()
+    data = mujoco.MjData(model)
+    policy = PDHoldPolicy(system, cfg.kp, cfg.kd, cfg.noise, seed)
+    generator = torch.Generator().manual_seed(seed)
+    episodes, count = [], 0
+    while count < n:
+        start = task.initial_state((), generator)
+        mujoco.mj_resetData(model, data)
+        data.qpos[:], data.qvel[:] = start.q.numpy(), start.qd.numpy()
+        mujoco.mj_forward(model, data)
+        policy.reset(data.qpos)
+        rows: list[tuple[np.ndarray, ...]] = []
+        for _ in range(min(cfg.episode_len, n - count)):
+            q, qd = data.qpos.copy(), data.qvel.copy()
+            data.ctrl[:] = policy(q, qd)
+            mujoco.mj_step(model, data, nstep=system.frame_skip)
+            rows.append((q, qd, data.ctrl.copy(), data.qpos.copy(), data.qvel.copy()))
+            nxt = torch.from_numpy(data.qpos), torch.from_numpy(data.qvel)
+            if bool(task.terminated(*nxt)):
+                break
+        count += len(rows)
+        episodes.append(_episode(rows))
+    return episodes
+
+
+def _episode(rows: list[tuple[np.ndarray, ...]]) -> TensorDict:
+    columns = zip(*rows, strict=True)
+    q, qd, action, q_next, qd_next = (torch.from_numpy(np.stack(c)) for c in columns)
+    return TensorDict(
+        {keys.Q: q, keys.QD: qd, keys.ACTION: action, keys.NEXT_Q: q_next, keys.NEXT_QD: qd_next},
+        batch_size=[q.shape[0]],
+    )
+
+
+def fit_world_model(
+    name: str, system: System, data: TensorDict, cfg: HumanoidBenchConfig, device: torch.device
+) -> tuple[WorldModel, float]:
+    """Model `name` fitted on transitions ``data`` (N,). -> (model, seconds)."""
+    settings = OmegaConf.create(cfg.model_settings[name])
+    torch.manual_seed(cfg.seed)
+    model = build_model(settings, system).to(device=device, dtype=torch.float32)
+    optimizer = torch.optim.Adam(
+        model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay
+    )
+    generator = torch.Generator(device=device).manual_seed(cfg.seed)
+    start = time.perf_counter()
+    fit_model(model, optimizer, data.to(device=device, dtype=torch.float32), cfg.fit, generator)
+    return model, time.perf_counter() - start
+
+
+def rollout_error(
+    model: WorldModel, system: System, episodes: list[TensorDict], horizon: int
+) -> float | None:
+    """`model_error`'s horizon-step error averaged over the episodes at least that long,
+    weighted by their starts (None if no episode is)."""
+    total, weight = 0.0, 0
+    for episode in episodes:
+        starts = episode.shape[0] - horizon + 1
+        if starts < 1:
+            continue
+        err = model_error(model, system, episode.to(torch.float32), horizon)
+        total += (err.one_step if horizon == 1 else err.multi_step) * starts
+        weight += starts
+    return total / weight if weight else None
+
+
+def run_humanoid(cfg: HumanoidBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord]:
+    parts = make_env_parts(cfg.env)
+    system, task = parts.system, parts.task
+    host = host_fields(opts.device)
+    test = collect_episodes(system, task, cfg.test_transitions, cfg, cfg.seed + 1000)
+    for n in cfg.sizes:
+        train = torch.cat(collect_episodes(system, task, n, cfg, cfg.seed))
+        fields = dict(
+            env=cfg.env, transitions=n, test_transitions=cfg.test_transitions,
+            data_policy=f"pd_hold kp={cfg.kp} kd={cfg.kd} noise={cfg.noise}", **host,
+        )  # fmt: skip
+        for name in cfg.models:
+            log.info("humanoid suite: fitting %s on %d transitions", name, n)
+            model, seconds = fit_world_model(name, system, train, cfg, opts.device)
+            case = f"{name}-n{n}"
+            yield BenchRecord(SUITE, case, "fit_s", seconds, "s", str(opts.device), dict(fields))
+            for h in cfg.horizons:
+                value = rollout_error(model, system, test, h)
+                log.info("%s: rollout_error h=%d %s", case, h, value)
+                yield BenchRecord(
+                    SUITE, case, "rollout_error", value, "normalised RMS", str(opts.device),
+                    {**fields, "horizon": h},
+                )  # fmt: skip
+
+
+def suite_config(opts: SuiteOptions) -> HumanoidBenchConfig:
+    cfg = HumanoidBenchConfig.quick() if opts.quick else HumanoidBenchConfig()
+    return replace(cfg, sizes=opts.transitions) if opts.transitions else cfg
+
+
+def run_humanoid_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
+    """The registered suite."""
+    return run_humanoid(suite_config(opts), opts)

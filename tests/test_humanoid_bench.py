@@ -1,0 +1,112 @@
+"""Suite `humanoid`: Humanoid-v5 data from a PD hold, world models fitted, rollout errors."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from mbrl_delan import keys
+from mbrl_delan.benchmarks.humanoid import (
+    MODEL_SETTINGS,
+    HumanoidBenchConfig,
+    PDHoldPolicy,
+    collect_episodes,
+    rollout_error,
+)
+from mbrl_delan.config import build_model
+from mbrl_delan.envs.registry import make_env_parts
+
+CONFIGS = Path(__file__).parents[1] / "configs"
+
+
+@pytest.fixture(scope="module")
+def humanoid():
+    return make_env_parts("humanoid_stand")
+
+
+def test_quick_suite_writes_every_model_and_horizon(tmp_path: Path) -> None:
+    out = tmp_path / "humanoid.jsonl"
+    cmd = [sys.executable, "-m", "mbrl_delan.bench", "suite=humanoid", "quick=true", "threads=1"]
+    cmd += [f"out={out}", f"hydra.run.dir={tmp_path / 'run'}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    errors = [r for r in records if r["metric"] == "rollout_error"]
+    assert {r["case"] for r in errors} == {"delan-n120", "delan_ensemble-n120", "ensemble-n120"}
+    assert sorted({r["horizon"] for r in errors}) == [1, 5]
+    assert all(r["value"] is not None and math.isfinite(r["value"]) for r in errors)
+    assert sum(r["metric"] == "fit_s" for r in records) == 3
+
+
+def test_pd_hold_policy_worked_example(humanoid) -> None:
+    """No noise: at the held pose and at rest the control is 0; a hinge 0.1 rad off gets
+    -kp 0.1 / gear on its actuator (clipped to the control range)."""
+    system = humanoid.system
+    policy = PDHoldPolicy(system, kp=10.0, kd=1.0, noise=0.0, seed=0)
+    qpos = system.mj_model().qpos0.copy()
+    policy.reset(qpos)
+    qvel = np.zeros(system.nv)
+    assert np.allclose(policy(qpos, qvel), 0.0)
+    moved = qpos.copy()
+    moved[policy.qpos[0]] += 0.1
+    ctrl = policy(moved, qvel)
+    low, high = float(system.ctrl_low[0]), float(system.ctrl_high[0])
+    expected = np.clip(-10.0 * 0.1 / policy.gear[0], low, high)
+    assert ctrl[0] == pytest.approx(float(expected))
+    assert np.allclose(ctrl[1:], 0.0)
+
+
+def test_episodes_are_contiguous_mujoco_transitions(humanoid) -> None:
+    cfg = HumanoidBenchConfig.quick()
+    episodes = collect_episodes(humanoid.system, humanoid.task, 50, cfg, seed=3)
+    assert sum(e.shape[0] for e in episodes) == 50
+    for ep in episodes:  # each step starts where the last one ended
+        torch.testing.assert_close(ep[keys.Q][1:], ep[keys.NEXT_Q][:-1])
+        torch.testing.assert_close(ep[keys.QD][1:], ep[keys.NEXT_QD][:-1])
+
+
+def test_rollout_error_skips_episodes_shorter_than_the_horizon(humanoid) -> None:
+    cfg = HumanoidBenchConfig.quick()
+    episodes = collect_episodes(humanoid.system, humanoid.task, 20, cfg, seed=4)
+    model = build_model(OmegaConf.create(cfg.model_settings["ensemble"]), humanoid.system)
+    model.fit_normalization(torch.cat(episodes).to(torch.float32))
+    assert rollout_error(model, humanoid.system, episodes, horizon=10_000) is None
+    assert rollout_error(model, humanoid.system, episodes, horizon=1) > 0
+
+
+def test_untrained_humanoid_delan_has_a_finite_first_gradient(humanoid) -> None:
+    """With the humanoid env's inertia scaling the first forward loss of an untrained DeLaN
+    is O(10); without it ~1e12 and the gradient overflows (the loop's fit diverged)."""
+    cfg = HumanoidBenchConfig.quick()
+    data = torch.cat(collect_episodes(humanoid.system, humanoid.task, 120, cfg, 0))
+    losses = {}
+    for scaling in (True, False):
+        settings = {**MODEL_SETTINGS["delan"], "inertia_scaling": scaling}
+        torch.manual_seed(0)
+        model = build_model(OmegaConf.create(settings), humanoid.system)
+        model.fit_normalization(data.to(torch.float32))
+        out = model.loss(data[:64].to(torch.float32))
+        out.loss.backward()
+        grads = [p.grad for p in model.parameters() if p.grad is not None]
+        finite = all(bool(torch.isfinite(g).all()) for g in grads)
+        losses[scaling] = (float(out.loss.detach()), finite)
+    assert losses[True][0] < 1e3 and losses[True][1]
+    assert losses[False][0] > 1e6  # what the setting fixes
+
+
+def test_model_settings_are_the_configs_for_the_humanoid(humanoid) -> None:
+    env = OmegaConf.load(CONFIGS / "env" / "humanoid_stand.yaml")
+    for name, settings in MODEL_SETTINGS.items():
+        yaml = OmegaConf.load(CONFIGS / "model" / f"{name}.yaml")
+        merged = OmegaConf.merge(OmegaConf.create({"env": env}), OmegaConf.create({"m": yaml}))
+        resolved = OmegaConf.to_container(merged, resolve=True)["m"]
+        for key, value in settings.items():
+            assert resolved[key] == value, (name, key)
