@@ -162,12 +162,17 @@ def collect_episodes(
             data.ctrl[:] = policy(q, qd)
             mujoco.mj_step(model, data, nstep=system.frame_skip)
             rows.append((q, qd, data.ctrl.copy(), data.qpos.copy(), data.qvel.copy()))
-            nxt = torch.from_numpy(data.qpos), torch.from_numpy(data.qvel)
-            if bool(task.terminated(*nxt)):
-                break
-        count += len(rows)
-        episodes.append(_episode(rows))
+        episode = _until_terminated(_episode(rows), task)  # one batched check per episode
+        count += episode.shape[0]
+        episodes.append(episode)
     return episodes
+
+
+def _until_terminated(episode: TensorDict, task: Task) -> TensorDict:
+    """The episode up to and including its first step into a terminal state."""
+    done = task.terminated(episode[keys.NEXT_Q], episode[keys.NEXT_QD])  # (T,)
+    hits = done.nonzero()
+    return episode[: int(hits[0]) + 1] if hits.numel() else episode
 
 
 def _episode(rows: list[tuple[np.ndarray, ...]]) -> TensorDict:
