@@ -131,6 +131,8 @@ def _delan_arguments(cfg: DictConfig, system: System) -> dict[str, Any]:
         velocity_margin=cfg.velocity_margin,
         inertia_scaling=cfg.inertia_scaling,
         diagonal_init=cfg.inertia_scaling,
+        translation_invariant=cfg.translation_invariant,
+        dof_parents=system.mj_model().dof_parentid.tolist() if cfg.tree_sparse else None,
     )
 
 

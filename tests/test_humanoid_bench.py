@@ -110,3 +110,24 @@ def test_model_settings_are_the_configs_for_the_humanoid(humanoid) -> None:
         resolved = OmegaConf.to_container(merged, resolve=True)["m"]
         for key, value in settings.items():
             assert resolved[key] == value, (name, key)
+
+
+def test_loop_delan_with_the_free_tree_structure(humanoid) -> None:
+    """model.tree_sparse and model.translation_invariant reach the loop's DeLaN: on
+    Humanoid-v5 its M is zero between the two legs, and a step moves the state finitely."""
+    settings = {**MODEL_SETTINGS["delan"], "tree_sparse": True, "translation_invariant": True}
+    torch.manual_seed(0)
+    model = build_model(OmegaConf.create(settings), humanoid.system).double()
+    cfg = HumanoidBenchConfig.quick()
+    data = torch.cat(collect_episodes(humanoid.system, humanoid.task, 60, cfg, 0))
+    model.fit_normalization(data)
+    parents = humanoid.system.mj_model().dof_parentid
+    chain = lambda d: {d} | (chain(parents[d]) if parents[d] >= 0 else set())  # noqa: E731
+    legs = [d for d in range(humanoid.system.nv) if d >= 6]
+    apart = [(i, j) for i in legs for j in legs if i not in chain(j) and j not in chain(i)]
+    assert apart  # two branches exist
+    M = model.terms(data[keys.Q][:4], data[keys.QD][:4]).mass_matrix.detach()
+    rows, cols = zip(*apart, strict=True)
+    assert float(M[:, list(rows), list(cols)].abs().max()) == 0.0
+    step = model.step(data[keys.Q][:4], data[keys.QD][:4], data[keys.ACTION][:4])
+    assert torch.isfinite(step.q).all() and torch.isfinite(step.qd).all()

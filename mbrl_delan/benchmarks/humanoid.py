@@ -61,7 +61,8 @@ MODEL_CASES = ("delan", "delan_ensemble", "ensemble")
 _DELAN = dict(
     hidden=64, layers=2, activation="softplus", diag_shift=0.001, integrator="euler",
     substeps=2, loss="forward", dissipation=True, coulomb=True, velocity_margin=3.0,
-    residual=True, inertia_scaling=True, lr=0.003, weight_decay=0.0,
+    residual=True, inertia_scaling=True, translation_invariant=False, tree_sparse=False,
+    lr=0.003, weight_decay=0.0,
 )  # fmt: skip
 MODEL_SETTINGS: dict[str, dict[str, Any]] = {
     "delan": dict(name="delan", compile=False, **_DELAN),
