@@ -123,11 +123,9 @@ class PDHoldPolicy:
         self.gear = B[self.dof, np.arange(B.shape[1])]
         self.low, self.high = system.ctrl_low.double().numpy(), system.ctrl_high.double().numpy()
         self.kp, self.kd, self.noise = kp, kd, noise
-        self.qpos_of_dof = {}  # hinge DoF -> its qpos index
         layout = system.layout
-        for qa, va in zip(layout.qpos_adr, layout.dof_adr, strict=True):
-            self.qpos_of_dof[va] = qa
-        self.qpos = np.array([self.qpos_of_dof[d] for d in self.dof])
+        qpos_of_dof = dict(zip(layout.dof_adr, layout.qpos_adr, strict=True))  # hinge DoFs
+        self.qpos = np.array([qpos_of_dof[d] for d in self.dof])
         self.rng = np.random.default_rng(seed)
         self.q0 = np.zeros(len(self.dof))
 

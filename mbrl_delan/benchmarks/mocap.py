@@ -25,12 +25,13 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 import mujoco
 import torch
+from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 from mbrl_delan import keys
@@ -57,13 +58,8 @@ from mbrl_delan.data.mocap import (
     split_dataset,
 )
 from mbrl_delan.data.mocap.retarget import joint_layout
-from mbrl_delan.models.inverse import (
-    MODEL_NAMES,
-    DeLaNInverse,
-    InverseDynamicsModel,
-    MLPEnsembleInverse,
-    MLPInverse,
-)
+from mbrl_delan.fit import build_inverse_model
+from mbrl_delan.models.inverse import MODEL_NAMES, InverseDynamicsModel
 from mbrl_delan.systems.system import JointLayout
 from mbrl_delan.training.inverse_fit import InverseFitSettings, train_epoch
 
@@ -217,41 +213,23 @@ def training_split(dataset: MocapDataset, device: torch.device, dtype: torch.dty
 def make_inverse_model(
     name: str, layout: JointLayout, cfg: MocapBenchConfig, dof_parents: list[int] | None = None
 ) -> InverseDynamicsModel:
-    """The inverse-dynamics model ``name`` with the config's settings (as ``fit`` builds it;
-    ``dof_parents``: the MuJoCo model's ``dof_parentid``, for DeLaN's tree sparsity)."""
-    root_height = not cfg.translation_invariant
-    if name == "delan":
-        return DeLaNInverse(
-            layout,
-            hidden=cfg.delan_hidden,
-            layers=cfg.delan_layers,
-            activation=cfg.delan_activation,
-            diag_shift=cfg.delan_diag_shift,
-            dissipation=cfg.delan_dissipation,
-            coulomb=cfg.delan_coulomb,
-            std_floor=cfg.std_floor,
-            translation_invariant=cfg.translation_invariant,
-            still_first_order=cfg.delan_still_first_order,
-            dof_parents=dof_parents if cfg.delan_tree_sparse else None,
-        )
-    if name == "mlp":
-        return MLPInverse(
-            layout,
-            hidden=cfg.mlp_hidden,
-            activation=cfg.mlp_activation,
-            std_floor=cfg.std_floor,
-            root_height=root_height,
-        )
-    if name == "ensemble":
-        return MLPEnsembleInverse(
-            layout,
-            ensemble_size=cfg.ensemble_size,
-            hidden=cfg.ensemble_hidden,
-            activation=cfg.ensemble_activation,
-            std_floor=cfg.std_floor,
-            root_height=root_height,
-        )
-    raise ValueError(f"model must be one of {MODEL_NAMES}, got {name!r}")
+    """The inverse-dynamics model ``name`` with the config's settings, built by
+    `fit.build_inverse_model` from the ``{name}_*`` fields (``dof_parents``: the MuJoCo
+    model's ``dof_parentid``, for DeLaN's tree sparsity)."""
+    if name not in MODEL_NAMES:
+        raise ValueError(f"model must be one of {MODEL_NAMES}, got {name!r}")
+    prefix = f"{name}_"
+    settings = {
+        f.name.removeprefix(prefix): getattr(cfg, f.name)
+        for f in fields(cfg)
+        if f.name.startswith(prefix)
+    }
+    if name == "ensemble":  # the field is ensemble_size, as the config key
+        settings["ensemble_size"] = settings.pop("size")
+    model_cfg = OmegaConf.create({"name": name, **settings})
+    return build_inverse_model(
+        model_cfg, layout, cfg.std_floor, cfg.translation_invariant, dof_parents
+    )
 
 
 def epoch_call(
