@@ -436,6 +436,8 @@ def test_bad_config_value_exits_2_naming_the_key(clip_folder, tmp_path: Path) ->
         ("data.pd.gains=magic", "data.pd.gains='magic'"),
         ("model.activation=sigmoid", "model.activation='sigmoid'"),
         ("translation_invariant=maybe", "translation_invariant='maybe'"),
+        ("lr_schedule=linear", "lr_schedule='linear' is not valid; choose one of: constant"),
+        ("model.tree_sparse=1", "model.tree_sparse=1"),
     ],
 )
 def test_config_values_are_checked(clip_folder, override: str, expected: str) -> None:
