@@ -123,6 +123,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         iterations=_optional_positive_ints("iterations", values["iterations"]),
         torchrl=bool(values["torchrl"]),
         transitions=_optional_positive_ints("transitions", values["transitions"]),
+        rollout_steps=_optional_positive_int("rollout_steps", values["rollout_steps"]),
     )
 
 

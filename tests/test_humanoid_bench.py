@@ -44,6 +44,9 @@ def test_quick_suite_writes_every_model_and_horizon(tmp_path: Path) -> None:
     assert sorted({r["horizon"] for r in errors}) == [1, 5]
     assert all(r["value"] is not None and math.isfinite(r["value"]) for r in errors)
     assert sum(r["metric"] == "fit_s" for r in records) == 3
+    # DeLaN fits 2-step rollouts (the quick K), the ensembles single transitions
+    steps = {r["case"]: r["rollout_steps"] for r in records}
+    assert steps == {"delan-n120": 2, "delan_ensemble-n120": 1, "ensemble-n120": 1}
 
 
 def test_pd_hold_policy_worked_example(humanoid) -> None:

@@ -124,6 +124,7 @@ class SuiteOptions:
     torchrl: bool = True  # also time TorchRL's MPPIPlanner / CEMPlanner where they apply
     # suite humanoid (None: the suite's default, or its quick size under `quick`)
     transitions: tuple[int, ...] | None = None  # training-set sizes
+    rollout_steps: int | None = None  # K of the K-step rollout loss of models that take it
 
 
 def synchronizer(device: torch.device) -> Callable[[], None]:

@@ -15,14 +15,18 @@ transitions? For each training-set size n in `sizes`:
    `configs/model/*.yaml` with the humanoid env's integrator and residual force): `delan`
    (DeLaN with the residual generalized force), `delan_ensemble` (5 such members) and
    `ensemble` (5 Gaussian MLPs, the PETS baseline), each fitted on the same n transitions
-   with `training.fit.fit_model` (Adam, early stopping on a 10% validation split).
+   with `training.fit.fit_model` (Adam, early stopping on a 10% validation split). Models
+   that train on windows of transitions (DeLaN) get `fit.rollout_steps = rollout_steps`
+   (default 5): a one-step fit, then a fit of 5-step rollouts through windows of the
+   training episodes; the others (the ensembles) fit single transitions.
 3. `rollout_error` at every horizon h: `training.loop.model_error`'s h-step error on every
    test episode (open loop on the episode's own actions from every start t with t + h <= T;
    RMS over starts and DoFs of the velocity-space state error, per DoF over the episode's
    state std), averaged over the test episodes weighted by their number of starts.
 
 Records: case ``{model}-n{n}``, metric ``rollout_error`` (field ``horizon``), and
-``fit_s`` (seconds of the fit). Everything runs on `opts.device` except MuJoCo.
+``fit_s`` (seconds of the fit, both phases), with field ``rollout_steps`` (the K it was fitted
+with). Everything runs on `opts.device` except MuJoCo.
 """
 
 from __future__ import annotations
@@ -92,6 +96,7 @@ class HumanoidBenchConfig:
     fit: FitConfig = field(
         default_factory=lambda: FitConfig(batch_size=256, max_epochs=200, patience=10)
     )
+    rollout_steps: int = 5  # fit.rollout_steps of the models that train on windows (DeLaN)
     model_settings: dict[str, dict[str, Any]] = field(default_factory=lambda: MODEL_SETTINGS)
     seed: int = 0
 
@@ -106,6 +111,7 @@ class HumanoidBenchConfig:
             horizons=(1, 5),
             episode_len=30,
             fit=FitConfig(batch_size=32, max_epochs=2, patience=None),
+            rollout_steps=2,
             model_settings=tiny,
         )
 
@@ -183,10 +189,19 @@ def _episode(rows: list[tuple[np.ndarray, ...]]) -> TensorDict:
     )
 
 
+@dataclass
+class FittedModel:
+    """A model of the suite after its fit."""
+
+    model: WorldModel
+    seconds: float  # of the fit
+    rollout_steps: int  # K of its fit: cfg.rollout_steps if it trains on windows, else 1
+
+
 def fit_world_model(
     name: str, system: System, data: TensorDict, cfg: HumanoidBenchConfig, device: torch.device
-) -> tuple[WorldModel, float]:
-    """Model `name` fitted on transitions ``data`` (N,). -> (model, seconds)."""
+) -> FittedModel:
+    """Model `name` fitted on time-ordered transitions ``data`` (N,)."""
     settings = OmegaConf.create(cfg.model_settings[name])
     torch.manual_seed(cfg.seed)
     model = build_model(settings, system).to(device=device, dtype=torch.float32)
@@ -194,9 +209,11 @@ def fit_world_model(
         model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay
     )
     generator = torch.Generator(device=device).manual_seed(cfg.seed)
+    steps = cfg.rollout_steps if model.trains_on_windows else 1
+    fit_cfg = replace(cfg.fit, rollout_steps=steps)
     start = time.perf_counter()
-    fit_model(model, optimizer, data.to(device=device, dtype=torch.float32), cfg.fit, generator)
-    return model, time.perf_counter() - start
+    fit_model(model, optimizer, data.to(device=device, dtype=torch.float32), fit_cfg, generator)
+    return FittedModel(model, time.perf_counter() - start, steps)
 
 
 def rollout_error(
@@ -228,21 +245,28 @@ def run_humanoid(cfg: HumanoidBenchConfig, opts: SuiteOptions) -> Iterator[Bench
         )  # fmt: skip
         for name in cfg.models:
             log.info("humanoid suite: fitting %s on %d transitions", name, n)
-            model, seconds = fit_world_model(name, system, train, cfg, opts.device)
+            fitted = fit_world_model(name, system, train, cfg, opts.device)
             case = f"{name}-n{n}"
-            yield BenchRecord(SUITE, case, "fit_s", seconds, "s", str(opts.device), dict(fields))
+            model_fields = {**fields, "rollout_steps": fitted.rollout_steps}
+            yield BenchRecord(
+                SUITE, case, "fit_s", fitted.seconds, "s", str(opts.device), model_fields
+            )
             for h in cfg.horizons:
-                value = rollout_error(model, system, test, h)
+                value = rollout_error(fitted.model, system, test, h)
                 log.info("%s: rollout_error h=%d %s", case, h, value)
                 yield BenchRecord(
                     SUITE, case, "rollout_error", value, "normalised RMS", str(opts.device),
-                    {**fields, "horizon": h},
+                    {**model_fields, "horizon": h},
                 )  # fmt: skip
 
 
 def suite_config(opts: SuiteOptions) -> HumanoidBenchConfig:
     cfg = HumanoidBenchConfig.quick() if opts.quick else HumanoidBenchConfig()
-    return replace(cfg, sizes=opts.transitions) if opts.transitions else cfg
+    if opts.transitions:
+        cfg = replace(cfg, sizes=opts.transitions)
+    if opts.rollout_steps is not None:
+        cfg = replace(cfg, rollout_steps=opts.rollout_steps)
+    return cfg
 
 
 def run_humanoid_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:

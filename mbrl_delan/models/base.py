@@ -25,7 +25,12 @@ class WorldModel(nn.Module, abc.ABC):
 
     `step` is batched over any leading dims. For ensembles, particle b of a flat batch is
     propagated by member b % E under TSinf; callers lay particles out so that works.
+
+    `trains_on_windows`: `loss` also takes windows (B, K) of K consecutive transitions and
+    scores a K-step rollout from each window's first state (`FitConfig.rollout_steps`).
     """
+
+    trains_on_windows: bool = False
 
     @abc.abstractmethod
     def step(
@@ -35,7 +40,8 @@ class WorldModel(nn.Module, abc.ABC):
 
     @abc.abstractmethod
     def loss(self, batch: TensorDictBase) -> LossOutput:
-        """Training loss on a batch with keys q, qd, action, ("next", "q"), ("next", "qd")."""
+        """Training loss on a batch (B,) with keys q, qd, action, ("next", "q"),
+        ("next", "qd"); windows (B, K) where `trains_on_windows`."""
 
     def fit_normalization(self, data: TensorDictBase) -> None:  # noqa: B027
         """Set input/output statistics from the training data (before each refit)."""

@@ -737,17 +737,32 @@ class DeLaN(WorldModel):
             scale[unactuated] = self.unactuated_torque_scale * scale[~unactuated].max()
         return scale
 
+    @property
+    def trains_on_windows(self) -> bool:  # type: ignore[override]
+        return self.loss_kind != "inverse"
+
     def loss(self, batch: TensorDictBase) -> LossOutput:
+        """Per-transition loss on (B,); on windows (B, K), the forward term is the mean over
+        a K-step rollout from each window's first state (`rollout_mse`) and the inverse term
+        is taken on every transition."""
+        windows = batch.batch_dims == 2
+        if windows:
+            if not self.trains_on_windows:
+                raise ValueError("windows of transitions need loss 'forward' or 'both'")
+            rollout = self._rollout_mse(batch)  # (K,)
+            batch = batch[:, 0]  # the inverse term below: first transitions only
         q, qd, action = batch[keys.Q], batch[keys.QD], batch[keys.ACTION]
         metrics: dict[str, float] = {}
         total = q.new_zeros(())
         if self.loss_kind in ("forward", "both"):
-            q_next, qd_next = batch[keys.NEXT_Q], batch[keys.NEXT_QD]
-            pred = self.step(q, qd, action)
-            e_q = differentiate_pos(self.layout, q_next, pred.q, 1.0) / self.q_scale
-            e_qd = (pred.qd - qd_next) / self.qd_scale
-            forward = e_q.pow(2).mean() + e_qd.pow(2).mean()
-            metrics["forward_mse"] = float(forward.detach())
+            if windows:
+                forward = rollout.mean()
+                metrics["rollout_mse"] = float(forward.detach())
+                metrics["forward_mse"] = float(rollout[0].detach())
+            else:
+                pred = self.step(q, qd, action)
+                forward = self._state_mse(pred, batch[keys.NEXT_Q], batch[keys.NEXT_QD])
+                metrics["forward_mse"] = float(forward.detach())
             total = total + forward
         if self.loss_kind in ("inverse", "both"):
             qdd = batch.get(keys.QDD, None)
@@ -760,3 +775,20 @@ class DeLaN(WorldModel):
             total = total + inverse
         metrics["loss"] = float(total.detach())
         return LossOutput(loss=total, metrics=metrics)
+
+    def _state_mse(self, pred: State, q_next: Tensor, qd_next: Tensor) -> Tensor:
+        """Per-DoF normalised squared error of a predicted next state (scalar)."""
+        e_q = differentiate_pos(self.layout, q_next, pred.q, 1.0) / self.q_scale
+        e_qd = (pred.qd - qd_next) / self.qd_scale
+        return e_q.pow(2).mean() + e_qd.pow(2).mean()
+
+    def _rollout_mse(self, windows: TensorDictBase) -> Tensor:
+        """`_state_mse` at each step of the model's rollout through windows (B, K). (K,)"""
+        state = State(q=windows[keys.Q][:, 0], qd=windows[keys.QD][:, 0])
+        errors = []
+        for k in range(windows.shape[1]):
+            state = self.step(state.q, state.qd, windows[keys.ACTION][:, k])
+            errors.append(
+                self._state_mse(state, windows[keys.NEXT_Q][:, k], windows[keys.NEXT_QD][:, k])
+            )
+        return torch.stack(errors)

@@ -10,13 +10,14 @@ import copy
 import logging
 import math
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 from torch import Tensor, nn
 
+from mbrl_delan import keys
 from mbrl_delan.models.base import WorldModel
 
 log = logging.getLogger(__name__)
@@ -38,6 +39,10 @@ class FitConfig:
         max_grad_norm: gradients are clipped to this global L2 norm; ``None`` does not clip.
         max_batches_per_epoch: cap on optimizer steps per epoch (for large buffers); ``None``
             goes through all training data once per epoch.
+        rollout_steps: K, the model steps of each training sample. 1: single transitions.
+            K > 1: windows of K consecutive transitions, the model rolled out K steps from
+            each window's first state on its actions and scored on every state it reaches
+            (a multi-step loss against compounding error; models with `trains_on_windows`).
     """
 
     batch_size: int = 256
@@ -48,8 +53,11 @@ class FitConfig:
     min_delta: float = 0.0
     max_grad_norm: float | None = 10.0
     max_batches_per_epoch: int | None = None
+    rollout_steps: int = 1
 
     def __post_init__(self) -> None:
+        if self.rollout_steps < 1:
+            raise ValueError(f"rollout_steps must be >= 1, got {self.rollout_steps}")
         if self.batch_size <= 0 or self.max_epochs <= 0:
             raise ValueError("batch_size and max_epochs must be positive")
         if not 0.0 <= self.val_fraction < 1.0:
@@ -70,9 +78,10 @@ class FitReport:
         epochs_run: number of completed epochs.
         stopped_early: training stopped because of ``patience``.
         validated_on_train: the data were too few for a split and validation used train data.
-        n_train: training transitions.
-        n_val: validation transitions.
+        n_train: training samples (transitions, or windows with `rollout_steps` > 1).
+        n_val: validation samples.
         metrics: ``LossOutput.metrics`` of the restored weights, averaged over validation data.
+        warmup: with ``rollout_steps`` > 1, the report of the one-step fit that came first.
     """
 
     train_loss: list[float] = field(default_factory=list)
@@ -85,6 +94,7 @@ class FitReport:
     n_train: int = 0
     n_val: int = 0
     metrics: dict[str, float] = field(default_factory=dict)
+    warmup: FitReport | None = None
 
 
 class TrainingDivergedError(RuntimeError):
@@ -128,6 +138,24 @@ class _Snapshot:
 def _snapshot(model: WorldModel, optimizer: torch.optim.Optimizer) -> _Snapshot:
     weights = {k: v.detach().clone() for k, v in model.state_dict().items()}
     return _Snapshot(weights, copy.deepcopy(optimizer.state_dict()))
+
+
+def transition_windows(data: TensorDictBase, steps: int) -> TensorDictBase:
+    """Every window of `steps` consecutive transitions in time-ordered transitions (N,).
+
+    Transition i + 1 follows transition i when its state is exactly i's next state (so
+    episode ends and a replay buffer's wrap-around split windows). -> (M, steps), M <= N.
+    """
+    if steps == 1:
+        return data.unsqueeze(-1)
+    n = data.shape[0]
+    follows = (data[keys.NEXT_Q][:-1] == data[keys.Q][1:]).all(-1) & (
+        data[keys.NEXT_QD][:-1] == data[keys.QD][1:]
+    ).all(-1)  # (N-1,)
+    links = torch.cat([follows.new_zeros(1, dtype=torch.long), follows.long().cumsum(0)])  # (N,)
+    first = torch.arange(max(n - steps + 1, 0), device=links.device)  # (N-K+1,)
+    starts = first[links[first + steps - 1] - links[first] == steps - 1]  # (M,)
+    return data[starts.unsqueeze(-1) + torch.arange(steps, device=starts.device)]
 
 
 def _split(n: int, cfg: FitConfig, generator: torch.Generator) -> tuple[Tensor, Tensor, bool]:
@@ -216,6 +244,24 @@ def _check_val(loss: float, metrics: dict[str, float]) -> None:
         raise Diverged("val_loss", loss, _nonfinite_metrics(metrics))
 
 
+def _samples(model: WorldModel, data: TensorDictBase, steps: int) -> TensorDictBase:
+    """The training samples: the transitions (N,) themselves, or their windows (M, steps)."""
+    if steps == 1:
+        return data
+    if not model.trains_on_windows:
+        raise ValueError(
+            f"fit rollout_steps={steps} needs a model that trains on windows of transitions "
+            f"(DeLaN with the forward loss); {type(model).__name__} trains on single ones"
+        )
+    windows = transition_windows(data, steps)
+    if windows.shape[0] == 0:
+        raise ValueError(
+            f"fit rollout_steps={steps}: the {data.shape[0]} transitions hold no run of "
+            f"{steps} consecutive ones (each one's next state the following one's state)"
+        )
+    return windows
+
+
 def fit_model(
     model: WorldModel,
     optimizer: torch.optim.Optimizer,
@@ -223,20 +269,45 @@ def fit_model(
     cfg: FitConfig,
     generator: torch.Generator,
 ) -> FitReport:
-    """Train ``model`` on transitions ``data`` (batch shape (N,)) and keep its best weights.
+    """Train ``model`` on transitions ``data`` (batch shape (N,), time-ordered when
+    ``cfg.rollout_steps > 1``) and keep its best weights.
 
     Calls ``model.fit_normalization`` on the training part, then runs up to ``cfg.max_epochs``
     epochs of shuffled minibatches (shuffling and the split use ``generator`` only). After
     every epoch the validation loss decides the best weights, which are restored at the end.
 
+    With ``cfg.rollout_steps`` K > 1 this is done twice: on single transitions first (a
+    K-step rollout of an untrained model can overflow), then on windows of K transitions
+    from the best one-step weights, keeping the one-step normalisation. The report is the
+    K-step fit's, with the one-step fit's as ``warmup``.
+
     Raises:
         TrainingDivergedError: a loss or gradient norm became NaN/inf. The model (and the
             optimizer's state) are first restored to the best weights so far, or to the
             initial ones when no epoch completed.
-        ValueError: ``data`` is empty.
+        ValueError: ``data`` is empty, or holds no window of K consecutive transitions, or
+            the model does not train on windows.
     """
     if data.batch_dims != 1 or data.shape[0] == 0:
         raise ValueError(f"fit_model needs a non-empty flat batch (N,), got {data.batch_size}")
+    if cfg.rollout_steps == 1:
+        return _fit(model, optimizer, data, cfg, generator)
+    windows = _samples(model, data, cfg.rollout_steps)
+    warmup = _fit(model, optimizer, data, replace(cfg, rollout_steps=1), generator)
+    report = _fit(model, optimizer, windows, cfg, generator, normalize=False)
+    report.warmup = warmup
+    return report
+
+
+def _fit(
+    model: WorldModel,
+    optimizer: torch.optim.Optimizer,
+    data: TensorDictBase,
+    cfg: FitConfig,
+    generator: torch.Generator,
+    normalize: bool = True,
+) -> FitReport:
+    """`fit_model` on samples (N,) or windows (M, K); `normalize`: call fit_normalization."""
     was_training = model.training
     train_idx, val_idx, on_train = _split(data.shape[0], cfg, generator)
     train_data = data[train_idx]
@@ -244,12 +315,13 @@ def fit_model(
     report = FitReport(validated_on_train=on_train, n_train=len(train_idx), n_val=len(val_idx))
     if on_train:
         log.warning(
-            "only %d transitions: too few for a validation split (val_fraction=%s); "
+            "only %d samples: too few for a validation split (val_fraction=%s); "
             "validating on the training data",
             data.shape[0],
             cfg.val_fraction,
         )
-    model.fit_normalization(train_data)
+    if normalize:
+        model.fit_normalization(train_data)
     best = _snapshot(model, optimizer)
     epoch = 0
     try:
@@ -282,12 +354,13 @@ def fit_model(
     model.load_state_dict(best.model)
     model.train(was_training)
     log.info(
-        "fit: %d epochs%s, best epoch %d, val loss %.4g (%d train / %d val transitions)",
+        "fit: %d epochs%s, best epoch %d, val loss %.4g (%d train / %d val %s)",
         report.epochs_run,
         " (stopped early)" if report.stopped_early else "",
         report.best_epoch,
         report.best_val_loss,
         report.n_train,
         report.n_val,
+        "transitions" if cfg.rollout_steps == 1 else f"windows of {cfg.rollout_steps} steps",
     )
     return report
