@@ -17,6 +17,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from mbrl_delan.benchmarks import (
+    HUMANOID_MODELS,
     PLANNER_MODELS,
     SUITE_NAMES,
     SuiteOptions,
@@ -117,7 +118,11 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         n_samples=_optional_positive_int("n_samples", values["n_samples"]),
         max_epochs=_optional_positive_int("max_epochs", values["max_epochs"]),
         planners=_optional_choices("planners", values["planners"], PLANNER_NAMES),
-        models=_optional_choices("models", values["models"], PLANNER_MODELS),
+        models=_optional_choices(
+            "models",
+            values["models"],
+            HUMANOID_MODELS if cfg.suite == "humanoid" else PLANNER_MODELS,
+        ),
         num_samples=_optional_positive_ints("num_samples", values["num_samples"]),
         horizons=_optional_positive_ints("horizons", values["horizons"]),
         iterations=_optional_positive_ints("iterations", values["iterations"]),

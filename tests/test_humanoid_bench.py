@@ -11,17 +11,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from mbrl_delan import keys
+from mbrl_delan.bench import build_options
 from mbrl_delan.benchmarks.humanoid import (
     MODEL_SETTINGS,
     HumanoidBenchConfig,
     PDHoldPolicy,
     collect_episodes,
     rollout_error,
+    suite_config,
 )
-from mbrl_delan.config import build_model
+from mbrl_delan.config import ConfigError, build_model
 from mbrl_delan.envs.registry import make_env_parts
 
 CONFIGS = Path(__file__).parents[1] / "configs"
@@ -44,9 +47,9 @@ def test_quick_suite_writes_every_model_and_horizon(tmp_path: Path) -> None:
     assert sorted({r["horizon"] for r in errors}) == [1, 5]
     assert all(r["value"] is not None and math.isfinite(r["value"]) for r in errors)
     assert sum(r["metric"] == "fit_s" for r in records) == 3
-    # DeLaN fits 2-step rollouts (the quick K), the ensembles single transitions
+    # the DeLaN models fit 2-step rollouts (the quick K), the MLP ensemble single transitions
     steps = {r["case"]: r["rollout_steps"] for r in records}
-    assert steps == {"delan-n120": 2, "delan_ensemble-n120": 1, "ensemble-n120": 1}
+    assert steps == {"delan-n120": 2, "delan_ensemble-n120": 2, "ensemble-n120": 1}
 
 
 def test_pd_hold_policy_worked_example(humanoid) -> None:
@@ -134,3 +137,17 @@ def test_loop_delan_with_the_free_tree_structure(humanoid) -> None:
     assert float(M[:, list(rows), list(cols)].abs().max()) == 0.0
     step = model.step(data[keys.Q][:4], data[keys.QD][:4], data[keys.ACTION][:4])
     assert torch.isfinite(step.q).all() and torch.isfinite(step.qd).all()
+
+
+def test_models_and_rollout_steps_options() -> None:
+    with initialize_config_dir(config_dir=str(CONFIGS.resolve()), version_base=None):
+        cfg = compose("bench", overrides=["suite=humanoid", "models=[delan]", "rollout_steps=3"])
+        bad_model = compose("bench", overrides=["suite=humanoid", "models=[pendulum_delan]"])
+        bad_steps = compose("bench", overrides=["suite=humanoid", "rollout_steps=0"])
+    chosen = suite_config(build_options(cfg))
+    assert chosen.models == ("delan",) and chosen.rollout_steps == 3
+    assert suite_config(build_options(cfg)).sizes == (10_000, 50_000)
+    with pytest.raises(ConfigError, match="models"):
+        build_options(bad_model)  # a planner-suite case is not a humanoid-suite model
+    with pytest.raises(ConfigError, match="rollout_steps"):
+        build_options(bad_steps)

@@ -8,6 +8,7 @@ from tensordict import TensorDict
 
 from mbrl_delan import keys
 from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
 from mbrl_delan.models.ensemble import GaussianEnsemble
 from mbrl_delan.systems.system import load_system
 from mbrl_delan.training import FitConfig, fit_model
@@ -144,3 +145,17 @@ def test_rollout_steps_are_checked() -> None:
             FitConfig(rollout_steps=3),
             torch.Generator().manual_seed(0),
         )
+
+
+def test_delan_ensemble_rollout_loss_is_the_sum_of_its_members() -> None:
+    system = load_system("pendulum")
+    torch.manual_seed(0)
+    ensemble = DeLaNEnsemble(
+        system.layout, system.actuation.float(), system.control_dt, ensemble_size=3, hidden=16
+    )
+    assert ensemble.trains_on_windows
+    windows = transition_windows(pendulum_episode(delan(0), 8, seed=1), 3)
+    ensemble.eval()  # no bootstrap: every member sees every window
+    total = ensemble.loss(windows).loss
+    members = [ensemble.member(e).loss(windows).loss for e in range(3)]
+    torch.testing.assert_close(total, torch.stack(members).sum())

@@ -44,6 +44,8 @@ PLANNER_MODELS = (
     "humanoid_delan_compiled",
 )
 COMPILED_SUFFIX = "_compiled"
+# world models of suite humanoid: DeLaN + residual, the DeLaN ensemble, the MLP ensemble
+HUMANOID_MODELS = ("delan", "delan_ensemble", "ensemble")
 
 
 class UnknownSuiteError(KeyError):
@@ -117,7 +119,7 @@ class SuiteOptions:
     max_epochs: int | None = None  # epochs over all learning-rate stages
     # suite planner (None: the suite's default, or its quick sizes under `quick`)
     planners: tuple[str, ...] | None = None  # of "mppi", "cem", "icem"
-    models: tuple[str, ...] | None = None  # world-model cases, see benchmarks/planner.py
+    models: tuple[str, ...] | None = None  # world-model cases (suites planner and humanoid)
     num_samples: tuple[int, ...] | None = None  # samples N per iteration
     horizons: tuple[int, ...] | None = None  # planning horizons H (control steps)
     iterations: tuple[int, ...] | None = None  # planner iterations per control step

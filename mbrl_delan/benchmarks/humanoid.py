@@ -16,9 +16,10 @@ transitions? For each training-set size n in `sizes`:
    (DeLaN with the residual generalized force), `delan_ensemble` (5 such members) and
    `ensemble` (5 Gaussian MLPs, the PETS baseline), each fitted on the same n transitions
    with `training.fit.fit_model` (Adam, early stopping on a 10% validation split). Models
-   that train on windows of transitions (DeLaN) get `fit.rollout_steps = rollout_steps`
-   (default 5): a one-step fit, then a fit of 5-step rollouts through windows of the
-   training episodes; the others (the ensembles) fit single transitions.
+   that train on windows of transitions (DeLaN and the DeLaN ensemble) get
+   `fit.rollout_steps = rollout_steps` (default 5): a one-step fit, then a fit of 5-step
+   rollouts through windows of the training episodes; the MLP ensemble fits single
+   transitions.
 3. `rollout_error` at every horizon h: `training.loop.model_error`'s h-step error on every
    test episode (open loop on the episode's own actions from every start t with t + h <= T;
    RMS over starts and DoFs of the velocity-space state error, per DoF over the episode's
@@ -44,7 +45,7 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 from mbrl_delan import keys
-from mbrl_delan.benchmarks import SuiteOptions, host_fields
+from mbrl_delan.benchmarks import HUMANOID_MODELS, SuiteOptions, host_fields
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.config import build_model
 from mbrl_delan.envs.registry import make_env_parts
@@ -57,7 +58,7 @@ from mbrl_delan.training.loop import model_error
 log = logging.getLogger(__name__)
 
 SUITE = "humanoid"
-MODEL_CASES = ("delan", "delan_ensemble", "ensemble")
+MODEL_CASES = HUMANOID_MODELS
 
 # configs/model/{delan,delan_ensemble,ensemble}.yaml with configs/env/humanoid_stand.yaml's
 # model_integrator (euler), model_substeps (2), model_residual and model_inertia_scaling
@@ -74,8 +75,14 @@ MODEL_SETTINGS: dict[str, dict[str, Any]] = {
         name="delan_ensemble", ensemble_size=5, propagation="tsinf", bootstrap=True, **_DELAN
     ),
     "ensemble": dict(
-        name="ensemble", ensemble_size=5, hidden=128, layers=3, activation="silu",
-        propagation="tsinf", lr=0.001, weight_decay=0.00005,
+        name="ensemble",
+        ensemble_size=5,
+        hidden=128,
+        layers=3,
+        activation="silu",
+        propagation="tsinf",
+        lr=0.001,
+        weight_decay=0.00005,
     ),  # fmt: skip
 }
 
@@ -96,7 +103,7 @@ class HumanoidBenchConfig:
     fit: FitConfig = field(
         default_factory=lambda: FitConfig(batch_size=256, max_epochs=200, patience=10)
     )
-    rollout_steps: int = 5  # fit.rollout_steps of the models that train on windows (DeLaN)
+    rollout_steps: int = 5  # fit.rollout_steps of the models that train on windows (DeLaNs)
     model_settings: dict[str, dict[str, Any]] = field(default_factory=lambda: MODEL_SETTINGS)
     seed: int = 0
 
@@ -264,6 +271,8 @@ def suite_config(opts: SuiteOptions) -> HumanoidBenchConfig:
     cfg = HumanoidBenchConfig.quick() if opts.quick else HumanoidBenchConfig()
     if opts.transitions:
         cfg = replace(cfg, sizes=opts.transitions)
+    if opts.models:
+        cfg = replace(cfg, models=opts.models)
     if opts.rollout_steps is not None:
         cfg = replace(cfg, rollout_steps=opts.rollout_steps)
     return cfg

@@ -328,13 +328,18 @@ class DeLaNEnsemble(WorldModel):
         idx = torch.randint(n, (self.ensemble_size, n), generator=gen, device=gen_device)
         return idx.to(device)
 
+    @property
+    def trains_on_windows(self) -> bool:  # type: ignore[override]
+        return self._call[0].model.trains_on_windows
+
     def loss(self, batch: TensorDictBase) -> LossOutput:
-        """Sum over members of member e's `DeLaN.loss` on its bootstrap resample.
+        """Sum over members of member e's `DeLaN.loss` on its bootstrap resample of the
+        transitions (B,), or of the windows (B, K) of consecutive transitions.
 
         Metrics: every metric of the members averaged over members, with "member_loss" the
         mean member loss and "loss" the summed total (the value optimised).
         """
-        flat = batch.reshape(-1)
+        flat = batch if batch.batch_dims == 2 else batch.reshape(-1)
         idx = self._bootstrap_indices(flat.shape[0], flat.get(keys.Q).device)
         outputs = [
             self._run_member(e, lambda m, b: m.loss(b), flat if idx is None else flat[idx[e]])
