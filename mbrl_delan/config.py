@@ -72,8 +72,10 @@ def validate_train_config(cfg: DictConfig) -> None:
         "buffer.capacity",
         "fit.batch_size",
         "fit.max_epochs",
+        "fit.rollout_steps",
     ):
         _at_least(path, _get(cfg, path), 1)
+    _check_rollout_steps(cfg)
     for path in (
         "budget.random_episodes",
         "budget.eval_episodes",
@@ -103,6 +105,22 @@ def validate_train_config(cfg: DictConfig) -> None:
         raise ConfigError(
             f"model.particles={cfg.model.particles} is not valid with tsinf: it "
             f"must be a multiple of model.ensemble_size={cfg.model.ensemble_size}"
+        )
+
+
+def _check_rollout_steps(cfg: DictConfig) -> None:
+    """fit.rollout_steps > 1 needs a DeLaN (or DeLaN ensemble) with a forward loss term."""
+    if cfg.fit.rollout_steps == 1:
+        return
+    if cfg.model.name not in ("delan", "delan_ensemble"):
+        raise ConfigError(
+            f"fit.rollout_steps={cfg.fit.rollout_steps} is not valid with model={cfg.model.name}: "
+            "only delan and delan_ensemble train on K-step rollouts (use 1)"
+        )
+    if cfg.model.loss == "inverse":
+        raise ConfigError(
+            f"fit.rollout_steps={cfg.fit.rollout_steps} is not valid with model.loss=inverse: "
+            "a rollout loss needs the forward term (model.loss=forward or both)"
         )
 
 

@@ -67,14 +67,17 @@ def test_tiny_training_run_writes_everything(finished_run: Path) -> None:
 @pytest.mark.slow
 def test_tiny_humanoid_stand_run_with_the_residual_delan(tmp_path: Path) -> None:
     """Humanoid-v5 with contacts through the whole loop: free root (quaternion) states in the
-    buffer, DeLaN with its residual force (the env's default), the oracle on MuJoCo."""
+    buffer, DeLaN with its residual force (the env's default) fitted on 3-step rollouts, the
+    oracle on MuJoCo."""
     run_dir = tmp_path / "humanoid"
-    out = train(run_dir, "env=humanoid_stand", "budget.iterations=1")
+    out = train(run_dir, "env=humanoid_stand", "budget.iterations=1", "fit.rollout_steps=3")
     assert out.returncode == 0, out.stdout + out.stderr
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["env"] == "humanoid_stand" and summary["env_steps"] == 2 * 15
     config = (run_dir / "config.yaml").read_text()
-    assert "residual: true" in config
+    assert "residual: true" in config and "rollout_steps: 3" in config
+    # the fits trained on 3-step windows of the buffer's episodes (none across episodes)
+    assert "windows of 3 steps" in out.stdout + out.stderr
     rec = records(run_dir)[-1]
     assert 0.0 <= rec["eval_return_mean"] <= 15.0 and rec["model_error_1step"] >= 0.0
 
@@ -115,12 +118,14 @@ def test_sigkill_then_resume_continues_identically(finished_run: Path, tmp_path:
         ("env.name=moon", "choose one of: pendulum, cartpole, acrobot, arm_reach"),
         ("device=tpu", "device='tpu'"),
         ("resume=/nonexistent/run", "no config.yaml in that folder"),
+        ("fit.rollout_steps=0", "fit.rollout_steps=0"),
+        ("model=ensemble fit.rollout_steps=3", "only delan and delan_ensemble"),
     ],
 )
 def test_bad_config_value_fails_at_start_naming_it(
     override: str, expected: str, tmp_path: Path
 ) -> None:
-    out = train(tmp_path / "bad", override)
+    out = train(tmp_path / "bad", *override.split())
     assert out.returncode == 2
     assert expected in out.stdout + out.stderr
     assert "Traceback" not in out.stdout + out.stderr
