@@ -83,7 +83,7 @@ MODEL_SETTINGS: dict[str, dict[str, Any]] = {
         propagation="tsinf",
         lr=0.001,
         weight_decay=0.00005,
-    ),  # fmt: skip
+    ),
 }
 
 

@@ -744,7 +744,7 @@ class DeLaN(WorldModel):
     def loss(self, batch: TensorDictBase) -> LossOutput:
         """Per-transition loss on (B,); on windows (B, K), the forward term is the mean over
         a K-step rollout from each window's first state (`rollout_mse`) and the inverse term
-        is taken on every transition."""
+        (loss 'both') is taken on each window's first transition."""
         windows = batch.batch_dims == 2
         if windows:
             if not self.trains_on_windows:
