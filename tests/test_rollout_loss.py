@@ -159,3 +159,17 @@ def test_delan_ensemble_rollout_loss_is_the_sum_of_its_members() -> None:
     total = ensemble.loss(windows).loss
     members = [ensemble.member(e).loss(windows).loss for e in range(3)]
     torch.testing.assert_close(total, torch.stack(members).sum())
+
+
+def test_loss_both_on_windows_adds_the_inverse_term_of_the_first_transitions() -> None:
+    truth, model = delan(0), delan(1)
+    windows = transition_windows(pendulum_episode(truth, 6, seed=3), 3)
+    model.loss_kind = "both"
+    out = model.loss(windows)
+    forward = model._rollout_mse(windows).mean()
+    inverse = model.loss(windows[:, 0]).metrics["inverse_mse"]
+    assert float(out.loss.detach()) == pytest.approx(float(forward.detach()) + inverse, rel=1e-5)
+    model.loss_kind = "inverse"
+    assert not model.trains_on_windows
+    with pytest.raises(ValueError, match="need loss 'forward' or 'both'"):
+        model.loss(windows)
