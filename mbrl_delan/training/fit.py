@@ -244,10 +244,8 @@ def _check_val(loss: float, metrics: dict[str, float]) -> None:
         raise Diverged("val_loss", loss, _nonfinite_metrics(metrics))
 
 
-def _samples(model: WorldModel, data: TensorDictBase, steps: int) -> TensorDictBase:
-    """The training samples: the transitions (N,) themselves, or their windows (M, steps)."""
-    if steps == 1:
-        return data
+def _windows(model: WorldModel, data: TensorDictBase, steps: int) -> TensorDictBase:
+    """The windows (M, steps) of transitions (N,) that a K-step fit trains on."""
     if not model.trains_on_windows:
         raise ValueError(
             f"fit rollout_steps={steps} needs a model that trains on windows of transitions "
@@ -292,7 +290,7 @@ def fit_model(
         raise ValueError(f"fit_model needs a non-empty flat batch (N,), got {data.batch_size}")
     if cfg.rollout_steps == 1:
         return _fit(model, optimizer, data, cfg, generator)
-    windows = _samples(model, data, cfg.rollout_steps)
+    windows = _windows(model, data, cfg.rollout_steps)
     warmup = _fit(model, optimizer, data, replace(cfg, rollout_steps=1), generator)
     report = _fit(model, optimizer, windows, cfg, generator, normalize=False)
     report.warmup = warmup
