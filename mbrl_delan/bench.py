@@ -18,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from mbrl_delan.benchmarks import (
     HUMANOID_MODELS,
+    HUMANOID_ORACLE_TASKS,
     PLANNER_MODELS,
     SUITE_NAMES,
     SuiteOptions,
@@ -64,14 +65,17 @@ def _optional_positive_ints(name: str, values: Any) -> tuple[int, ...] | None:
     return None if values is None else _positive_ints(name, values)
 
 
-def _optional_choices(name: str, values: Any, choices: tuple[str, ...]) -> tuple[str, ...] | None:
-    """None (the suite's default) or a non-empty list of names from `choices`."""
+def _optional_choices(
+    name: str, values: Any, choices: tuple[str, ...], allow_empty: bool = False
+) -> tuple[str, ...] | None:
+    """None (the suite's default) or a list of names from `choices` (empty if allowed)."""
     if values is None:
         return None
     items = list(values) if OmegaConf.is_list(values) or isinstance(values, list) else [values]
-    if not items or not all(v in choices for v in items):
+    if (not items and not allow_empty) or not all(v in choices for v in items):
+        empty = " (or [] for none)" if allow_empty else ""
         raise ConfigError(
-            f"{name}={values!r} is not valid; use null or a list of: {', '.join(choices)}"
+            f"{name}={values!r} is not valid; use null or a list of: {', '.join(choices)}{empty}"
         )
     return tuple(items)
 
@@ -122,6 +126,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
             "models",
             values["models"],
             HUMANOID_MODELS if cfg.suite == "humanoid" else PLANNER_MODELS,
+            allow_empty=cfg.suite == "humanoid",
         ),
         num_samples=_optional_positive_ints("num_samples", values["num_samples"]),
         horizons=_optional_positive_ints("horizons", values["horizons"]),
@@ -129,6 +134,10 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         torchrl=bool(values["torchrl"]),
         transitions=_optional_positive_ints("transitions", values["transitions"]),
         rollout_steps=_optional_positive_int("rollout_steps", values["rollout_steps"]),
+        oracle_tasks=_optional_choices(
+            "oracle_tasks", values["oracle_tasks"], HUMANOID_ORACLE_TASKS, allow_empty=True
+        ),
+        oracle_steps=_optional_positive_int("oracle_steps", values["oracle_steps"]),
     )
 
 

@@ -383,7 +383,9 @@ def returns_figure(summaries: list[dict[str, Any]], path: Path) -> Path:
 
 
 def _returns_panel(
-    ax: Any, by_group: dict[Group, dict[int, list[float]]], summaries: list[dict[str, Any]],
+    ax: Any,
+    by_group: dict[Group, dict[int, list[float]]],
+    summaries: list[dict[str, Any]],
     env: str,
 ) -> None:
     """One env's return curves (line and band per group) and its planners' oracle lines."""

@@ -48,8 +48,16 @@ def test_quick_suite_writes_every_model_and_horizon(tmp_path: Path) -> None:
     assert all(r["value"] is not None and math.isfinite(r["value"]) for r in errors)
     assert sum(r["metric"] == "fit_s" for r in records) == 3
     # the DeLaN models fit 2-step rollouts (the quick K), the MLP ensemble single transitions
-    steps = {r["case"]: r["rollout_steps"] for r in records}
+    steps = {r["case"]: r["rollout_steps"] for r in records if "rollout_steps" in r}
     assert steps == {"delan-n120": 2, "delan_ensemble-n120": 2, "ensemble-n120": 1}
+    # the quick oracle: one 3-step MPPI episode on humanoid_stand, before the models
+    oracle = [r for r in records if r["case"] == "oracle-humanoid_stand"]
+    assert [r["metric"] for r in oracle] == ["oracle_return", "oracle_step_s"]
+    assert records[:2] == oracle
+    ret = oracle[0]
+    assert ret["steps"] == ret["episode_len"] == 3 and ret["fell"] is False
+    assert ret["mean_reward"] == pytest.approx(ret["value"] / 3)
+    assert 0.0 < ret["mean_reward"] <= 1.0  # the stand reward is a product of factors in [0, 1]
 
 
 def test_pd_hold_policy_worked_example(humanoid) -> None:
@@ -151,3 +159,23 @@ def test_models_and_rollout_steps_options() -> None:
         build_options(bad_model)  # a planner-suite case is not a humanoid-suite model
     with pytest.raises(ConfigError, match="rollout_steps"):
         build_options(bad_steps)
+
+
+def test_oracle_options() -> None:
+    def options(*overrides: str, suite: str = "humanoid"):
+        with initialize_config_dir(config_dir=str(CONFIGS.resolve()), version_base=None):
+            return build_options(compose("bench", overrides=[f"suite={suite}", *overrides]))
+
+    default = suite_config(options())
+    assert default.oracle_tasks == ("humanoid_stand", "humanoid_walk")
+    assert default.oracle_steps is None  # the task's own episode length
+    only = suite_config(options("models=[]", "oracle_tasks=[humanoid_walk]", "oracle_steps=50"))
+    assert only.models == () and only.oracle_tasks == ("humanoid_walk",)
+    assert only.oracle_steps == 50
+    assert suite_config(options("oracle_tasks=[]")).oracle_tasks == ()
+    with pytest.raises(ConfigError, match="oracle_tasks"):
+        options("oracle_tasks=[cartpole]")
+    with pytest.raises(ConfigError, match="oracle_steps"):
+        options("oracle_steps=0")
+    with pytest.raises(ConfigError, match="models"):
+        options("models=[]", suite="planner")  # only suite humanoid runs without models

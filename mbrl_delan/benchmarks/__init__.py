@@ -46,6 +46,8 @@ PLANNER_MODELS = (
 COMPILED_SUFFIX = "_compiled"
 # world models of suite humanoid: DeLaN + residual, the DeLaN ensemble, the MLP ensemble
 HUMANOID_MODELS = ("delan", "delan_ensemble", "ensemble")
+# tasks on which suite humanoid runs the oracle planner for one episode
+HUMANOID_ORACLE_TASKS = ("humanoid_stand", "humanoid_walk")
 
 
 class UnknownSuiteError(KeyError):
@@ -127,6 +129,8 @@ class SuiteOptions:
     # suite humanoid (None: the suite's default, or its quick size under `quick`)
     transitions: tuple[int, ...] | None = None  # training-set sizes
     rollout_steps: int | None = None  # K of the K-step rollout loss of models that take it
+    oracle_tasks: tuple[str, ...] | None = None  # tasks of the oracle's episodes (() for none)
+    oracle_steps: int | None = None  # control steps of each oracle episode at most
 
 
 def synchronizer(device: torch.device) -> Callable[[], None]:

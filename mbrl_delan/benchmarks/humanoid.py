@@ -25,9 +25,17 @@ transitions? For each training-set size n in `sizes`:
    RMS over starts and DoFs of the velocity-space state error, per DoF over the episode's
    state std), averaged over the test episodes weighted by their number of starts.
 
+Before the models, the oracle: for each task in `oracle_tasks` (`humanoid_stand`,
+`humanoid_walk`), one episode of the loop's planner (MPPI, `configs/planner/mppi.yaml` with
+the humanoid envs' horizon 15) on MuJoCo's true dynamics, on the real env, from the task's
+initial state, for at most `oracle_steps` control steps (default: the task's own 1,000). It
+ends early when the humanoid falls (the task terminates).
+
 Records: case ``{model}-n{n}``, metric ``rollout_error`` (field ``horizon``), and
 ``fit_s`` (seconds of the fit, both phases), with field ``rollout_steps`` (the K it was fitted
-with). Everything runs on `opts.device` except MuJoCo.
+with). Case ``oracle-{task}``: metric ``oracle_return`` (the episode's return; fields
+``steps`` run, ``episode_len`` asked, ``fell``, ``mean_reward``, the planner's settings) and
+``oracle_step_s`` (seconds per control step). Everything runs on `opts.device` except MuJoCo.
 """
 
 from __future__ import annotations
@@ -45,15 +53,24 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 from mbrl_delan import keys
-from mbrl_delan.benchmarks import HUMANOID_MODELS, SuiteOptions, host_fields
+from mbrl_delan.benchmarks import (
+    HUMANOID_MODELS,
+    HUMANOID_ORACLE_TASKS,
+    SuiteOptions,
+    host_fields,
+)
+from mbrl_delan.benchmarks.planner import Setting, build_planner
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.config import build_model
+from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.base import WorldModel
+from mbrl_delan.planners.oracle import mujoco_objective_factory
+from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.training.fit import FitConfig, fit_model
-from mbrl_delan.training.loop import model_error
+from mbrl_delan.training.loop import episode_return, model_error, run_episode
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +123,9 @@ class HumanoidBenchConfig:
     rollout_steps: int = 5  # fit.rollout_steps of the models that train on windows (DeLaNs)
     model_settings: dict[str, dict[str, Any]] = field(default_factory=lambda: MODEL_SETTINGS)
     seed: int = 0
+    oracle_tasks: tuple[str, ...] = HUMANOID_ORACLE_TASKS
+    oracle_steps: int | None = None  # control steps per oracle episode (None: the task's own)
+    oracle_planner: Setting = Setting(num_samples=256, horizon=15, iterations=2)  # MPPI
 
     @classmethod
     def quick(cls) -> HumanoidBenchConfig:
@@ -120,6 +140,9 @@ class HumanoidBenchConfig:
             fit=FitConfig(batch_size=32, max_epochs=2, patience=None),
             rollout_steps=2,
             model_settings=tiny,
+            oracle_tasks=("humanoid_stand",),
+            oracle_steps=3,
+            oracle_planner=Setting(num_samples=16, horizon=3, iterations=1),
         )
 
 
@@ -239,10 +262,62 @@ def rollout_error(
     return total / weight if weight else None
 
 
+@dataclass
+class OracleEpisode:
+    """One episode of the oracle planner on the real env."""
+
+    ret: float  # the episode's return
+    steps: int  # control steps run
+    episode_len: int  # control steps asked for
+    fell: bool  # it ended because the task terminated (the humanoid fell)
+    seconds: float  # wall time of the episode
+
+
+def oracle_episode(task_name: str, steps: int | None, setting: Setting, seed: int) -> OracleEpisode:
+    """MPPI over MuJoCo's dynamics on `task_name`'s real env for at most `steps` control
+    steps (None: the task's episode length), from the task's initial state of `seed`."""
+    parts = make_env_parts(task_name, None, steps)
+    env = make_real_env(task_name, seed=seed, episode_len=steps)
+    planner = build_planner("mppi", setting, parts.system, torch.float64)
+    threads = torch.get_num_threads()  # the suite's `threads`: MuJoCo rollout threads too
+    with mujoco_objective_factory(parts.system, parts.task, nthread=threads) as factory:
+        policy = PlannerPolicy(planner, factory, seed=seed, action_dtype=torch.float32)
+        start = time.perf_counter()
+        rollout = run_episode(env, policy, seed, parts.task.episode_len)
+        seconds = time.perf_counter() - start
+    env.close()
+    fell = bool(rollout[keys.NEXT_TERMINATED].any())
+    return OracleEpisode(
+        episode_return(rollout), rollout.shape[0], parts.task.episode_len, fell, seconds
+    )
+
+
+def oracle_records(cfg: HumanoidBenchConfig, host: dict[str, Any]) -> Iterator[BenchRecord]:
+    """`oracle_return` and `oracle_step_s` of one oracle episode per task."""
+    setting = cfg.oracle_planner
+    for name in cfg.oracle_tasks:
+        log.info("humanoid suite: oracle MPPI episode on %s (%s)", name, setting.tag())
+        ep = oracle_episode(name, cfg.oracle_steps, setting, cfg.seed)
+        fields = dict(
+            env=name, steps=ep.steps, episode_len=ep.episode_len, fell=ep.fell,
+            mean_reward=ep.ret / ep.steps, planner="mppi", num_samples=setting.num_samples,
+            horizon=setting.horizon, iterations=setting.iterations, seed=cfg.seed, **host,
+        )  # fmt: skip
+        log.info("oracle-%s: return %.2f over %d steps%s", name, ep.ret, ep.steps,
+                 " (fell)" if ep.fell else "")  # fmt: skip
+        case = f"oracle-{name}"
+        yield BenchRecord(SUITE, case, "oracle_return", ep.ret, "return", "cpu", fields)
+        step_s = ep.seconds / ep.steps
+        yield BenchRecord(SUITE, case, "oracle_step_s", step_s, "s", "cpu", fields)
+
+
 def run_humanoid(cfg: HumanoidBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord]:
     parts = make_env_parts(cfg.env)
     system, task = parts.system, parts.task
     host = host_fields(opts.device)
+    yield from oracle_records(cfg, host)
+    if not cfg.models:
+        return
     test = collect_episodes(system, task, cfg.test_transitions, cfg, cfg.seed + 1000)
     for n in cfg.sizes:
         train = torch.cat(collect_episodes(system, task, n, cfg, cfg.seed))
@@ -271,10 +346,14 @@ def suite_config(opts: SuiteOptions) -> HumanoidBenchConfig:
     cfg = HumanoidBenchConfig.quick() if opts.quick else HumanoidBenchConfig()
     if opts.transitions:
         cfg = replace(cfg, sizes=opts.transitions)
-    if opts.models:
+    if opts.models is not None:
         cfg = replace(cfg, models=opts.models)
     if opts.rollout_steps is not None:
         cfg = replace(cfg, rollout_steps=opts.rollout_steps)
+    if opts.oracle_tasks is not None:
+        cfg = replace(cfg, oracle_tasks=opts.oracle_tasks)
+    if opts.oracle_steps is not None:
+        cfg = replace(cfg, oracle_steps=opts.oracle_steps)
     return cfg
 
 

@@ -56,9 +56,7 @@ _DEFAULTS: dict[str, _EnvDefaults] = {
     "acrobot": _EnvDefaults("acrobot", 2, _task_factory(AcrobotSwingup)),  # dt 0.05 s
     "arm_reach": _EnvDefaults("arm2", 2, _task_factory(ArmReach)),  # dt 0.05 s
     # Humanoid-v5 (contacts on): 5 x 0.003 s = 0.015 s per control step
-    "humanoid_stand": _EnvDefaults(
-        humanoid_v5_xml, 5, _humanoid_v5_task(None, "humanoid_stand")
-    ),
+    "humanoid_stand": _EnvDefaults(humanoid_v5_xml, 5, _humanoid_v5_task(None, "humanoid_stand")),
     "humanoid_walk": _EnvDefaults(humanoid_v5_xml, 5, _humanoid_v5_task(1.0, "humanoid_walk")),
 }
 

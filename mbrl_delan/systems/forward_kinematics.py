@@ -136,7 +136,12 @@ class ForwardKinematics(nn.Module):
         return Poses(xpos=xpos_t, xquat=xquat_t, site_xpos=site_xpos)
 
     def _body(
-        self, q: Tensor, b: int, xpos: list[Tensor], xquat: list[Tensor], offset: Tensor,
+        self,
+        q: Tensor,
+        b: int,
+        xpos: list[Tensor],
+        xquat: list[Tensor],
+        offset: Tensor,
         rotation: Tensor,
     ) -> tuple[Tensor, Tensor]:
         """Position (..., 3) and orientation (..., 4) of body b from its parent's."""
