@@ -28,7 +28,7 @@ from mbrl_delan.config import (
 from mbrl_delan.data.buffer import NonFiniteDataError, make_replay_buffer
 from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.envs.real import make_real_env
-from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.envs.registry import EnvParts, make_env_parts
 from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.sweep import exit_or_raise, marks_crash, with_sweep_group
@@ -75,12 +75,31 @@ def _policy(
     )
 
 
+def _task_options(cfg: DictConfig) -> dict[str, Any] | None:
+    """`env.task` (cmu_track: the clip and where to find it) as a plain dict, if the env has it."""
+    options = cfg.env.get("task")
+    return None if options is None else OmegaConf.to_container(options, resolve=True)
+
+
+def _env_parts(cfg: DictConfig) -> EnvParts:
+    """The env's system and task; a bad env setting or a missing clip is a ConfigError."""
+    env = cfg.env
+    try:
+        return make_env_parts(env.name, env.frame_skip, env.episode_len, _task_options(cfg))
+    except (ValueError, FileNotFoundError) as err:
+        raise ConfigError(f"env={env.name}: {err}") from err
+
+
 def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]:
     """The MBRL loop and the oracle policy (same planner over MuJoCo's true dynamics)."""
     device, dtype = check_device(cfg.device), DTYPES[cfg.dtype]
-    parts = make_env_parts(cfg.env.name, cfg.env.frame_skip, cfg.env.episode_len)
+    parts = _env_parts(cfg)
     system, task = parts.system, parts.task
-    env_kw = dict(frame_skip=cfg.env.frame_skip, episode_len=cfg.env.episode_len)
+    env_kw = dict(
+        frame_skip=cfg.env.frame_skip,
+        episode_len=cfg.env.episode_len,
+        task_options=_task_options(cfg),
+    )
     env = make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
     eval_env = make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
     model = build_model(cfg.model, system).to(device=device, dtype=dtype)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import gymnasium as gym
 import mujoco
 import numpy as np
@@ -21,10 +23,19 @@ from mbrl_delan.envs import (
     register_envs,
 )
 
+# cmu_track's clip: the test data's (its default, 02_01, may not be on the machine)
+TASK_OPTIONS = {
+    "cmu_track": {
+        "clip": "09_06",
+        "folders": [str(Path(__file__).parent / "data")],
+        "download": False,
+    }
+}
+
 
 @pytest.mark.parametrize("name", ENV_NAMES)
 def test_check_env_specs(name: str) -> None:
-    env = make_real_env(name, seed=0)
+    env = make_real_env(name, seed=0, task_options=TASK_OPTIONS.get(name))
     check_env_specs(env)
     parts = env_parts_of(env)
     assert env.observation_spec[keys.Q].shape == (parts.system.nq,)

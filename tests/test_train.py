@@ -16,6 +16,7 @@ from tiny import TINY_TRAIN
 from mbrl_delan.training.checkpoint import load_checkpoint
 
 TINY = TINY_TRAIN
+DATA = Path(__file__).parent / "data"  # holds the CMU clip 09_06 (a run)
 
 
 def train(
@@ -82,6 +83,21 @@ def test_tiny_humanoid_stand_run_with_the_residual_delan(tmp_path: Path) -> None
     assert 0.0 <= rec["eval_return_mean"] <= 15.0 and rec["model_error_1step"] >= 0.0
 
 
+@pytest.mark.slow
+def test_tiny_cmu_track_run_follows_the_clip_in_time(tmp_path: Path) -> None:
+    """A time-indexed task through the whole loop: the CMU humanoid (56 actuators, contacts)
+    following the test clip, every reward scored against the reference frame of its step."""
+    run_dir = tmp_path / "track"
+    clip = ["env.task.clip=09_06", f"env.task.folders=[{DATA}]", "env.task.download=false"]
+    out = train(run_dir, "env=cmu_track", *clip, "env.episode_len=6", "budget.iterations=1")
+    assert out.returncode == 0, out.stdout + out.stderr
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["env"] == "cmu_track" and summary["env_steps"] == 2 * 6
+    rec = records(run_dir)[-1]
+    assert 0.0 < rec["eval_return_mean"] <= 6.0  # rewards lie in (0, 1]
+    assert 0.0 < summary["oracle_return_mean"] <= 6.0
+
+
 def test_sigkill_then_resume_continues_identically(finished_run: Path, tmp_path: Path) -> None:
     """A run killed mid-way and resumed matches the uninterrupted run record for record."""
     run_dir = tmp_path / "killed"
@@ -120,6 +136,8 @@ def test_sigkill_then_resume_continues_identically(finished_run: Path, tmp_path:
         ("resume=/nonexistent/run", "no config.yaml in that folder"),
         ("fit.rollout_steps=0", "fit.rollout_steps=0"),
         ("model=ensemble fit.rollout_steps=3", "only delan and delan_ensemble"),
+        ("env=cmu_track env.task.clip='99_99' env.task.download=false", "clip '99_99' not found"),
+        ("env=cmu_track env.task.clip=131_03", "clip=13103 is not a clip name; quote it"),
     ],
 )
 def test_bad_config_value_fails_at_start_naming_it(

@@ -73,10 +73,13 @@ class ModelObjective:
     actions' device and in their dtype. (N,)
     """
 
-    def __init__(self, factory: ModelObjectiveFactory, q0: Tensor, qd0: Tensor) -> None:
+    def __init__(
+        self, factory: ModelObjectiveFactory, q0: Tensor, qd0: Tensor, step: int = 0
+    ) -> None:
         self.factory = factory
         self.q0 = q0  # (nq,) as given
         self.qd0 = qd0  # (nv,)
+        self.step = step  # episode step of the first action (time-indexed tasks)
 
     def __call__(self, actions: Tensor) -> Tensor:
         if actions.ndim != 3:
@@ -90,8 +93,9 @@ class ModelObjective:
         qd = self.qd0.to(place.device, place.dtype).expand(n * p, -1)  # (N*P, nv)
         rewards, terminated = [], []
         with torch.inference_mode(), eval_mode(f.model):
+            steps = self.step + torch.arange(horizon, device=place.device)  # (H,)
             for t in range(horizon):
-                q, qd, reward, term = f.transition(q, qd, flat[:, t])
+                q, qd, reward, term = f.transition(q, qd, flat[:, t], steps[t])
                 rewards.append(reward)  # (N*P,)
                 terminated.append(term)  # (N*P,)
             returns = discounted_masked_return(
@@ -132,31 +136,38 @@ class ModelObjectiveFactory:
         self.compile = compile
         self._compiled: Callable[[Tensor, Tensor, Tensor], Transition] | None = None
 
-    def transition(self, q: Tensor, qd: Tensor, action: Tensor) -> Transition:
+    def transition(self, q: Tensor, qd: Tensor, action: Tensor, step: Tensor) -> Transition:
         """One control step in the model and its task reward and termination.
 
-        (B, nq), (B, nv), (B, nu) -> next q (B, nq), next qd (B, nv), reward (B,),
-        terminated (B,). With `compile`, a `torch.compile`d copy (compiled on the first
-        call and again per new batch size; about 5-40 s each on CPU).
+        (B, nq), (B, nv), (B, nu), episode step of the action () int64 -> next q (B, nq),
+        next qd (B, nv), reward (B,), terminated (B,). With `compile`, a `torch.compile`d
+        copy (compiled on the first call and again per new batch size; about 5-40 s each on
+        CPU).
         """
         if not self.compile:
-            return self._transition(q, qd, action)
+            return self._transition(q, qd, action, step)
         if self._compiled is None:
             self._compiled = compile_dynamics(self._transition)
-        return self._compiled(q, qd, action)
+        return self._compiled(q, qd, action, step)
 
-    def _transition(self, q: Tensor, qd: Tensor, action: Tensor) -> Transition:
+    def _transition(self, q: Tensor, qd: Tensor, action: Tensor, step: Tensor) -> Transition:
         nxt = self.model.step(q, qd, action, generator=self.generator)
-        reward = self.task.reward(nxt.q, nxt.qd, action)
-        return nxt.q, nxt.qd, reward, self.task.terminated(nxt.q, nxt.qd)
+        reward = self.task.reward_at(nxt.q, nxt.qd, action, step)
+        return nxt.q, nxt.qd, reward, self.task.terminated_at(nxt.q, nxt.qd, step)
 
     def placement(self, fallback_device: torch.device) -> Placement:
         """Where to compute: the model's device and dtype (or the override dtype)."""
         place = model_placement(self.model, fallback_device=fallback_device)
         return Placement(place.device, self.dtype or place.dtype)
 
-    def __call__(self, q0: Tensor, qd0: Tensor) -> ModelObjective:
-        return ModelObjective(self, q0, qd0)
+    @property
+    def time_indexed(self) -> bool:
+        """Its task depends on the episode step: call it with `step=`."""
+        return self.task.time_indexed
+
+    def __call__(self, q0: Tensor, qd0: Tensor, step: int = 0) -> ModelObjective:
+        """The objective from state (q0, qd0) at episode step `step` (time-indexed tasks)."""
+        return ModelObjective(self, q0, qd0, step)
 
 
 def model_objective_factory(
@@ -203,7 +214,8 @@ class ModelEnv(ModelBasedEnvBase):
     Keys: q, qd (observations), action, reward, done, terminated, truncated. `reset` draws
     `task.initial_state`; truncation is never set here (add a `StepCounter` transform with
     `max_steps=task.episode_len` for episode limits). The model runs in eval mode and on its
-    own device; the env's dtype is the model's unless given.
+    own device; the env's dtype is the model's unless given. A time-indexed task reads the
+    episode step from TorchRL's `step_count` key, so it needs the `StepCounter` transform.
     """
 
     def __init__(
@@ -285,13 +297,26 @@ class ModelEnv(ModelBasedEnvBase):
             nxt = self.world_model.step(q, qd, action, generator=self._generator)
         q1 = nxt.q.to(self.device, self.state_dtype)
         qd1 = nxt.qd.to(self.device, self.state_dtype)
-        reward = self.task.reward(q1, qd1, action).to(self.state_dtype).unsqueeze(-1)
-        terminated = self.task.terminated(q1, qd1)
+        step = self._episode_step(tensordict)  # (*B,) or () for tasks without time
+        reward = self.task.reward_at(q1, qd1, action, step).to(self.state_dtype).unsqueeze(-1)
+        terminated = self.task.terminated_at(q1, qd1, step)
         return TensorDict(
             {keys.Q: q1, keys.QD: qd1, keys.REWARD: reward, **self._flags(terminated)},
             batch_size=tensordict.batch_size,
             device=self.device,
         )
+
+    def _episode_step(self, tensordict: TensorDictBase) -> Tensor:
+        """The episode step of the action, from `step_count` (*B, 1); 0 for tasks without time."""
+        count = tensordict.get(keys.STEP_COUNT, None)
+        if count is not None:
+            return count.squeeze(-1)
+        if self.task.time_indexed:
+            raise ValueError(
+                f"task {self.task.name!r} is time-indexed: ModelEnv needs the episode step in "
+                f"{keys.STEP_COUNT!r}; append torchrl.envs.StepCounter() to the env"
+            )
+        return torch.zeros((), dtype=torch.long, device=self.device)
 
     def _set_seed(self, seed: int | None) -> None:
         if seed is not None:

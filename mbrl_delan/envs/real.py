@@ -15,7 +15,7 @@ import torch
 from torchrl.envs import GymEnv
 
 from mbrl_delan import keys
-from mbrl_delan.envs.registry import ENV_NAMES, EnvParts, make_env_parts
+from mbrl_delan.envs.registry import ENV_NAMES, EnvParts, TaskOptions, make_env_parts
 from mbrl_delan.systems.system import State
 
 log = logging.getLogger(__name__)
@@ -27,6 +27,7 @@ ENV_IDS: dict[str, str] = {
     "arm_reach": "mbrl_delan/ArmReach-v0",
     "humanoid_stand": "mbrl_delan/HumanoidStand-v0",
     "humanoid_walk": "mbrl_delan/HumanoidWalk-v0",
+    "cmu_track": "mbrl_delan/CmuTrack-v0",
 }
 assert set(ENV_IDS) == set(ENV_NAMES)
 
@@ -35,8 +36,9 @@ class MujocoTaskEnv(gym.Env):
     """Gymnasium env over `make_env_parts(env_name, ...)`.
 
     Observation: Dict(q=Box(nq), qd=Box(nv)) float32. Action: Box(ctrl_low, ctrl_high) float32,
-    clipped before it is applied for `frame_skip` MuJoCo steps. Reward: task.reward on the
-    reached (float64) state. Truncated after `episode_len` steps.
+    clipped before it is applied for `frame_skip` MuJoCo steps. Reward: task.reward_at on the
+    reached (float64) state and the episode step of the action (0 first). Truncated after
+    `episode_len` steps.
 
     `physics_frame_skip` is an alias of `frame_skip` for `make_real_env`: TorchRL's GymEnv
     consumes a `frame_skip` keyword itself (as action repeat), so it cannot reach this class.
@@ -51,12 +53,13 @@ class MujocoTaskEnv(gym.Env):
         episode_len: int | None = None,
         *,
         physics_frame_skip: int | None = None,
+        task_options: TaskOptions | None = None,
     ) -> None:
         if frame_skip is not None and physics_frame_skip is not None:
             raise ValueError("give frame_skip or physics_frame_skip, not both")
         skip = physics_frame_skip if frame_skip is None else frame_skip
         self.env_name = env_name
-        self.env_parts: EnvParts = make_env_parts(env_name, skip, episode_len)
+        self.env_parts: EnvParts = make_env_parts(env_name, skip, episode_len, task_options)
         system = self.env_parts.system
         self._model = system.mj_model()
         self._data = mujoco.MjData(self._model)
@@ -121,11 +124,12 @@ class MujocoTaskEnv(gym.Env):
         ctrl = np.clip(np.asarray(action, dtype=np.float64).reshape(-1), self._low, self._high)
         self._data.ctrl[:] = ctrl
         mujoco.mj_step(self._model, self._data, nstep=self.frame_skip)
+        step = torch.tensor(self._steps)  # the episode step of this action
         self._steps += 1
         state = self.get_state()
         task = self.env_parts.task
-        reward = float(task.reward(state.q, state.qd, torch.from_numpy(ctrl)))
-        terminated = bool(task.terminated(state.q, state.qd))
+        reward = float(task.reward_at(state.q, state.qd, torch.from_numpy(ctrl), step))
+        terminated = bool(task.terminated_at(state.q, state.qd, step))
         truncated = self._steps >= task.episode_len
         return self._obs(), reward, terminated, truncated, {}
 
@@ -147,14 +151,15 @@ def make_real_env(
     seed: int | None = None,
     frame_skip: int | None = None,
     episode_len: int | None = None,
+    task_options: TaskOptions | None = None,
     **kwargs: Any,
 ) -> GymEnv:
-    """TorchRL `GymEnv` over `MujocoTaskEnv(name, frame_skip, episode_len)`.
+    """TorchRL `GymEnv` over `MujocoTaskEnv(name, frame_skip, episode_len, task_options)`.
 
     Keys: `q`, `qd` (float32 observations), `action`, `reward`, `done`, `terminated`,
     `truncated`. `frame_skip` is the number of MuJoCo steps per control step (not TorchRL's
-    action repeat); extra `kwargs` go to `GymEnv`. Use `env_parts_of(env)` for the system and
-    task.
+    action repeat); `task_options` those of `make_env_parts` (cmu_track: the clip); extra
+    `kwargs` go to `GymEnv`. Use `env_parts_of(env)` for the system and task.
     """
     if name not in ENV_IDS:
         raise ValueError(f"unknown env name {name!r}; valid choices: {', '.join(ENV_NAMES)}")
@@ -164,6 +169,7 @@ def make_real_env(
         device=device,
         physics_frame_skip=frame_skip,
         episode_len=episode_len,
+        task_options=None if task_options is None else dict(task_options),
         **kwargs,
     )
     if seed is not None:

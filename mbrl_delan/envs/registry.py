@@ -2,17 +2,38 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-from mbrl_delan.systems.external import humanoid_v5_xml
+import torch
+
+from mbrl_delan.systems.external import humanoid_cmu_xml, humanoid_v5_xml
 from mbrl_delan.systems.system import System, load_system
 from mbrl_delan.tasks import AcrobotSwingup, ArmReach, CartpoleSwingup, PendulumSwingup
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.humanoid import HUMANOID_V5_BODY, HumanoidTask
+from mbrl_delan.tasks.tracking import MotionTracking
 
-ENV_NAMES = ("pendulum", "cartpole", "acrobot", "arm_reach", "humanoid_stand", "humanoid_walk")
+ENV_NAMES = (
+    "pendulum",
+    "cartpole",
+    "acrobot",
+    "arm_reach",
+    "humanoid_stand",
+    "humanoid_walk",
+    "cmu_track",
+)
+TaskOptions = Mapping[str, Any]
+# cmu_track's task options: the clip to follow and where to find its AMC and ASF files
+# (`data.mocap.find_clip`: the folders first, relative to the cwd, then the download cache)
+CMU_TRACK_OPTIONS: dict[str, Any] = {
+    "clip": "02_01",  # CMU subject 2, trial 1: a walk (2.9 s)
+    "folders": ("../shared/data/cmu_mocap", "data/cmu_mocap"),
+    "cache_dir": None,
+    "download": True,
+}
 
 
 @dataclass
@@ -27,20 +48,24 @@ class EnvParts:
 class _EnvDefaults:
     asset: str | Callable[[], Path]  # MJCF stem under systems/assets, or where to find the file
     frame_skip: int  # MuJoCo steps per control step (0.025 s each; cartpole 0.02 s)
-    make_task: Callable[[System, int | None], Task]  # (system, episode_len or None) -> task
+    # (system, episode_len or None, task options) -> task
+    make_task: Callable[[System, int | None, TaskOptions], Task]
+    options: Mapping[str, Any] | None = None  # the task options it takes, with defaults
 
 
-def _task_factory(cls: Callable[..., Task]) -> Callable[[System, int | None], Task]:
-    def make(system: System, episode_len: int | None) -> Task:
+def _task_factory(cls: Callable[..., Task]) -> Callable[[System, int | None, TaskOptions], Task]:
+    def make(system: System, episode_len: int | None, options: TaskOptions) -> Task:
         return cls() if episode_len is None else cls(episode_len=episode_len)
 
     return make
 
 
-def _humanoid_v5_task(speed: float | None, name: str) -> Callable[[System, int | None], Task]:
+def _humanoid_v5_task(
+    speed: float | None, name: str
+) -> Callable[[System, int | None, TaskOptions], Task]:
     """Stand (speed None) or walk on gymnasium's Humanoid-v5 (controls in [-0.4, 0.4])."""
 
-    def make(system: System, episode_len: int | None) -> Task:
+    def make(system: System, episode_len: int | None, options: TaskOptions) -> Task:
         extra = {} if episode_len is None else {"episode_len": episode_len}
         ctrl_max = float(system.ctrl_high.abs().max())
         return HumanoidTask(
@@ -48,6 +73,30 @@ def _humanoid_v5_task(speed: float | None, name: str) -> Callable[[System, int |
         )
 
     return make
+
+
+def _cmu_track_task(system: System, episode_len: int | None, options: TaskOptions) -> Task:
+    """Follow a CMU clip retargeted onto the CMU humanoid at the control rate."""
+    from mbrl_delan.data.mocap import find_clip, retarget_files  # heavy: only for this env
+
+    clip_name = options["clip"]
+    if not isinstance(clip_name, str):
+        raise ValueError(
+            f"clip={clip_name!r} is not a clip name; quote it, as in clip='131_03' (Hydra and "
+            "YAML read an unquoted 131_03 as the number 13103)"
+        )
+    files = find_clip(
+        clip_name,
+        folders=list(options["folders"]),
+        cache_dir=options["cache_dir"],
+        download=bool(options["download"]),
+    )
+    clip = retarget_files(files.amc, files.asf, timestep=system.control_dt)
+    ref_q = torch.cat([clip.q, clip.next_q[-1:]])  # (T+1, nq)
+    ref_qd = torch.cat([clip.qd, clip.next_qd[-1:]])  # (T+1, nv)
+    return MotionTracking(
+        system.mj_model(), system.layout, ref_q, ref_qd, episode_len=episode_len, name="cmu_track"
+    )
 
 
 _DEFAULTS: dict[str, _EnvDefaults] = {
@@ -58,19 +107,42 @@ _DEFAULTS: dict[str, _EnvDefaults] = {
     # Humanoid-v5 (contacts on): 5 x 0.003 s = 0.015 s per control step
     "humanoid_stand": _EnvDefaults(humanoid_v5_xml, 5, _humanoid_v5_task(None, "humanoid_stand")),
     "humanoid_walk": _EnvDefaults(humanoid_v5_xml, 5, _humanoid_v5_task(1.0, "humanoid_walk")),
+    # dm_control's CMU humanoid (contacts on): 15 x 0.002 s = 0.03 s per control step
+    "cmu_track": _EnvDefaults(humanoid_cmu_xml, 15, _cmu_track_task, CMU_TRACK_OPTIONS),
 }
 
 
+def _task_options(name: str, options: TaskOptions | None) -> dict[str, Any]:
+    """The env's task options with the given ones applied; unknown keys are refused."""
+    accepted = dict(_DEFAULTS[name].options or {})
+    given = dict(options or {})
+    unknown = sorted(set(given) - set(accepted))
+    if unknown:
+        takes = ", ".join(accepted) if accepted else "none"
+        raise ValueError(
+            f"env {name!r} takes no task option {', '.join(unknown)} (it takes: {takes})"
+        )
+    return {**accepted, **given}
+
+
 def make_env_parts(
-    name: str, frame_skip: int | None = None, episode_len: int | None = None
+    name: str,
+    frame_skip: int | None = None,
+    episode_len: int | None = None,
+    task_options: TaskOptions | None = None,
 ) -> EnvParts:
-    """System and task of env `name`; None keeps the env's default frame_skip / episode_len."""
+    """System and task of env `name`; None keeps the env's default frame_skip / episode_len.
+
+    `task_options` override the env's task options (only cmu_track has some:
+    `CMU_TRACK_OPTIONS`).
+    """
     if name not in _DEFAULTS:
         raise ValueError(f"unknown env name {name!r}; valid choices: {', '.join(ENV_NAMES)}")
     if episode_len is not None and episode_len < 1:
         raise ValueError(f"episode_len must be >= 1, got {episode_len}")
     defaults = _DEFAULTS[name]
+    options = _task_options(name, task_options)
     skip = defaults.frame_skip if frame_skip is None else frame_skip
     asset = defaults.asset if isinstance(defaults.asset, str) else defaults.asset()
     system = load_system(asset, frame_skip=skip)
-    return EnvParts(system=system, task=defaults.make_task(system, episode_len))
+    return EnvParts(system=system, task=defaults.make_task(system, episode_len, options))

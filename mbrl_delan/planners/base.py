@@ -19,7 +19,9 @@ import torch
 from torch import Tensor
 
 Objective = Callable[[Tensor], Tensor]  # actions (N, H, nu) -> returns (N,)
-ObjectiveFactory = Callable[[Tensor, Tensor], Objective]  # (q0 (nq,), qd0 (nv,)) -> Objective
+# (q0 (nq,), qd0 (nv,)) -> Objective; factories of time-indexed tasks (`time_indexed` true)
+# also take the episode step of the first action: factory(q0, qd0, step=t)
+ObjectiveFactory = Callable[..., Objective]
 
 SHIFT_FILLS = ("repeat", "zero")
 

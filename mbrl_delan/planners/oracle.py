@@ -77,8 +77,14 @@ class MujocoObjectiveFactory:
         self.ctrl_low = system.ctrl_low.numpy()
         self.ctrl_high = system.ctrl_high.numpy()
 
-    def __call__(self, q0: Tensor, qd0: Tensor) -> MujocoObjective:
-        return MujocoObjective(self, self.initial_state(q0, qd0))
+    @property
+    def time_indexed(self) -> bool:
+        """Its task depends on the episode step: call it with `step=`."""
+        return self.task.time_indexed
+
+    def __call__(self, q0: Tensor, qd0: Tensor, step: int = 0) -> MujocoObjective:
+        """The objective from state (q0, qd0) at episode step `step` (time-indexed tasks)."""
+        return MujocoObjective(self, self.initial_state(q0, qd0), step)
 
     def __enter__(self) -> MujocoObjectiveFactory:
         return self
@@ -133,27 +139,32 @@ class MujocoObjectiveFactory:
             actions=torch.from_numpy(ctrl),
         )
 
-    def returns(self, initial_state: np.ndarray, actions: Tensor) -> Tensor:
-        """Masked, discounted task returns of actions (N, H, nu), float64 on CPU. -> (N,)"""
+    def returns(self, initial_state: np.ndarray, actions: Tensor, step: int = 0) -> Tensor:
+        """Masked, discounted task returns of actions (N, H, nu), float64 on CPU, the first
+        action taken at episode step `step`. -> (N,)"""
         result = self.rollout(initial_state, actions)
         q, qd = result.states.q, result.states.qd
-        rewards = self.task.reward(q, qd, result.actions)  # (N, H)
-        terminated = self.task.terminated(q, qd)  # (N, H)
+        steps = step + torch.arange(actions.shape[1])  # (H,)
+        rewards = self.task.reward_at(q, qd, result.actions, steps)  # (N, H)
+        terminated = self.task.terminated_at(q, qd, steps)  # (N, H)
         return discounted_masked_return(rewards.to(torch.float64), terminated, self.discount)
 
 
 class MujocoObjective:
     """Objective for one start state: actions (N, H, nu) -> returns (N,) on their device."""
 
-    def __init__(self, factory: MujocoObjectiveFactory, initial_state: np.ndarray) -> None:
+    def __init__(
+        self, factory: MujocoObjectiveFactory, initial_state: np.ndarray, step: int = 0
+    ) -> None:
         self.factory = factory
         self.initial_state = initial_state  # (nstate,) FULLPHYSICS
+        self.step = step  # episode step of the first action
 
     def rollout(self, actions: Tensor) -> OracleRollout:
         return self.factory.rollout(self.initial_state, actions)
 
     def __call__(self, actions: Tensor) -> Tensor:
-        returns = self.factory.returns(self.initial_state, actions)
+        returns = self.factory.returns(self.initial_state, actions, self.step)
         dtype = actions.dtype if actions.is_floating_point() else torch.float64
         return returns.to(device=actions.device, dtype=dtype)
 

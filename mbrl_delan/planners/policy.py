@@ -20,8 +20,10 @@ class PlannerPolicy(TensorDictModuleBase):
     """Receding-horizon control with a sampling planner.
 
     Every `replan_every` control steps it builds an objective for the current state with
-    `objective_factory(q, qd)` and plans, warm-started from the previous plan shifted by the
-    steps executed since; in between it executes the stored plan open loop.
+    `objective_factory(q, qd)` (`objective_factory(q, qd, step=t)`, t the episode step, when
+    the factory's `time_indexed` is true: a task that follows a reference in time) and plans,
+    warm-started from the previous plan shifted by the steps executed since; in between it
+    executes the stored plan open loop.
 
     Call `reset()` at the start of each episode (it is also called automatically when the
     input carries TorchRL's `step_count` equal to 0). `state_dict()` holds the current plan,
@@ -61,6 +63,7 @@ class PlannerPolicy(TensorDictModuleBase):
         self.generator.manual_seed(seed)
         self._plan: Tensor | None = None  # (H, nu) the plan being executed
         self._steps_since_plan = 0
+        self._episode_step = 0  # control steps since `reset`
         self._carried: dict[str, Tensor] = {}  # planner state for the next warm start
         self.last_result: PlanResult | None = None
 
@@ -68,6 +71,7 @@ class PlannerPolicy(TensorDictModuleBase):
         """Forget the plan (start of an episode); the generator keeps its stream."""
         self._plan = None
         self._steps_since_plan = 0
+        self._episode_step = 0
         self._carried = {}
         self.last_result = None
 
@@ -82,6 +86,7 @@ class PlannerPolicy(TensorDictModuleBase):
             self._replan(q, qd)
         action = self._plan[self._steps_since_plan]
         self._steps_since_plan += 1
+        self._episode_step += 1
         return action
 
     def _replan(self, q: Tensor, qd: Tensor) -> None:
@@ -89,7 +94,10 @@ class PlannerPolicy(TensorDictModuleBase):
             init = self.planner.initial_mean(device=self.plan_device)
         else:
             init = self.planner.shift(self._plan, self._steps_since_plan)
-        objective = self.objective_factory(q, qd)
+        if getattr(self.objective_factory, "time_indexed", False):
+            objective = self.objective_factory(q, qd, step=self._episode_step)
+        else:
+            objective = self.objective_factory(q, qd)
         warm = {}
         if self._plan is not None:
             warm = self.planner.warm_start(self._carried, self._steps_since_plan)
@@ -131,6 +139,7 @@ class PlannerPolicy(TensorDictModuleBase):
         return {
             "plan": plan,
             "steps_since_plan": self._steps_since_plan,
+            "episode_step": self._episode_step,
             "generator_state": self.generator.get_state().clone(),
             "carried": {k: v.clone() for k, v in self._carried.items()},
         }
@@ -139,6 +148,7 @@ class PlannerPolicy(TensorDictModuleBase):
         plan = state["plan"]
         self._plan = None if plan is None else plan.to(self.plan_device).clone()
         self._steps_since_plan = int(state["steps_since_plan"])
+        self._episode_step = int(state.get("episode_step", 0))
         self.generator.set_state(state["generator_state"].cpu())
         self._carried = {k: v.to(self.plan_device) for k, v in state.get("carried", {}).items()}
         self.last_result = None

@@ -1,0 +1,208 @@
+"""Time-indexed tasks: the episode step reaches every reward, and cmu_track's terms."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from torch import Tensor
+from torchrl.envs import StepCounter, TransformedEnv
+
+from mbrl_delan import keys
+from mbrl_delan.envs.model_env import ModelEnv, model_objective_factory
+from mbrl_delan.envs.real import env_parts_of, make_real_env
+from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.planners import MPPIPlanner
+from mbrl_delan.planners.oracle import mujoco_objective_factory
+from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.systems.posarith import integrate_pos
+from mbrl_delan.systems.system import State
+from mbrl_delan.tasks.base import Task
+from mbrl_delan.tasks.tracking import MotionTracking
+from tests.test_model_env import DoubleIntegrator
+
+DATA = Path(__file__).parent / "data"
+RUN_CLIP = {"clip": "09_06", "folders": [str(DATA)], "download": False}  # a 1.2 s run
+
+
+class FollowRamp(Task):
+    """Time-indexed: the action of step t should bring q to 0.1 (t + 1). r = -(q - 0.1 (t+1))^2."""
+
+    name = "follow_ramp"
+    episode_len = 20
+    time_indexed = True
+
+    def reward(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
+        raise TypeError("time-indexed")
+
+    def reward_at(self, q: Tensor, qd: Tensor, action: Tensor, step: Tensor) -> Tensor:
+        return -(q[..., 0] - 0.1 * (step + 1)).square()
+
+    def initial_state(self, batch_shape: tuple[int, ...], generator: torch.Generator) -> State:
+        zeros = torch.zeros((*batch_shape, 1), dtype=torch.float64)
+        return State(q=zeros, qd=zeros.clone())
+
+
+@pytest.fixture(scope="module")
+def track():
+    return make_env_parts("cmu_track", task_options=RUN_CLIP)
+
+
+# ---------------------------------------------------------------- the step reaches the reward
+
+
+def test_model_objective_scores_each_step_at_its_episode_step() -> None:
+    """By hand: with a = 0 the double integrator from q0 = 0, qd0 = 1 (DT = 0.1) reaches
+    q_{t+1} = 0.1 (t + 1), the ramp exactly when its first action is step 0, and 0.3 behind it
+    at every step when it is step 3."""
+    factory = model_objective_factory(DoubleIntegrator(), FollowRamp())
+    q0, qd0 = torch.zeros(1, dtype=torch.float64), torch.ones(1, dtype=torch.float64)
+    actions = torch.zeros(1, 4, 1, dtype=torch.float64)
+    assert factory.time_indexed
+    assert float(factory(q0, qd0, step=0)(actions)) == pytest.approx(0.0, abs=1e-12)
+    assert float(factory(q0, qd0, step=3)(actions)) == pytest.approx(-4 * 0.3**2)
+
+
+def test_policy_passes_the_episode_step_to_time_indexed_factories() -> None:
+    steps: list[int] = []
+
+    class Spy:
+        time_indexed = True
+
+        def __call__(self, q0: Tensor, qd0: Tensor, step: int = 0):
+            steps.append(step)
+            return lambda actions: -actions.square().sum((-2, -1))
+
+    planner = MPPIPlanner(horizon=3, action_low=[-1.0], action_high=[1.0], num_samples=8)
+    policy = PlannerPolicy(planner, Spy(), replan_every=2)
+    q, qd = torch.zeros(1), torch.zeros(1)
+    for _ in range(5):
+        policy.act(q, qd)
+    assert steps == [0, 2, 4]
+    policy.reset()
+    policy.act(q, qd)
+    assert steps[-1] == 0
+
+
+def test_model_env_reads_the_step_from_step_counter() -> None:
+    system = make_env_parts("pendulum").system
+    env = ModelEnv(DoubleIntegrator(), FollowRamp(), system)
+    with pytest.raises(ValueError, match="StepCounter"):
+        env.rollout(2)
+    counted = TransformedEnv(env, StepCounter())
+    td = counted.rollout(3, policy=lambda td: td.set(keys.ACTION, torch.zeros(1)))
+    q = td[keys.NEXT_Q][..., 0]  # stays 0 (qd 0, a 0)
+    expected = -(q - 0.1 * (torch.arange(3) + 1)).square()
+    torch.testing.assert_close(td[keys.NEXT_REWARD].squeeze(-1), expected)
+
+
+def test_real_env_and_oracle_score_steps_of_the_reference(track) -> None:
+    """The real env's reward of step t is reward_at(state, action, t); the oracle started at
+    step s scores its H steps as s .. s+H-1 of a plain mj_step loop."""
+    env = make_real_env("cmu_track", seed=0, episode_len=4, task_options=RUN_CLIP)
+    task = env_parts_of(env).task
+    g = torch.Generator().manual_seed(0)
+    actions = 0.3 * torch.randn(4, track.system.nu, generator=g)
+    env.set_seed(0)
+    td = env.reset()
+    start = State(q=td[keys.Q].double(), qd=td[keys.QD].double())
+    for t in range(4):
+        td = env.step(td.set(keys.ACTION, actions[t]))
+        q, qd = td[keys.NEXT_Q].double(), td[keys.NEXT_QD].double()
+        expected = task.reward_at(q, qd, actions[t].double(), torch.tensor(t))
+        assert float(td[keys.NEXT_REWARD]) == pytest.approx(float(expected), rel=1e-5)
+        td = td[keys.NEXT]
+    system = track.system
+    model = system.mj_model()
+    data = mujoco.MjData(model)
+    data.qpos[:], data.qvel[:] = start.q.numpy(), start.qd.numpy()
+    by_hand, alive = 0.0, True
+    for t in range(3):
+        data.ctrl[:] = actions[t].double().numpy()
+        mujoco.mj_step(model, data, nstep=system.frame_skip)
+        q, qd = torch.from_numpy(data.qpos.copy()), torch.from_numpy(data.qvel.copy())
+        step = torch.tensor(5 + t)
+        if alive:  # rewards up to and including the step that terminates
+            by_hand += float(task.reward_at(q, qd, actions[t].double(), step))
+        alive = alive and not bool(task.terminated_at(q, qd, step))
+    with mujoco_objective_factory(system, task, nthread=1) as factory:
+        got = factory(start.q, start.qd, step=5)(actions[None, :3].double())
+    assert float(got) == pytest.approx(by_hand, rel=1e-9)
+
+
+# ---------------------------------------------------------------- cmu_track's terms
+
+
+def test_reference_states_score_one_and_time_picks_the_frame(track) -> None:
+    task = track.task
+    assert isinstance(task, MotionTracking) and task.time_indexed
+    assert task.episode_len == task.ref_q.shape[0] - 1
+    q, qd, a = task.ref_q[6], task.ref_qd[6], torch.zeros(track.system.nu, dtype=torch.float64)
+    assert float(task.reward_at(q, qd, a, torch.tensor(5))) == pytest.approx(1.0)
+    assert float(task.reward_at(q, qd, a, torch.tensor(20))) < 0.9  # another frame
+    last = task.ref_q.shape[0] - 1  # past the end: scored against the last frame
+    ends = task.reward_at(task.ref_q[last], task.ref_qd[last], a, torch.tensor([last, last + 9]))
+    torch.testing.assert_close(ends, torch.ones(2, dtype=torch.float64))
+    with pytest.raises(TypeError, match="reward_at"):
+        task.reward(q, qd, a)
+
+
+def test_terms_worked_examples(track) -> None:
+    """One hinge off by 0.2 rad: pose = exp(-2 0.04); one DoF 3 rad/s too fast: velocity =
+    exp(-0.1 9); the whole body moved 0.1 m along x: root = exp(-10 0.01), end effectors and
+    pose untouched; moved 0.6 m the episode ends (fail distance 0.5 m), 0.4 m it does not."""
+    task, layout = track.task, track.system.layout
+    step = torch.tensor(9)
+    q, qd = task.ref_q[10].clone(), task.ref_qd[10].clone()
+    bent = q.clone()
+    bent[20] += 0.2  # a hinge (free root: q[0:7])
+    terms = task.terms(bent, qd, step)
+    assert float(terms.pose) == pytest.approx(np.exp(-2.0 * 0.04))
+    assert float(terms.velocity) == pytest.approx(1.0)
+    fast = qd.clone()
+    fast[30] += 3.0
+    assert float(task.terms(q, fast, step).velocity) == pytest.approx(np.exp(-0.1 * 9.0))
+    for dx, ends in ((0.1, False), (0.4, False), (0.6, True)):
+        moved = q.clone()
+        moved[0] += dx
+        terms = task.terms(moved, qd, step)
+        assert float(terms.root) == pytest.approx(np.exp(-10.0 * dx**2))
+        assert float(terms.pose) == pytest.approx(1.0)
+        assert float(terms.end_effector) == pytest.approx(1.0)
+        assert bool(task.terminated_at(moved, qd, step)) is ends
+    # turning the root turns the end effectors about it: that term drops, the root's does not
+    turned = integrate_pos(
+        layout, q, torch.zeros(track.system.nv).index_fill(0, torch.tensor([5]), 0.3), 1.0
+    )
+    terms = task.terms(turned, qd, step)
+    assert float(terms.root) == pytest.approx(1.0)
+    assert float(terms.end_effector) < 0.9
+    assert float(terms.pose) == pytest.approx(np.exp(-2.0 * 0.09))
+
+
+def test_initial_state_is_the_first_reference_frame(track) -> None:
+    task = track.task
+    state = task.initial_state((3,), torch.Generator().manual_seed(0))
+    torch.testing.assert_close(state.q[:, :7], task.ref_q[0, :7].expand(3, 7))
+    assert float((state.q - task.ref_q[0]).abs().max()) <= task.q_noise
+    assert float((state.qd - task.ref_qd[0]).abs().max()) <= task.q_noise
+
+
+def test_bad_options_and_references_are_named(track) -> None:
+    with pytest.raises(ValueError, match="takes no task option clip"):
+        make_env_parts("pendulum", task_options={"clip": "02_01"})
+    with pytest.raises(ValueError, match="speed"):
+        make_env_parts("cmu_track", task_options={**RUN_CLIP, "speed": 1.0})
+    task, system = track.task, track.system
+    ref_q = task.ref_q.clone()
+    ref_q[3, 10] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        MotionTracking(system.mj_model(), system.layout, ref_q, task.ref_qd)
+    with pytest.raises(ValueError, match="rows"):
+        MotionTracking(system.mj_model(), system.layout, task.ref_q, task.ref_qd[:-1])
+    pendulum = make_env_parts("pendulum").system
+    with pytest.raises(ValueError, match="free root"):
+        MotionTracking(pendulum.mj_model(), pendulum.layout, task.ref_q, task.ref_qd)
