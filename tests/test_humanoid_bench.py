@@ -16,6 +16,8 @@ from omegaconf import OmegaConf
 
 from mbrl_delan import keys
 from mbrl_delan.bench import build_options
+from mbrl_delan.benchmarks.figures import error_curves
+from mbrl_delan.benchmarks.figures import main as figures_main
 from mbrl_delan.benchmarks.humanoid import (
     MODEL_SETTINGS,
     HumanoidBenchConfig,
@@ -172,6 +174,8 @@ def test_oracle_options() -> None:
     only = suite_config(options("models=[]", "oracle_tasks=[humanoid_walk]", "oracle_steps=50"))
     assert only.models == () and only.oracle_tasks == ("humanoid_walk",)
     assert only.oracle_steps == 50
+    assert suite_config(options("horizons=[1,2,30]")).horizons == (1, 2, 30)
+    assert default.horizons == (1, 10, 30)
     assert suite_config(options("oracle_tasks=[]")).oracle_tasks == ()
     with pytest.raises(ConfigError, match="oracle_tasks"):
         options("oracle_tasks=[cartpole]")
@@ -179,3 +183,32 @@ def test_oracle_options() -> None:
         options("oracle_steps=0")
     with pytest.raises(ConfigError, match="models"):
         options("models=[]", suite="planner")  # only suite humanoid runs without models
+
+
+def test_error_vs_horizon_figure(tmp_path: Path) -> None:
+    records = [
+        {"case": "delan-n100", "metric": "rollout_error", "horizon": 10, "value": 0.5,
+         "rollout_steps": 5},
+        {"case": "delan-n100", "metric": "rollout_error", "horizon": 1, "value": 0.2,
+         "rollout_steps": 5},
+        {"case": "ensemble-n100", "metric": "rollout_error", "horizon": 1, "value": 0.1},
+        {"case": "ensemble-n100", "metric": "rollout_error", "horizon": 30, "value": None},
+        {"case": "ensemble-n100", "metric": "fit_s", "value": 3.0},
+    ]  # fmt: skip
+    curves = error_curves(records)
+    assert curves == {
+        "delan-n100 (K=5)": [(1, 0.2), (10, 0.5)],  # sorted by horizon
+        "ensemble-n100": [(1, 0.1)],  # the skipped figure (None) left out
+    }
+    data = tmp_path / "h.jsonl"
+    data.write_text("\n".join(json.dumps(r) for r in records))
+    out = tmp_path / "fig" / "error.png"
+    assert figures_main([str(data), "--out", str(out)]) == 0
+    assert out.read_bytes()[:4] == b"\x89PNG"
+    empty = tmp_path / "empty.jsonl"
+    empty.write_text(json.dumps(records[-1]) + "\n")
+    assert figures_main([str(empty), "--out", str(tmp_path / "none.png")]) == 2
+    assert figures_main([str(tmp_path / "missing.jsonl"), "--out", str(out)]) == 2
+    broken = tmp_path / "broken.jsonl"
+    broken.write_text('{"case": "x", "metric": "rollout_error", "value": 1.0}\n')
+    assert figures_main([str(broken), "--out", str(out)]) == 2

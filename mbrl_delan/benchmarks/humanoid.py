@@ -348,6 +348,8 @@ def suite_config(opts: SuiteOptions) -> HumanoidBenchConfig:
         cfg = replace(cfg, sizes=opts.transitions)
     if opts.models is not None:
         cfg = replace(cfg, models=opts.models)
+    if opts.horizons:
+        cfg = replace(cfg, horizons=opts.horizons)
     if opts.rollout_steps is not None:
         cfg = replace(cfg, rollout_steps=opts.rollout_steps)
     if opts.oracle_tasks is not None:

@@ -1,0 +1,90 @@
+"""`python -m mbrl_delan.benchmarks.figures FILE [FILE ...] --out PNG`: suite humanoid's
+error-vs-horizon figure.
+
+Reads the JSON Lines records of `python -m mbrl_delan.bench suite=humanoid out=FILE` and draws
+`rollout_error` against its `horizon`, one line per case (`{model}-n{transitions}`, with the
+K of its rollout loss), on a log scale. Exit status 2 when a file is missing or malformed or
+holds no `rollout_error` record.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from mbrl_delan.benchmarks.records import read_records
+
+log = logging.getLogger(__name__)
+
+ROLLOUT_ERROR = "rollout_error"
+
+
+def error_curves(records: list[dict[str, Any]]) -> dict[str, list[tuple[int, float]]]:
+    """Case label -> [(horizon, rollout_error)] sorted by horizon (records without a value
+    left out). The label is the case, with `K=` its rollout loss's steps when recorded."""
+    curves: dict[str, list[tuple[int, float]]] = defaultdict(list)
+    for r in records:
+        if r.get("metric") != ROLLOUT_ERROR or r.get("value") is None:
+            continue
+        if not isinstance(r.get("case"), str) or not isinstance(r.get("horizon"), int):
+            raise ValueError(f"a {ROLLOUT_ERROR} record without its case or horizon: {r}")
+        steps = r.get("rollout_steps")
+        label = r["case"] if steps is None else f"{r['case']} (K={steps})"
+        curves[label].append((int(r["horizon"]), float(r["value"])))
+    return {label: sorted(points) for label, points in sorted(curves.items())}
+
+
+def plot_error_curves(curves: dict[str, list[tuple[int, float]]], path: Path, title: str) -> Path:
+    """Draw the curves (log y) into the PNG at `path`."""
+    fig = Figure(figsize=(6.0, 4.0))
+    ax = fig.add_subplot()
+    for label, points in curves.items():
+        ax.plot([h for h, _ in points], [v for _, v in points], marker="o", label=label)
+    ax.set_yscale("log")
+    ax.set_xlabel("horizon (control steps, open loop)")
+    ax.set_ylabel("rollout_error (normalised RMS)")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    FigureCanvasAgg(fig)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("files", nargs="+", type=Path, help="records of suite humanoid (JSONL)")
+    parser.add_argument("--out", type=Path, required=True, help="the figure to write (PNG)")
+    parser.add_argument("--title", default="Humanoid-v5: open-loop rollout error")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    records: list[dict[str, Any]] = []
+    for path in args.files:
+        try:
+            records += read_records(path)
+        except (OSError, json.JSONDecodeError) as err:
+            log.error("cannot read records from %s: %s", path, err)
+            return 2
+    try:
+        curves = error_curves(records)
+    except ValueError as err:
+        log.error("%s", err)
+        return 2
+    if not curves:
+        log.error("no %s records in %s", ROLLOUT_ERROR, ", ".join(map(str, args.files)))
+        return 2
+    log.info("figure: %s", plot_error_curves(curves, args.out, args.title))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
