@@ -29,9 +29,11 @@ from mbrl_delan.data.buffer import NonFiniteDataError, make_replay_buffer
 from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import EnvParts, make_env_parts
+from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.sweep import exit_or_raise, marks_crash, with_sweep_group
+from mbrl_delan.systems.system import System
 from mbrl_delan.training.checkpoint import (
     CheckpointError,
     load_checkpoint,
@@ -90,6 +92,14 @@ def _env_parts(cfg: DictConfig) -> EnvParts:
         raise ConfigError(f"env={env.name}: {err}") from err
 
 
+def _planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPlanner:
+    """The configured planner; a value it refuses (e.g. temperature <= 0) is a ConfigError."""
+    try:
+        return build_planner(cfg.planner, system, dtype)
+    except ValueError as err:
+        raise ConfigError(f"planner={cfg.planner.name}: {err}") from err
+
+
 def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]:
     """The MBRL loop and the oracle policy (same planner over MuJoCo's true dynamics)."""
     device, dtype = check_device(cfg.device), DTYPES[cfg.dtype]
@@ -116,13 +126,11 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         risk=cfg.planner.get("risk", 0.0),
         compile=cfg.model.get("compile", False),
     )
-    policy = _policy(
-        cfg.planner, build_planner(cfg.planner, system, dtype), factory, cfg.seed, device
-    )
+    policy = _policy(cfg.planner, _planner(cfg, system, dtype), factory, cfg.seed, device)
     oracle_factory = mujoco_objective_factory(system, task, discount=cfg.planner.discount)
     oracle = _policy(
         cfg.planner,
-        build_planner(cfg.planner, system, torch.float64),
+        _planner(cfg, system, torch.float64),
         oracle_factory,
         cfg.seed,
         torch.device("cpu"),

@@ -163,6 +163,21 @@ def test_models_and_rollout_steps_options() -> None:
         build_options(bad_steps)
 
 
+def test_oracle_planner_is_the_loops_mppi_on_the_humanoid() -> None:
+    cfg = HumanoidBenchConfig()
+    for env in ("humanoid_stand", "humanoid_walk"):
+        with initialize_config_dir(config_dir=str(CONFIGS.resolve()), version_base=None):
+            planner = compose("config", overrides=[f"env={env}", "planner=mppi"]).planner
+        setting = cfg.oracle_planner
+        assert (planner.num_samples, planner.horizon, planner.iterations) == (
+            setting.num_samples,
+            setting.horizon,
+            setting.iterations,
+        )
+        assert planner.temperature == cfg.oracle_temperature
+        assert planner.noise_std == cfg.oracle_noise_std
+
+
 def test_oracle_options() -> None:
     def options(*overrides: str, suite: str = "humanoid"):
         with initialize_config_dir(config_dir=str(CONFIGS.resolve()), version_base=None):

@@ -138,6 +138,7 @@ def test_sigkill_then_resume_continues_identically(finished_run: Path, tmp_path:
         ("model=ensemble fit.rollout_steps=3", "only delan and delan_ensemble"),
         ("env=cmu_track env.task.clip='99_99' env.task.download=false", "clip '99_99' not found"),
         ("env=cmu_track env.task.clip=131_03", "clip=13103 is not a clip name; quote it"),
+        ("planner.temperature=-1", "temperature must be finite and > 0"),
     ],
 )
 def test_bad_config_value_fails_at_start_naming_it(

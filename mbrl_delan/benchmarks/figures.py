@@ -50,7 +50,7 @@ def plot_error_curves(curves: dict[str, list[tuple[int, float]]], path: Path, ti
     ax.set_yscale("log")
     ax.set_xlabel("horizon (control steps, open loop)")
     ax.set_ylabel("rollout_error (normalised RMS)")
-    ax.set_title(title)
+    ax.set_title(title, fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.tight_layout()

@@ -27,9 +27,9 @@ transitions? For each training-set size n in `sizes`:
 
 Before the models, the oracle: for each task in `oracle_tasks` (`humanoid_stand`,
 `humanoid_walk`), one episode of the loop's planner (MPPI, `configs/planner/mppi.yaml` with
-the humanoid envs' horizon 15) on MuJoCo's true dynamics, on the real env, from the task's
-initial state, for at most `oracle_steps` control steps (default: the task's own 1,000). It
-ends early when the humanoid falls (the task terminates).
+the humanoid envs' horizon 15, temperature 0.05 and noise 0.3) on MuJoCo's true dynamics, on
+the real env, from the task's initial state, for at most `oracle_steps` control steps
+(default: the task's own 1,000). It ends early when the humanoid falls (the task terminates).
 
 Records: case ``{model}-n{n}``, metric ``rollout_error`` (field ``horizon``), and
 ``fit_s`` (seconds of the fit, both phases), with field ``rollout_steps`` (the K it was fitted
@@ -59,12 +59,13 @@ from mbrl_delan.benchmarks import (
     SuiteOptions,
     host_fields,
 )
-from mbrl_delan.benchmarks.planner import Setting, build_planner
+from mbrl_delan.benchmarks.planner import Setting
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.config import build_model
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.base import WorldModel
+from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.system import System
@@ -125,7 +126,11 @@ class HumanoidBenchConfig:
     seed: int = 0
     oracle_tasks: tuple[str, ...] = HUMANOID_ORACLE_TASKS
     oracle_steps: int | None = None  # control steps per oracle episode (None: the task's own)
-    oracle_planner: Setting = Setting(num_samples=256, horizon=15, iterations=2)  # MPPI
+    # the loop's MPPI on env=humanoid_stand / humanoid_walk (configs/planner/mppi.yaml with the
+    # envs' horizon, mppi_temperature and mppi_noise_std; compared in a test)
+    oracle_planner: Setting = Setting(num_samples=256, horizon=15, iterations=2)
+    oracle_temperature: float = 0.05
+    oracle_noise_std: float = 0.3
 
     @classmethod
     def quick(cls) -> HumanoidBenchConfig:
@@ -273,12 +278,30 @@ class OracleEpisode:
     seconds: float  # wall time of the episode
 
 
-def oracle_episode(task_name: str, steps: int | None, setting: Setting, seed: int) -> OracleEpisode:
-    """MPPI over MuJoCo's dynamics on `task_name`'s real env for at most `steps` control
-    steps (None: the task's episode length), from the task's initial state of `seed`."""
+def oracle_episode(
+    task_name: str,
+    steps: int | None,
+    setting: Setting,
+    seed: int,
+    temperature: float = 0.05,
+    noise_std: float = 0.3,
+) -> OracleEpisode:
+    """MPPI (`setting`, `temperature`, `noise_std`) over MuJoCo's dynamics on `task_name`'s
+    real env for at most `steps` control steps (None: the task's episode length), from the
+    task's initial state of `seed`."""
     parts = make_env_parts(task_name, None, steps)
     env = make_real_env(task_name, seed=seed, episode_len=steps)
-    planner = build_planner("mppi", setting, parts.system, torch.float64)
+    system = parts.system
+    planner = MPPIPlanner(
+        horizon=setting.horizon,
+        action_low=system.ctrl_low,
+        action_high=system.ctrl_high,
+        num_samples=setting.num_samples,
+        iterations=setting.iterations,
+        temperature=temperature,
+        noise_std=noise_std,
+        dtype=torch.float64,
+    )
     threads = torch.get_num_threads()  # the suite's `threads`: MuJoCo rollout threads too
     with mujoco_objective_factory(parts.system, parts.task, nthread=threads) as factory:
         policy = PlannerPolicy(planner, factory, seed=seed, action_dtype=torch.float32)
@@ -297,11 +320,15 @@ def oracle_records(cfg: HumanoidBenchConfig, host: dict[str, Any]) -> Iterator[B
     setting = cfg.oracle_planner
     for name in cfg.oracle_tasks:
         log.info("humanoid suite: oracle MPPI episode on %s (%s)", name, setting.tag())
-        ep = oracle_episode(name, cfg.oracle_steps, setting, cfg.seed)
+        ep = oracle_episode(
+            name, cfg.oracle_steps, setting, cfg.seed, cfg.oracle_temperature, cfg.oracle_noise_std
+        )
         fields = dict(
             env=name, steps=ep.steps, episode_len=ep.episode_len, fell=ep.fell,
             mean_reward=ep.ret / ep.steps, planner="mppi", num_samples=setting.num_samples,
-            horizon=setting.horizon, iterations=setting.iterations, seed=cfg.seed, **host,
+            horizon=setting.horizon, iterations=setting.iterations,
+            temperature=cfg.oracle_temperature, noise_std=cfg.oracle_noise_std, seed=cfg.seed,
+            **host,
         )  # fmt: skip
         log.info("oracle-%s: return %.2f over %d steps%s", name, ep.ret, ep.steps,
                  " (fell)" if ep.fell else "")  # fmt: skip
