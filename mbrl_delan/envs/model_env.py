@@ -134,7 +134,7 @@ class ModelObjectiveFactory:
         self.dtype = dtype
         self.risk = float(risk)
         self.compile = compile
-        self._compiled: Callable[[Tensor, Tensor, Tensor], Transition] | None = None
+        self._compiled: Callable[[Tensor, Tensor, Tensor, Tensor], Transition] | None = None
 
     def transition(self, q: Tensor, qd: Tensor, action: Tensor, step: Tensor) -> Transition:
         """One control step in the model and its task reward and termination.
