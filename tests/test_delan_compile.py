@@ -7,7 +7,7 @@ from torch.nn import functional as F
 from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.delan import SMALL_SOLVE, DeLaN, unrolled_cholesky_solve
-from mbrl_delan.models.tangent_mlp import _activate
+from mbrl_delan.models.tangent_mlp import _activate, log1p_unit
 from mbrl_delan.systems.system import load_system
 
 
@@ -62,3 +62,15 @@ def test_compiled_planning_objective_equals_eager() -> None:
     compiled = factory(q0, qd0)(actions)
     assert factory._compiled is not None  # the compiled path ran
     torch.testing.assert_close(compiled, eager, rtol=1e-5, atol=1e-5)
+
+
+def test_log1p_unit_polynomial_matches_log1p_on_the_unit_interval() -> None:
+    e64 = torch.linspace(0.0, 1.0, 100_001, dtype=torch.float64)
+    exact = torch.log1p(e64)
+    approx = log1p_unit(e64.float()).double()
+    assert float((approx - exact).abs().max()) < 1.3e-7
+    # relative accuracy near 0 too (e p(e) has no constant term): softplus of very negative z
+    small = torch.logspace(-30, -3, 200, dtype=torch.float64)
+    rel = (log1p_unit(small.float()).double() - torch.log1p(small)).abs() / torch.log1p(small)
+    assert float(rel.max()) < 1e-6
+    assert torch.equal(log1p_unit(e64), torch.log1p(e64))  # float64: log1p itself

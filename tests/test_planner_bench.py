@@ -226,3 +226,21 @@ def test_compiled_cases_compile_our_step_and_the_model_step() -> None:
     assert not plain.compile and not plain.model.compile_step
     factory = _objective_factory(case, torch.device("cpu"))
     assert factory.compile
+
+
+def test_a_compiling_call_is_timed_after_two_untimed_calls() -> None:
+    seconds = iter([30.0, 0.5, 0.5, 0.5])  # the first call compiles for 30 s
+    calls: list[float] = []
+    clock = {"now": 0.0}
+
+    def call() -> None:
+        calls.append(1)
+        clock["now"] += next(seconds)
+
+    opts = replace(OPTS, max_call_s=5.0)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr("mbrl_delan.benchmarks.planner.time.perf_counter", lambda: clock["now"])
+        timing = time_plan(call, predicted=1.0, opts=opts, sync=lambda: None, compiles=True)
+    # repeats from the warm 0.5 s: min(repeats 2, floor(2.5 s / 0.5 s)); the 30 s is not timed
+    assert len(calls) == 2 + timing.repeats and timing.repeats == 2
+    assert timing.seconds_per_call == pytest.approx(0.5)

@@ -366,7 +366,11 @@ def _seconds(call: Callable[[], object], sync: Callable[[], None]) -> float:
 
 
 def time_plan(
-    call: Callable[[], object], predicted: float, opts: SuiteOptions, sync: Callable[[], None]
+    call: Callable[[], object],
+    predicted: float,
+    opts: SuiteOptions,
+    sync: Callable[[], None],
+    compiles: bool = False,
 ) -> Timing:
     """Time `call` as the module docstring says; `predicted`: its seconds, 0 if unknown.
 
@@ -374,11 +378,15 @@ def time_plan(
     `time_call`. Slow ones: `repeats` single calls, fewer where they would take more than
     `max_call_s / 2` in all (at least one); the untimed call is left out when the prediction
     already says the call is slow (the code path is warm from the smaller settings, and a
-    cold-started plan costs what a warm-started one does).
+    cold-started plan costs what a warm-started one does). A call that `compiles` (its first
+    call for a new batch size compiles graphs for seconds) always gets the untimed call, and a
+    second one whose time, without compiling, sets the number of repeats.
     """
     estimate = predicted
-    if predicted < opts.timing.min_time_s:
+    if predicted < opts.timing.min_time_s or compiles:
         estimate = _seconds(call, sync)  # untimed: the cold start
+        if compiles:
+            estimate = _seconds(call, sync)  # untimed: the first call compiled
         if estimate < opts.timing.min_time_s:
             return time_call(call, replace(opts.timing, warmup=0), sync)
     budget = opts.max_call_s / 2
@@ -394,8 +402,10 @@ def measure(
     predictor: LatencyPredictor,
     opts: SuiteOptions,
     sync: Callable[[], None],
+    compiles: bool = False,
 ) -> Measured:
-    """Build the call with `make()` and time it, unless predicted too slow or unbuildable."""
+    """Build the call with `make()` and time it (`time_plan`), unless predicted too slow or
+    unbuildable."""
     predicted = predictor.predict(setting)
     if predicted > opts.max_call_s:
         return Measured(None, f"skipped: one call predicted {predicted:.1f} s > max_call_s")
@@ -403,7 +413,7 @@ def measure(
         call = make()
     except ValueError as err:  # a planner constructor's check, e.g. N too small for iCEM
         return Measured(None, f"not run: {err}")
-    timing = time_plan(call, predicted, opts, sync)
+    timing = time_plan(call, predicted, opts, sync, compiles)
     predictor.observe(setting, timing.seconds_per_call)
     return Measured(timing)
 
@@ -481,7 +491,7 @@ def our_records(
             policy = PlannerPolicy(planner, factory, replan_every=1, seed=0, device=device)
             return lambda: policy.act(q0, qd0)
 
-        measured = measure(make, setting, predictor, opts, sync)
+        measured = measure(make, setting, predictor, opts, sync, case.compile)
         name = f"{case.name}-{kind}-{setting.tag()}"
         yield from latency_records(
             name, "plan_latency_ms", measured, case.system.control_dt, device, fields
@@ -546,7 +556,7 @@ def torchrl_records(
         def make(setting: Setting = setting, actions: list[Tensor] = actions) -> Callable[[], Any]:
             return torchrl_call(build_torchrl_planner(kind, setting, env), start, actions)
 
-        measured = measure(make, setting, predictor, opts, sync)
+        measured = measure(make, setting, predictor, opts, sync, case.compile)
         if actions:
             fields["action_finite"] = all(bool(torch.isfinite(a).all()) for a in actions)
             if not fields["action_finite"]:

@@ -24,14 +24,38 @@ ACTIVATIONS = ("softplus", "tanh")
 SMALL_DIM = 4
 
 
+# log(1 + e) / e on e in [0, 1], degree 8 (Chebyshev fit, increasing powers): e p(e) is within
+# 1.3e-7 of log(1 + e) in float32 evaluation, about float32's own rounding of values near 0.7.
+LOG1P_UNIT_COEFFS = (
+    0.999999971, -0.499995015, 0.333192713, -0.248443699, 0.191114311,
+    -0.136747697, 0.078361668, -0.0295885074, 0.0052534578,
+)  # fmt: skip
+
+
+def log1p_unit(e: Tensor) -> Tensor:
+    """log(1 + e) for e in [0, 1] as e p(e), a polynomial (Horner: 9 multiply-adds).
+
+    For float32 and lower: within 1.3e-7 of log1p, and compiled it fuses into the
+    neighbouring kernel at a fraction of a vectorised log1p's cost (the softplus of a
+    compiled DeLaN step spent a quarter of its time in log1p). float64 keeps `torch.log1p`.
+    """
+    if e.dtype == torch.float64:
+        return torch.log1p(e)
+    acc = e * LOG1P_UNIT_COEFFS[-1] + LOG1P_UNIT_COEFFS[-2]
+    for c in reversed(LOG1P_UNIT_COEFFS[:-2]):
+        acc = acc * e + c
+    return e * acc
+
+
 def _activate(name: str, z: Tensor) -> tuple[Tensor, Tensor]:
     """Activation value and its derivative at z."""
     if name == "softplus":
         if torch.compiler.is_compiling():
-            # one exp and one log1p for both (3 transcendentals otherwise), stable for any z
+            # one exp and one polynomial for both (3 transcendentals otherwise), stable for
+            # any z: softplus(z) = max(z, 0) + log(1 + e), sigmoid from the same e = exp(-|z|)
             e = torch.exp(-z.abs())
             inv = 1.0 / (1.0 + e)
-            return z.clamp(min=0) + torch.log1p(e), torch.where(z >= 0, inv, e * inv)
+            return z.clamp(min=0) + log1p_unit(e), torch.where(z >= 0, inv, e * inv)
         return F.softplus(z), torch.sigmoid(z)
     y = torch.tanh(z)
     return y, 1.0 - y * y
