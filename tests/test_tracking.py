@@ -21,7 +21,7 @@ from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.posarith import integrate_pos
 from mbrl_delan.systems.system import State
 from mbrl_delan.tasks.base import Task
-from mbrl_delan.tasks.tracking import MotionTracking
+from mbrl_delan.tasks.tracking import MotionTracking, floor_clearance, ground_reference
 from tests.test_model_env import DoubleIntegrator
 
 DATA = Path(__file__).parent / "data"
@@ -206,3 +206,35 @@ def test_bad_options_and_references_are_named(track) -> None:
     pendulum = make_env_parts("pendulum").system
     with pytest.raises(ValueError, match="free root"):
         MotionTracking(pendulum.mj_model(), pendulum.layout, task.ref_q, task.ref_qd)
+
+
+# ---------------------------------------------------------------- the reference meets the floor
+
+
+def test_grounded_reference_stands_on_the_floor_and_ignores_a_lift(track) -> None:
+    task, system = track.task, track.system  # 09_06: a run, with flight phases
+    model, dt = system.mj_model(), system.control_dt
+    clearance = floor_clearance(model, task.ref_q)
+    assert float(clearance.min()) > -0.015  # stance: feet at the floor, not in it
+    assert float(clearance.max()) > 0.03  # flight: above it
+    for half in clearance.split(clearance.shape[0] // 2)[:2]:  # a stance in each half second
+        assert abs(float(half.min())) < 0.015
+    # lifting the clip (as retargeting leaves it) changes nothing
+    time = torch.arange(task.ref_q.shape[0], dtype=torch.float64) * dt
+    for lift, rate, tol in ((0.07, 0.0, 1e-9), (0.07, 0.02, 5e-3)):
+        lifted_q, lifted_qd = task.ref_q.clone(), task.ref_qd.clone()
+        lifted_q[:, 2] += lift + rate * time
+        lifted_qd[:, 2] += rate
+        q, qd = ground_reference(model, lifted_q, lifted_qd, dt)
+        torch.testing.assert_close(q, task.ref_q, atol=tol, rtol=0)
+        torch.testing.assert_close(qd, task.ref_qd, atol=tol, rtol=0)
+    # the shift moves every body by the same height: the clearance rises by exactly it
+    lifted = floor_clearance(model, lifted_q)
+    torch.testing.assert_close(lifted - clearance, lift + rate * time, atol=1e-9, rtol=0)
+
+
+def test_ungrounded_clip_is_the_retargeted_one(track) -> None:
+    raw = make_env_parts("cmu_track", task_options={**RUN_CLIP, "ground": False}).task
+    shift = track.task.ref_q - raw.ref_q
+    assert torch.equal(shift[:, [0, 1, *range(3, shift.shape[1])]], torch.zeros_like(shift[:, :-1]))
+    assert float(shift[:, 2].abs().max()) > 0  # the clip is moved, only vertically

@@ -14,7 +14,7 @@ from mbrl_delan.systems.system import System, load_system
 from mbrl_delan.tasks import AcrobotSwingup, ArmReach, CartpoleSwingup, PendulumSwingup
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.humanoid import HUMANOID_V5_BODY, HumanoidTask
-from mbrl_delan.tasks.tracking import MotionTracking
+from mbrl_delan.tasks.tracking import MotionTracking, ground_reference
 
 ENV_NAMES = (
     "pendulum",
@@ -33,6 +33,7 @@ CMU_TRACK_OPTIONS: dict[str, Any] = {
     "folders": ("../shared/data/cmu_mocap", "data/cmu_mocap"),
     "cache_dir": None,
     "download": True,
+    "ground": True,
 }
 
 
@@ -94,6 +95,8 @@ def _cmu_track_task(system: System, episode_len: int | None, options: TaskOption
     clip = retarget_files(files.amc, files.asf, timestep=system.control_dt)
     ref_q = torch.cat([clip.q, clip.next_q[-1:]])  # (T+1, nq)
     ref_qd = torch.cat([clip.qd, clip.next_qd[-1:]])  # (T+1, nv)
+    if options["ground"]:
+        ref_q, ref_qd = ground_reference(system.mj_model(), ref_q, ref_qd, system.control_dt)
     return MotionTracking(
         system.mj_model(), system.layout, ref_q, ref_qd, episode_len=episode_len, name="cmu_track"
     )

@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import mujoco
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -206,3 +207,62 @@ def _body_ids(model: mujoco.MjModel, names: Sequence[str]) -> Tensor:
     if missing:
         raise ValueError(f"end-effector bodies not in the model: {', '.join(missing)}")
     return torch.tensor(ids, dtype=torch.long)
+
+
+def floor_clearance(model: mujoco.MjModel, ref_q: Tensor, max_distance: float = 1.0) -> Tensor:
+    """Per frame, the smallest signed distance between the floor and the model's other geoms.
+
+    The floor: the model's plane geoms. ref_q (T + 1, nq) -> (T + 1,) in metres; negative
+    where a geom sinks into the floor; `max_distance` where none is nearer (or no floor).
+    """
+    planes = np.flatnonzero(model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE)
+    bodies = np.setdiff1d(np.arange(model.ngeom), planes)
+    data, fromto = mujoco.MjData(model), np.zeros(6)
+    clearance = np.full(ref_q.shape[0], max_distance)
+    for t, q in enumerate(ref_q.detach().cpu().double().numpy()):
+        data.qpos[:] = q
+        mujoco.mj_kinematics(model, data)
+        for plane in planes:
+            for geom in bodies:
+                dist = mujoco.mj_geomDistance(model, data, plane, geom, max_distance, fromto)
+                clearance[t] = min(clearance[t], dist)
+    return torch.from_numpy(clearance)
+
+
+def ground_reference(
+    model: mujoco.MjModel, ref_q: Tensor, ref_qd: Tensor, dt: float, window_s: float = 0.5
+) -> tuple[Tensor, Tensor]:
+    """Shift a retargeted clip's root height so that it stands on the floor.
+
+    Mocap clips retargeted onto a model rarely sit on its floor (02_01 on the CMU humanoid
+    floats 4 to 8.5 cm above it, rising over the clip), so a tracker would be asked to hover.
+    The lowest clearance (`floor_clearance`) of each `window_s` of the clip, a stance moment
+    in a walk or a run, is taken as a floor contact; a straight line fitted to those minima by
+    least squares (a constant for a clip of one window) is subtracted from the root height:
+    the offset and drift go, steps and flight phases stay. The root's vertical velocity loses
+    the line's slope, so q and qd stay consistent.
+    (T + 1, nq), (T + 1, nv), control period dt -> grounded copies. Needs a free root first.
+    """
+    clearance = floor_clearance(model, ref_q)  # (T + 1,)
+    time = torch.arange(ref_q.shape[0], dtype=torch.float64) * dt
+    frames = max(1, round(window_s / dt))
+    lowest = torch.stack([chunk.argmin() + start for start, chunk in _chunks(clearance, frames)])
+    t_low, c_low = time[lowest], clearance[lowest]  # (W,)
+    slope = torch.zeros((), dtype=torch.float64)
+    if len(lowest) > 1:
+        design = torch.stack([torch.ones_like(t_low), t_low], dim=1)  # (W, 2)
+        slope = torch.linalg.lstsq(design, c_low.unsqueeze(1)).solution[1, 0]
+    offset = (c_low - slope * t_low).mean()
+    q, qd = ref_q.clone(), ref_qd.clone()
+    q[:, 2] -= (offset + slope * time).to(q)
+    qd[:, 2] -= slope.to(qd)
+    return q, qd
+
+
+def _chunks(values: Tensor, size: int) -> list[tuple[int, Tensor]]:
+    """Consecutive pieces of `size` (the last one longer, never shorter than half of it)."""
+    starts = list(range(0, values.shape[0], size))
+    if len(starts) > 1 and values.shape[0] - starts[-1] < size // 2 + 1:
+        starts.pop()
+    ends = [*starts[1:], values.shape[0]]
+    return [(a, values[a:b]) for a, b in zip(starts, ends, strict=True)]
