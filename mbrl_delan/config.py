@@ -150,6 +150,7 @@ def _delan_arguments(cfg: DictConfig, system: System) -> dict[str, Any]:
         inertia_scaling=cfg.inertia_scaling,
         diagonal_init=cfg.inertia_scaling,
         translation_invariant=cfg.translation_invariant,
+        still_first_order=cfg.still_first_order,
         dof_parents=system.mj_model().dof_parentid.tolist() if cfg.tree_sparse else None,
     )
 

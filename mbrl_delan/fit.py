@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import pickle
 import sys
 import time
 from collections.abc import Sequence
@@ -457,3 +458,26 @@ def main(cfg: DictConfig) -> float | None:
 
 if __name__ == "__main__":
     main()
+
+
+# ---------------------------------------------------------------- reading a finished run
+
+
+def read_fit_run(run_dir: str | Path) -> tuple[DictConfig, dict[str, torch.Tensor]]:
+    """A finished fit's resolved config and its model's state dict (on the CPU).
+
+    Raises FileNotFoundError naming a missing ``config.yaml`` or ``model.pt`` and ValueError
+    for a file that is not what `run` writes."""
+    run_dir = Path(run_dir)
+    config_path, model_path = run_dir / RUN_CONFIG, run_dir / MODEL_FILE
+    for path in (config_path, model_path):
+        if not path.is_file():
+            raise FileNotFoundError(f"no {path.name} in {run_dir} (is it a fit's run dir?)")
+    cfg = OmegaConf.load(config_path)
+    try:
+        saved = torch.load(model_path, map_location="cpu", weights_only=True)
+    except (RuntimeError, EOFError, OSError, pickle.UnpicklingError) as err:
+        raise ValueError(f"{model_path} is not a readable model file: {err}") from err
+    if not isinstance(cfg, DictConfig) or not isinstance(saved, dict) or "state_dict" not in saved:
+        raise ValueError(f"{run_dir} does not hold a fit's config.yaml and model.pt")
+    return cfg, saved["state_dict"]

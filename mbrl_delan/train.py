@@ -211,6 +211,47 @@ def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Reco
         log.warning("no video of iteration %d (%s: %s); the run goes on", k, name, err)
 
 
+# settings a DeLaN must share with the mocap fit it starts from (model.init_from)
+MOCAP_SHARED = (
+    "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb", "tree_sparse",
+    "still_first_order",
+)  # fmt: skip
+
+
+def _start_mechanics(model_cfg: DictConfig, model: torch.nn.Module) -> None:
+    """`model.init_from`: M, V and the friction of a DeLaN fitted on motion capture."""
+    from mbrl_delan.fit import read_fit_run  # the mocap stack: only when asked for
+
+    source = model_cfg.init_from
+    where = f"model.init_from={source!r}"
+    if model_cfg.name != "delan":
+        raise ConfigError(f"{where} is for model=delan, not model={model_cfg.name}")
+    try:
+        fit_cfg, state = read_fit_run(source)
+    except (FileNotFoundError, ValueError) as err:
+        raise ConfigError(f"{where}: {err}") from err
+    if fit_cfg.model.name != "delan":
+        raise ConfigError(f"{where}: that fit is model={fit_cfg.model.name}, not a DeLaN")
+    shared = {k: fit_cfg.model.get(k) for k in MOCAP_SHARED}
+    shared["translation_invariant"] = fit_cfg.get("translation_invariant", False)
+    differ = [f"model.{k}={_yaml(v)}" for k, v in shared.items() if model_cfg.get(k) != v]
+    if differ:
+        raise ConfigError(
+            f"{where}: that DeLaN was fitted with other structure settings; add {' '.join(differ)}"
+        )
+    delan_state = {k.removeprefix("delan."): v for k, v in state.items() if k.startswith("delan.")}
+    try:
+        model.load_mechanics(delan_state)
+    except ValueError as err:  # another system (env) than the fit's humanoid
+        raise ConfigError(f"{where}: {err}") from err
+    log.info("started M, V and the friction from the mocap fit in %s", source)
+
+
+def _yaml(value: Any) -> str:
+    """A value as a command-line override writes it (true, not True)."""
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
 def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | None]:
     """The config and run dir to use, and the checkpoint when resuming."""
     if cfg.resume is None:
@@ -246,6 +287,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     if state is None:
         OmegaConf.save(cfg, run_dir / RUN_CONFIG, resolve=True)
     loop, oracle = build_loop(cfg, run_dir)
+    if state is None and cfg.model.get("init_from") is not None:
+        _start_mechanics(cfg.model, loop.model)
     extra: dict[str, Any] = {"oracle_returns": None, "warmup_done": False}
     if state is not None:
         loop.load_state_dict(state["loop"])
@@ -381,6 +424,13 @@ def main(cfg: DictConfig) -> float | None:
         exit_or_raise(2, err)
     except TrainingDivergedError as err:
         log.error("training diverged: %s (the last good checkpoint is kept)", err)
+        if cfg.model.get("init_from") is not None:
+            log.error(
+                "the model started from model.init_from=%s: a DeLaN fitted on motion capture "
+                "can have a nearly singular M off the mocap's states, so its forward "
+                "predictions blow up (docs/humanoid.md, starting from the mocap fit)",
+                cfg.model.init_from,
+            )
         exit_or_raise(1, err)
     except NonFiniteDataError as err:
         log.error("bad data: %s (not added to the buffer; the last checkpoint is kept)", err)

@@ -197,3 +197,26 @@ def test_planner_survives_a_model_that_returns_inf_and_nan() -> None:
     result = planner.plan(objective, generator=torch.Generator().manual_seed(0))
     assert torch.isfinite(result.mean).all()
     assert abs(float(result.mean[0, 0]) - 0.5) < 0.15  # it still optimises on the finite ones
+
+
+def test_load_mechanics_copies_m_v_friction_keeps_b_and_names_misfits() -> None:
+    two = layout(2)
+    torch.manual_seed(0)
+    source = DeLaN(two, torch.eye(2), 0.01, hidden=8).double()  # action: both torques
+    with torch.no_grad():
+        for p in source.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    target = DeLaN(two, torch.tensor([[0.0], [2.0]]), 0.01, hidden=8, residual=True).double()
+    target.load_mechanics(source.state_dict())
+    q, qd = torch.randn(5, 2, dtype=torch.float64), torch.randn(5, 2, dtype=torch.float64)
+    for name in ("mass_matrix", "coriolis", "gravity", "dissipation"):
+        torch.testing.assert_close(
+            getattr(target.terms(q, qd), name), getattr(source.terms(q, qd), name)
+        )
+    assert torch.equal(target.dynamics.actuation, torch.tensor([[0.0], [2.0]], dtype=torch.float64))
+    assert bool(target.mechanics_loaded) and "mechanics_loaded" in target.state_dict()
+    wider = DeLaN(two, torch.eye(2), 0.01, hidden=16)
+    with pytest.raises(
+        ValueError, match=r"other shape: .*hidden\.0\.bias \(8,\) \(this model: \(16,\)\)"
+    ):
+        wider.load_mechanics(source.state_dict())

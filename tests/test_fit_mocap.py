@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -19,10 +20,11 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
+from tensordict import TensorDict
 from torch import nn
 
 from mbrl_delan import keys
-from mbrl_delan.config import ConfigError
+from mbrl_delan.config import ConfigError, build_model
 from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.data.mocap import (
     ClipNotFoundError,
@@ -30,12 +32,15 @@ from mbrl_delan.data.mocap import (
     humanoid_cmu_xml,
     save_dataset,
 )
-from mbrl_delan.fit import run, validate_fit_config
+from mbrl_delan.data.mocap.retarget import joint_layout
+from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.fit import build_inverse_model, read_fit_run, run, validate_fit_config
 from mbrl_delan.fit_report import main as report_main
 from mbrl_delan.fit_report import seed_table
 from mbrl_delan.models.delan import tree_entries
 from mbrl_delan.models.inverse import DeLaNInverse, MLPEnsembleInverse, MLPInverse
 from mbrl_delan.systems.system import FREE, HINGE, JointLayout
+from mbrl_delan.train import _start_mechanics
 from mbrl_delan.training.fit import TrainingDivergedError
 from mbrl_delan.training.inverse_fit import evaluate_torques
 
@@ -43,6 +48,7 @@ ROOT = Path(__file__).parents[1]
 CONFIGS = ROOT / "configs" / "fit"
 DATA = Path(__file__).parent / "data"
 CLIP, HELD_OUT = "09_06", "09_99"
+TEST_CLIP = {"clip": CLIP, "folders": [str(DATA)], "download": False}  # env=cmu_track
 GROUP_SIZES = {"root": 6, "legs": 14, "spine_neck_head": 18, "arms": 14, "hands": 10}
 SPLITS = ("train", "val_time", "val_clip")
 
@@ -472,3 +478,68 @@ def test_divergence_is_named(clip_folder, tmp_path: Path) -> None:
     with pytest.raises(TrainingDivergedError) as err:
         run(cfg, tmp_path / "run")
     assert err.value.metric in ("train_loss", "grad_norm")
+
+
+# ---------------------------------------------------------------- the loop starts from a fit
+
+
+def loop_model_config(*overrides: str) -> DictConfig:
+    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+        return compose(config_name="config", overrides=["env=cmu_track", *overrides])
+
+
+FIT_STRUCTURE = (  # the fit's settings (configs/fit, hidden 16) the loop's DeLaN must share
+    "model.hidden=16", "model.coulomb=false", "model.tree_sparse=true",
+    "model.still_first_order=true", "model.translation_invariant=true",
+)  # fmt: skip
+
+
+def test_loop_delan_starts_from_the_mocap_fit_and_keeps_it(fitted, clip_folder) -> None:
+    """model.init_from: the loop's DeLaN (56 motors, a residual force) gets the fitted M, c,
+    g and friction of the mocap DeLaN (every generalized force as its action), and its first
+    refit's normalisation leaves them as they are."""
+    fit_cfg, state = read_fit_run(fitted["delan"])
+    layout = joint_layout(mujoco.MjModel.from_xml_path(str(humanoid_cmu_xml())))
+    parents = mujoco.MjModel.from_xml_path(str(humanoid_cmu_xml())).dof_parentid.tolist()
+    inverse = build_inverse_model(
+        fit_cfg.model, layout, fit_cfg.loss.std_floor, fit_cfg.translation_invariant, parents
+    )
+    inverse.load_state_dict(state)
+    cfg = loop_model_config(*FIT_STRUCTURE, f"model.init_from={fitted['delan']}")
+    system = make_env_parts("cmu_track", task_options=TEST_CLIP).system
+    model = build_model(cfg.model, system).double()
+    _start_mechanics(cfg.model, model)
+    q, qd, _ = random_batch(layout, 16)
+    q, qd = q.double(), qd.double()
+    expected, got = inverse.delan.double().terms(q, qd), model.terms(q, qd)
+    for name in ("mass_matrix", "coriolis", "gravity", "dissipation"):
+        torch.testing.assert_close(getattr(got, name), getattr(expected, name), msg=name)
+    assert model.dynamics.actuation.shape == (62, 56)  # its own B: the 56 motors
+    # the loop's first refit sets loss scales and the residual's statistics, not M or V
+    n = 32
+    data = TensorDict(
+        {
+            keys.Q: q.repeat(2, 1), keys.QD: qd.repeat(2, 1),
+            keys.ACTION: torch.randn(n, 56, dtype=torch.float64),
+            keys.NEXT: {keys.Q: q.repeat(2, 1), keys.QD: 1.1 * qd.repeat(2, 1)},
+        },
+        batch_size=[n],
+    )  # fmt: skip
+    model.fit_normalization(data)
+    after = model.terms(q, qd)
+    torch.testing.assert_close(after.mass_matrix, expected.mass_matrix)
+    torch.testing.assert_close(after.gravity, expected.gravity)
+
+
+def test_init_from_names_what_does_not_fit(fitted, tmp_path: Path) -> None:
+    system = make_env_parts("cmu_track", task_options=TEST_CLIP).system
+    cases = [
+        ((f"model.init_from={fitted['delan']}",), "add model.hidden=16 model.coulomb=false"),
+        ((*FIT_STRUCTURE, f"model.init_from={fitted['mlp']}"), "that fit is model=mlp"),
+        ((*FIT_STRUCTURE, f"model.init_from={tmp_path}"), "no config.yaml in"),
+        (("model=ensemble", f"+model.init_from={fitted['delan']}"), "for model=delan"),
+    ]  # fmt: skip
+    for overrides, expected in cases:
+        cfg = loop_model_config(*overrides)
+        with pytest.raises(ConfigError, match=re.escape(expected)):
+            _start_mechanics(cfg.model, build_model(cfg.model, system))

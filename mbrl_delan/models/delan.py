@@ -19,7 +19,7 @@ in tests, closed-form models of known systems, so the same equations serve both.
 from __future__ import annotations
 
 import abc
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -485,6 +485,11 @@ def rotational_dofs(layout: JointLayout) -> Tensor:
 CONSTANT_RATIO = 1e-6  # a per-DoF spread below this fraction of the largest: not varying
 
 
+def _is_mechanics(key: str) -> bool:
+    """A state-dict entry of the Lagrangian part (M, V, friction), not the actuation B."""
+    return key.startswith("dynamics.") and key != "dynamics.actuation"
+
+
 def _varies(spread: Tensor) -> Tensor:
     """(n,) bool: spread_i >= CONSTANT_RATIO * max(spread) and > 0."""
     return (spread > 0) & (spread >= CONSTANT_RATIO * spread.max())
@@ -618,6 +623,9 @@ class DeLaN(WorldModel):
         for name in ("q_scale", "qd_scale", "tau_scale"):
             self.register_buffer(name, torch.ones(n))
         self.register_buffer("velocity_limit", torch.full((n,), float(max_velocity)))
+        # true once `load_mechanics` gave M, V and the friction (with their units and feature
+        # statistics): `fit_normalization` then leaves them as they are
+        self.register_buffer("mechanics_loaded", torch.zeros((), dtype=torch.bool))
 
     def _apply(self, fn: Callable[..., Any], recurse: bool = True) -> DeLaN:
         self._compiled_step = None  # a compiled step is specific to a device and dtype
@@ -678,16 +686,59 @@ class DeLaN(WorldModel):
             self.q_scale.copy_(_scale(differentiate_pos(self.layout, q, q_next, 1.0)))
             self.qd_scale.copy_(_scale(qd_next - qd))
             q, qd = torch.cat([q, q_next]), torch.cat([qd, qd_next])
+        if not bool(self.mechanics_loaded):
+            self._fit_mechanics_units(data, q, tau)
+        if self.residual is not None:
+            self.residual.features.standardize(q)
+        speed = qd.abs().amax(dim=0).clamp_min(1e-3)
+        self.velocity_limit.copy_(self.velocity_margin * speed)
+
+    def _fit_mechanics_units(self, data: TensorDictBase, q: Tensor, tau: Tensor) -> None:
+        """The Lagrangian part's units and feature statistics from the data (q: every state)."""
         if self.inertia_scaling:
             self._fit_inertia_scale(data, tau)
         field = self.dynamics.field
         field.features.standardize(q)
         if isinstance(field, LagrangianNetwork):
             field.start_height_weight(tau)
-        if self.residual is not None:
-            self.residual.features.standardize(q)
-        speed = qd.abs().amax(dim=0).clamp_min(1e-3)
-        self.velocity_limit.copy_(self.velocity_margin * speed)
+
+    @torch.no_grad()
+    def load_mechanics(self, state: Mapping[str, Tensor]) -> None:
+        """Take M, V and the friction from another DeLaN of the same structure and system.
+
+        `state`: that DeLaN's `state_dict()` (for example the mechanics of an inverse-dynamics
+        fit on motion capture, `models.inverse.DeLaNInverse.delan`). Its ``dynamics.*``
+        entries are copied: the networks of M and V, their units and feature statistics, the
+        friction. The actuation B stays this model's (the other may map a different action,
+        such as every generalized force); the residual force and the loss scales stay too.
+        Afterwards `fit_normalization` keeps the mechanics' units and statistics, so
+        refitting starts from the loaded M(q), V(q). A missing entry or one of another shape
+        (another width, depth, system or structure option) raises ValueError naming it.
+        """
+        own = {k: v for k, v in self.state_dict().items() if _is_mechanics(k)}
+        missing = sorted(k for k in own if k not in state)
+        wrong = sorted(
+            f"{k} {tuple(state[k].shape)} (this model: {tuple(own[k].shape)})"
+            for k in own
+            if k in state and state[k].shape != own[k].shape
+        )
+        extra = sorted(k for k in state if _is_mechanics(k) and k not in own)
+        if missing or wrong or extra:
+            raise ValueError(
+                "the given mechanics do not fit this DeLaN: "
+                + "; ".join(
+                    f"{label}: {', '.join(keys_)}"
+                    for label, keys_ in (
+                        ("missing", missing),
+                        ("other shape", wrong),
+                        ("not in this model", extra),
+                    )
+                    if keys_
+                )
+            )
+        for k, v in own.items():
+            v.copy_(state[k].to(v))
+        self.mechanics_loaded.fill_(True)
 
     def _fit_inertia_scale(self, data: TensorDictBase, tau: Tensor) -> None:
         """Units from the data, all positive constants (the structure is kept):
