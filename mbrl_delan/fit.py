@@ -136,6 +136,7 @@ def _validate_model(cfg: DictConfig) -> None:
         _number("model.diag_shift", cfg.diag_shift, 0.0, open_low=True)
         _flag("model.still_first_order", cfg.still_first_order)
         _flag("model.tree_sparse", cfg.tree_sparse)
+        _flag("model.armature", cfg.get("armature", False))
     else:
         _choice("model.activation", cfg.activation, tuple(MLP_ACTIVATIONS))
     if cfg.name == "ensemble":
@@ -238,10 +239,12 @@ def build_inverse_model(
     std_floor: float,
     translation_invariant: bool = False,
     dof_parents: Sequence[int] | None = None,
+    armature: Sequence[float] | None = None,
 ) -> InverseDynamicsModel:
     """The inverse-dynamics model named by ``cfg.name``. `translation_invariant`: no model
     sees the root's position (DeLaN keeps gravity's exact w z potential in its height).
-    `dof_parents`: the kinematic tree, for DeLaN's ``model.tree_sparse``."""
+    `dof_parents`: the kinematic tree, for DeLaN's ``model.tree_sparse``. `armature`: the
+    model's ``dof_armature``, for DeLaN's ``model.armature``."""
     root_height = not translation_invariant
     if cfg.name == "delan":
         return DeLaNInverse(
@@ -256,6 +259,7 @@ def build_inverse_model(
             translation_invariant=translation_invariant,
             still_first_order=cfg.still_first_order,
             dof_parents=dof_parents if cfg.tree_sparse else None,
+            armature=armature if cfg.get("armature", False) else None,
         )
     if cfg.name == "mlp":
         return MLPInverse(
@@ -311,6 +315,7 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         cfg.loss.std_floor,
         cfg.translation_invariant,
         mj_model.dof_parentid.tolist(),
+        mj_model.dof_armature.tolist(),
     )
     model = model.to(device=device, dtype=dtype)
     container = OmegaConf.to_container(cfg, resolve=True)

@@ -214,7 +214,7 @@ def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Reco
 # settings a DeLaN must share with the mocap fit it starts from (model.init_from)
 MOCAP_SHARED = (
     "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb", "tree_sparse",
-    "still_first_order",
+    "still_first_order", "armature",
 )  # fmt: skip
 
 
@@ -232,7 +232,7 @@ def _start_mechanics(model_cfg: DictConfig, model: torch.nn.Module) -> None:
         raise ConfigError(f"{where}: {err}") from err
     if fit_cfg.model.name != "delan":
         raise ConfigError(f"{where}: that fit is model={fit_cfg.model.name}, not a DeLaN")
-    shared = {k: fit_cfg.model.get(k) for k in MOCAP_SHARED}
+    shared = {k: fit_cfg.model.get(k, False) for k in MOCAP_SHARED}
     shared["translation_invariant"] = fit_cfg.get("translation_invariant", False)
     differ = [f"model.{k}={_yaml(v)}" for k, v in shared.items() if model_cfg.get(k) != v]
     if differ:

@@ -128,8 +128,9 @@ def test_forward_of_inverse_is_identity() -> None:
     torch.testing.assert_close(tau2, tau, rtol=1e-8, atol=1e-8)
 
 
-def test_energy_conserved_in_passive_rk4_rollout() -> None:
-    m = model(2, dissipation=False)
+@pytest.mark.parametrize("armature", [None, (0.05, 0.02)])
+def test_energy_conserved_in_passive_rk4_rollout(armature) -> None:
+    m = model(2, dissipation=False, armature=armature)
     q, qd = random_state(2, batch=16, scale=1.0)
     zero_tau = torch.zeros_like(qd)
 
@@ -220,3 +221,23 @@ def test_load_mechanics_copies_m_v_friction_keeps_b_and_names_misfits() -> None:
         ValueError, match=r"other shape: .*hidden\.0\.bias \(8,\) \(this model: \(16,\)\)"
     ):
         wider.load_mechanics(source.state_dict())
+
+
+def test_armature_adds_a_known_diagonal_to_m() -> None:
+    """M = L L^T + diag(a): the rest of the equations as without it, forward(inverse) = id,
+    M's eigenvalues at least min(a) (energy: the test above)."""
+    a = torch.tensor([0.05, 0.01, 0.02], dtype=torch.float64)
+    plain, with_a = model(3, dissipation=False), model(3, dissipation=False, armature=a)
+    q, qd = random_state(3)
+    t0, t1 = plain.terms(q, qd), with_a.terms(q, qd)
+    torch.testing.assert_close(t1.mass_matrix, t0.mass_matrix + torch.diag(a))
+    torch.testing.assert_close(t1.mass_matrix, t1.cholesky @ t1.cholesky.mT)
+    torch.testing.assert_close(t1.coriolis, t0.coriolis)
+    torch.testing.assert_close(t1.gravity, t0.gravity)
+    torch.testing.assert_close(t1.kinetic_energy, t0.kinetic_energy + 0.5 * (a * qd * qd).sum(-1))
+    assert float(torch.linalg.eigvalsh(t1.mass_matrix).min()) >= float(a.min()) - 1e-12
+    qdd = torch.randn_like(q)
+    tau = with_a.dynamics.inverse_dynamics(q, qd, qdd)
+    torch.testing.assert_close(with_a.dynamics.forward_dynamics(q, qd, tau), qdd)
+    with pytest.raises(ValueError, match="armature must be 3 finite values >= 0"):
+        model(3, armature=[0.1, -0.1, 0.0])

@@ -228,3 +228,32 @@ def test_position_indices_cached_in_inference_mode_still_serve_autograd() -> Non
     qd = torch.ones(7, requires_grad=True)
     integrate_pos(layout, q, qd, 0.1).sum().backward()
     assert qd.grad is not None and torch.isfinite(qd.grad).all()
+
+
+def test_known_armature_adds_to_m_and_matches_mujoco(tmp_path) -> None:
+    """MuJoCo adds a joint's armature to M's diagonal; DeLaN's `armature` does the same on
+    top of the rigid body's M, and the equations still give MuJoCo's bias forces."""
+    armature = 0.05
+    xml = FREE_BODY.replace("<freejoint/>", f'<joint type="free" armature="{armature}"/>')
+    system = system_of(xml, tmp_path)
+    model = system.mj_model()
+    field = ExactField(system.layout, free_body_mass_matrix, free_body_potential)
+    dynamics = LagrangianDynamics(
+        field, None, system.actuation, rotational_dofs(system.layout),
+        armature=torch.tensor(model.dof_armature),
+    )  # fmt: skip
+    q, qd = random_states(system, 8)
+    terms = dynamics.terms(q, qd)
+    data, full = mujoco.MjData(model), np.zeros((6, 6))
+    for i in range(q.shape[0]):
+        data.qpos[:], data.qvel[:] = q[i].numpy(), qd[i].numpy()
+        mujoco.mj_forward(model, data)
+        mujoco.mj_fullM(model, data, full)
+        np.testing.assert_allclose(terms.mass_matrix[i].detach().numpy(), full, atol=1e-12)
+        bias = (terms.coriolis + terms.gravity)[i].detach().numpy()
+        np.testing.assert_allclose(bias, data.qfrc_bias, rtol=1e-6, atol=1e-9)
+        tau = torch.randn(6, dtype=torch.float64)  # and its forward dynamics is MuJoCo's
+        data.qfrc_applied[:] = tau.numpy()
+        mujoco.mj_forward(model, data)
+        qdd = dynamics.forward_dynamics(q[i : i + 1], qd[i : i + 1], tau[None])[0]
+        np.testing.assert_allclose(qdd.detach().numpy(), data.qacc, rtol=1e-6, atol=1e-9)

@@ -117,6 +117,7 @@ class MocapBenchConfig:
     delan_coulomb: bool = False
     delan_still_first_order: bool = True
     delan_tree_sparse: bool = True
+    delan_armature: bool = False
     mlp_hidden: int = 256
     mlp_activation: str = "silu"
     ensemble_size: int = 5
@@ -211,11 +212,16 @@ def training_split(dataset: MocapDataset, device: torch.device, dtype: torch.dty
 
 
 def make_inverse_model(
-    name: str, layout: JointLayout, cfg: MocapBenchConfig, dof_parents: list[int] | None = None
+    name: str,
+    layout: JointLayout,
+    cfg: MocapBenchConfig,
+    dof_parents: list[int] | None = None,
+    armature: list[float] | None = None,
 ) -> InverseDynamicsModel:
     """The inverse-dynamics model ``name`` with the config's settings, built by
-    `fit.build_inverse_model` from the ``{name}_*`` fields (``dof_parents``: the MuJoCo
-    model's ``dof_parentid``, for DeLaN's tree sparsity)."""
+    `fit.build_inverse_model` from the ``{name}_*`` fields (``dof_parents``, ``armature``:
+    the MuJoCo model's ``dof_parentid`` and ``dof_armature``, for DeLaN's tree sparsity and
+    known armature)."""
     if name not in MODEL_NAMES:
         raise ValueError(f"model must be one of {MODEL_NAMES}, got {name!r}")
     prefix = f"{name}_"
@@ -228,7 +234,7 @@ def make_inverse_model(
         settings["ensemble_size"] = settings.pop("size")
     model_cfg = OmegaConf.create({"name": name, **settings})
     return build_inverse_model(
-        model_cfg, layout, cfg.std_floor, cfg.translation_invariant, dof_parents
+        model_cfg, layout, cfg.std_floor, cfg.translation_invariant, dof_parents, armature
     )
 
 
@@ -306,7 +312,9 @@ def _fit_record(
 ) -> BenchRecord:
     torch.manual_seed(cfg.seed)
     layout, parents = joint_layout(mj_model), mj_model.dof_parentid.tolist()
-    model = make_inverse_model(name, layout, cfg, parents).to(device=opts.device, dtype=cfg.dtype)
+    armature = mj_model.dof_armature.tolist()
+    model = make_inverse_model(name, layout, cfg, parents, armature)
+    model = model.to(device=opts.device, dtype=cfg.dtype)
     model.fit_normalization(train)
     n = int(train.shape[0])
     fields = {

@@ -315,12 +315,18 @@ class LagrangianDynamics(nn.Module):
         dissipation: Dissipation | None,
         actuation: Tensor,
         rotational_dofs: Tensor | None = None,
+        armature: Tensor | None = None,
     ) -> None:
         """`rotational_dofs` (K, 3): velocity indices of the body-frame angular velocity of
-        each ball or free joint (see `rotational_dofs`); they get the Euler-Poincare term."""
+        each ball or free joint (see `rotational_dofs`); they get the Euler-Poincare term.
+        `armature` (n,): a known constant inertia per DoF (MuJoCo's ``dof_armature``, the
+        rotor inertia of a motor), added to the field's M: M = L L^T + diag(armature)."""
         super().__init__()
         self.field, self.dissipation = field, dissipation
         self.register_buffer("actuation", actuation.clone())  # B, (n, nu)
+        self.has_armature = armature is not None
+        if armature is not None:  # set by the structure (config), so not in the state dict
+            self.register_buffer("armature", armature.clone(), persistent=False)  # (n,)
         rot = torch.zeros(0, 3, dtype=torch.long) if rotational_dofs is None else rotational_dofs
         self.register_buffer("rotational_dofs", rot.long(), persistent=False)
 
@@ -334,6 +340,8 @@ class LagrangianDynamics(nn.Module):
             return force
         idx = self.rotational_dofs  # (K, 3)
         momentum = (L @ w.unsqueeze(-1)).squeeze(-1)
+        if self.has_armature:
+            momentum = momentum + self.armature * qd
         term = torch.linalg.cross(qd[..., idx], momentum[..., idx], dim=-1)  # (..., K, 3)
         return force.index_add(-1, idx.flatten(), term.flatten(-2))
 
@@ -356,13 +364,19 @@ class LagrangianDynamics(nn.Module):
         kinetic_cotangent = qd.unsqueeze(-1) * w.unsqueeze(-2)  # qd w^T, (..., n, n)
         half_grad_kinetic = jet.pullback(kinetic_cotangent, zero_v)  # 1/2 d(qd^T M qd)/dq
         gravity = jet.pullback(torch.zeros_like(jet.L), torch.ones_like(zero_v))
+        mass_matrix, factor = jet.L @ jet.L.transpose(-1, -2), jet.L
+        kinetic = 0.5 * (w * w).sum(-1)
+        if self.has_armature:
+            mass_matrix = mass_matrix + torch.diag_embed(self.armature.expand_as(qd))
+            factor = torch.linalg.cholesky(mass_matrix)
+            kinetic = kinetic + 0.5 * (self.armature * qd * qd).sum(-1)
         return LagrangianTerms(
-            mass_matrix=jet.L @ jet.L.transpose(-1, -2),
-            cholesky=jet.L,
+            mass_matrix=mass_matrix,
+            cholesky=factor,
             coriolis=self._add_euler_poincare(m_dot_qd - half_grad_kinetic, jet.L, w, qd),
             gravity=gravity,
             dissipation=self._dissipation(qd),
-            kinetic_energy=0.5 * (w * w).sum(-1),
+            kinetic_energy=kinetic,
             potential_energy=jet.potential_energy,
         )
 
@@ -380,13 +394,18 @@ class LagrangianDynamics(nn.Module):
     def inverse_dynamics(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
         """Generalized force tau = M qdd + c + g + d. (..., n)"""
         bias, L = self._bias_and_cholesky(q, qd)
-        m_qdd = L @ (L.transpose(-1, -2) @ qdd.unsqueeze(-1))
-        return m_qdd.squeeze(-1) + bias
+        m_qdd = (L @ (L.transpose(-1, -2) @ qdd.unsqueeze(-1))).squeeze(-1)
+        if self.has_armature:
+            m_qdd = m_qdd + self.armature * qdd
+        return m_qdd + bias
 
     def forward_dynamics(self, q: Tensor, qd: Tensor, tau: Tensor) -> Tensor:
         """qdd = M^-1 (tau - c - g - d) by two triangular solves with L. (..., n)"""
         bias, L = self._bias_and_cholesky(q, qd)
         rhs = (tau - bias).unsqueeze(-1)  # (..., n, 1)
+        if self.has_armature:  # M = L L^T + diag(armature): factor it whole
+            mass_matrix = L @ L.transpose(-1, -2) + torch.diag_embed(self.armature.expand_as(tau))
+            return torch.cholesky_solve(rhs, torch.linalg.cholesky(mass_matrix)).squeeze(-1)
         if self.field.upper:  # M = U U^T: U y = rhs, then U^T x = y
             y = torch.linalg.solve_triangular(L, rhs, upper=True)
             return torch.linalg.solve_triangular(L.transpose(-1, -2), y, upper=False).squeeze(-1)
@@ -485,6 +504,16 @@ def rotational_dofs(layout: JointLayout) -> Tensor:
 CONSTANT_RATIO = 1e-6  # a per-DoF spread below this fraction of the largest: not varying
 
 
+def _armature(armature: Sequence[float] | Tensor | None, n: int) -> Tensor | None:
+    """A known inertia per DoF as a tensor (n,), >= 0; None stays None."""
+    if armature is None:
+        return None
+    value = torch.as_tensor(armature, dtype=torch.get_default_dtype()).reshape(-1)
+    if value.shape != (n,) or not bool(torch.isfinite(value).all()) or bool((value < 0).any()):
+        raise ValueError(f"armature must be {n} finite values >= 0, got {armature!r}")
+    return value
+
+
 def _is_mechanics(key: str) -> bool:
     """A state-dict entry of the Lagrangian part (M, V, friction), not the actuation B."""
     return key.startswith("dynamics.") and key != "dynamics.actuation"
@@ -547,6 +576,11 @@ class DeLaN(WorldModel):
 
     `dof_parents` (MuJoCo's ``dof_parentid``): M's factor gets the kinematic tree's
     sparsity (`LagrangianNetwork`), so M couples only DoFs on one branch.
+
+    `armature` (n,), in SI units: a known constant inertia per DoF, MuJoCo's
+    ``dof_armature`` (the motors' rotor inertia), added to the learned part:
+    M = L L^T + diag(armature). It bounds M's eigenvalues from below where the data do not
+    (joints motion capture holds still); forward dynamics then factors M whole.
     """
 
     def __init__(
@@ -573,6 +607,7 @@ class DeLaN(WorldModel):
         translation_invariant: bool = False,
         still_first_order: bool = False,
         dof_parents: Sequence[int] | None = None,
+        armature: Sequence[float] | Tensor | None = None,
     ) -> None:
         super().__init__()
         if integrator not in INTEGRATORS:
@@ -615,6 +650,7 @@ class DeLaN(WorldModel):
             dissipation=Dissipation(n, coulomb=coulomb, raw_init=raw_init) if dissipation else None,
             actuation=actuation.to(torch.get_default_dtype()),
             rotational_dofs=rotational_dofs(layout),
+            armature=_armature(armature, n),
         )
         if diagonal_init:
             network.start_diagonal()

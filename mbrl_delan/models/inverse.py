@@ -262,6 +262,7 @@ class DeLaNInverse(InverseDynamicsModel):
         still_first_order: joints held still in the data (fingers, clavicles) to first order:
             M does not depend on them, V is linear in them (see `DeLaN`).
         dof_parents: MuJoCo's ``dof_parentid``: M gets the kinematic tree's sparsity.
+        armature: MuJoCo's ``dof_armature``: M = L L^T + diag(armature) (see `DeLaN`).
     """
 
     def __init__(
@@ -278,6 +279,7 @@ class DeLaNInverse(InverseDynamicsModel):
         translation_invariant: bool = False,
         still_first_order: bool = False,
         dof_parents: Sequence[int] | None = None,
+        armature: Sequence[float] | None = None,
     ) -> None:
         super().__init__(layout.nv, std_floor)
         self.delan = DeLaN(
@@ -296,6 +298,7 @@ class DeLaNInverse(InverseDynamicsModel):
             translation_invariant=translation_invariant,
             still_first_order=still_first_order,
             dof_parents=dof_parents,
+            armature=armature,
         )
 
     @property
