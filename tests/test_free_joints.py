@@ -127,18 +127,25 @@ def test_free_body_equations_match_mujoco(tmp_path) -> None:
     system = system_of(FREE_BODY, tmp_path)
     field = ExactField(system.layout, free_body_mass_matrix, free_body_potential)
     dynamics = LagrangianDynamics(field, None, system.actuation, rotational_dofs(system.layout))
-    q, qd = random_states(system, 16)
-    terms = dynamics.terms(q, qd)
-    model = system.mj_model()
-    data = mujoco.MjData(model)
-    full = np.zeros((6, 6))
+    assert_equations_are_mujocos(dynamics, system, *random_states(system, 16))
+
+
+def assert_equations_are_mujocos(dynamics, system, q: Tensor, qd: Tensor) -> None:
+    """M is mj_fullM's, c + g is qfrc_bias and the forward dynamics of a random generalized
+    force is MuJoCo's qacc, state by state."""
+    terms, model = dynamics.terms(q, qd), system.mj_model()
+    data, full = mujoco.MjData(model), np.zeros((model.nv, model.nv))
+    tau = torch.randn(q.shape[0], model.nv, generator=torch.Generator().manual_seed(3))
+    qdd = dynamics.forward_dynamics(q, qd, tau)
     for i in range(q.shape[0]):
         data.qpos[:], data.qvel[:] = q[i].numpy(), qd[i].numpy()
+        data.qfrc_applied[:] = tau[i].numpy()
         mujoco.mj_forward(model, data)
         mujoco.mj_fullM(model, data, full)
         np.testing.assert_allclose(terms.mass_matrix[i].detach().numpy(), full, atol=1e-12)
         bias = (terms.coriolis + terms.gravity)[i].detach().numpy()
         np.testing.assert_allclose(bias, data.qfrc_bias, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(qdd[i].detach().numpy(), data.qacc, rtol=1e-6, atol=1e-9)
 
 
 def test_without_euler_poincare_the_free_body_is_wrong(tmp_path) -> None:
@@ -236,24 +243,9 @@ def test_known_armature_adds_to_m_and_matches_mujoco(tmp_path) -> None:
     armature = 0.05
     xml = FREE_BODY.replace("<freejoint/>", f'<joint type="free" armature="{armature}"/>')
     system = system_of(xml, tmp_path)
-    model = system.mj_model()
     field = ExactField(system.layout, free_body_mass_matrix, free_body_potential)
     dynamics = LagrangianDynamics(
         field, None, system.actuation, rotational_dofs(system.layout),
-        armature=torch.tensor(model.dof_armature),
+        armature=torch.tensor(system.mj_model().dof_armature),
     )  # fmt: skip
-    q, qd = random_states(system, 8)
-    terms = dynamics.terms(q, qd)
-    data, full = mujoco.MjData(model), np.zeros((6, 6))
-    for i in range(q.shape[0]):
-        data.qpos[:], data.qvel[:] = q[i].numpy(), qd[i].numpy()
-        mujoco.mj_forward(model, data)
-        mujoco.mj_fullM(model, data, full)
-        np.testing.assert_allclose(terms.mass_matrix[i].detach().numpy(), full, atol=1e-12)
-        bias = (terms.coriolis + terms.gravity)[i].detach().numpy()
-        np.testing.assert_allclose(bias, data.qfrc_bias, rtol=1e-6, atol=1e-9)
-        tau = torch.randn(6, dtype=torch.float64)  # and its forward dynamics is MuJoCo's
-        data.qfrc_applied[:] = tau.numpy()
-        mujoco.mj_forward(model, data)
-        qdd = dynamics.forward_dynamics(q[i : i + 1], qd[i : i + 1], tau[None])[0]
-        np.testing.assert_allclose(qdd.detach().numpy(), data.qacc, rtol=1e-6, atol=1e-9)
+    assert_equations_are_mujocos(dynamics, system, *random_states(system, 8))
