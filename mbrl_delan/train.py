@@ -29,6 +29,7 @@ from mbrl_delan.data.buffer import NonFiniteDataError, make_replay_buffer
 from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import EnvParts, make_env_parts
+from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
@@ -218,7 +219,7 @@ MOCAP_SHARED = (
 )  # fmt: skip
 
 
-def _start_mechanics(model_cfg: DictConfig, model: torch.nn.Module) -> None:
+def _start_mechanics(model_cfg: DictConfig, model: DeLaN) -> None:
     """`model.init_from`: M, V and the friction of a DeLaN fitted on motion capture."""
     from mbrl_delan.fit import read_fit_run  # the mocap stack: only when asked for
 
@@ -427,8 +428,9 @@ def main(cfg: DictConfig) -> float | None:
         if cfg.model.get("init_from") is not None:
             log.error(
                 "the model started from model.init_from=%s: a DeLaN fitted on motion capture "
-                "can have a nearly singular M off the mocap's states, so its forward "
-                "predictions blow up (docs/humanoid.md, starting from the mocap fit)",
+                "without model.armature=true can have a nearly singular M off the mocap's "
+                "states, so its forward predictions blow up (docs/humanoid.md, starting from "
+                "the mocap fit)",
                 cfg.model.init_from,
             )
         exit_or_raise(1, err)
