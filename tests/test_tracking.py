@@ -196,6 +196,8 @@ def test_bad_options_and_references_are_named(track) -> None:
         make_env_parts("pendulum", task_options={"clip": "02_01"})
     with pytest.raises(ValueError, match="speed"):
         make_env_parts("cmu_track", task_options={**RUN_CLIP, "speed": 1.0})
+    with pytest.raises(ValueError, match="ground='no' is not valid; it must be true or false"):
+        make_env_parts("cmu_track", task_options={**RUN_CLIP, "ground": "no"})
     task, system = track.task, track.system
     ref_q = task.ref_q.clone()
     ref_q[3, 10] = float("nan")

@@ -86,6 +86,8 @@ def _cmu_track_task(system: System, episode_len: int | None, options: TaskOption
             f"clip={clip_name!r} is not a clip name; quote it, as in clip='131_03' (Hydra and "
             "YAML read an unquoted 131_03 as the number 13103)"
         )
+    if not isinstance(options["ground"], bool):
+        raise ValueError(f"ground={options['ground']!r} is not valid; it must be true or false")
     files = find_clip(
         clip_name,
         folders=list(options["folders"]),
