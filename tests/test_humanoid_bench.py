@@ -184,7 +184,7 @@ def test_oracle_options() -> None:
             return build_options(compose("bench", overrides=[f"suite={suite}", *overrides]))
 
     default = suite_config(options())
-    assert default.oracle_tasks == ("humanoid_stand", "humanoid_walk")
+    assert default.oracle_tasks == ("humanoid_stand", "humanoid_walk", "cmu_track")
     assert default.oracle_steps is None  # the task's own episode length
     only = suite_config(options("models=[]", "oracle_tasks=[humanoid_walk]", "oracle_steps=50"))
     assert only.models == () and only.oracle_tasks == ("humanoid_walk",)

@@ -8,6 +8,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 from torch import Tensor
 from torchrl.envs import StepCounter, TransformedEnv
 
@@ -21,7 +22,13 @@ from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.posarith import integrate_pos
 from mbrl_delan.systems.system import State
 from mbrl_delan.tasks.base import Task
-from mbrl_delan.tasks.tracking import MotionTracking, floor_clearance, ground_reference
+from mbrl_delan.tasks.tracking import (
+    MotionTracking,
+    TrackingScales,
+    TrackingWeights,
+    floor_clearance,
+    ground_reference,
+)
 from tests.test_model_env import DoubleIntegrator
 
 DATA = Path(__file__).parent / "data"
@@ -181,6 +188,55 @@ def test_terms_worked_examples(track) -> None:
     assert float(terms.root) == pytest.approx(1.0)
     assert float(terms.end_effector) < 0.9
     assert float(terms.pose) == pytest.approx(np.exp(-2.0 * 0.09))
+
+
+def test_weights_option_weighs_the_terms(track) -> None:
+    """With weights (pose 0.5, velocity 0, end effector 0, root 0.5), a state off by 0.2 rad in
+    one hinge and 0.1 m at the root scores 0.5 exp(-2 0.04) + 0.5 exp(-10 0.01)."""
+    weights = {"pose": 0.5, "velocity": 0.0, "end_effector": 0.0, "root": 0.5}
+    task = make_env_parts("cmu_track", task_options={**RUN_CLIP, "weights": weights}).task
+    assert task.weights == TrackingWeights(**weights)
+    q, qd = task.ref_q[10].clone(), task.ref_qd[10].clone()
+    q[20] += 0.2
+    q[0] += 0.1
+    expected = 0.5 * np.exp(-2.0 * 0.04) + 0.5 * np.exp(-10.0 * 0.01)
+    reward = task.reward_at(q, qd, torch.zeros(track.system.nu), torch.tensor(9))
+    assert float(reward) == pytest.approx(expected)
+    assert track.task.weights == TrackingWeights()  # no option: the defaults
+    scaled = make_env_parts("cmu_track", task_options={**RUN_CLIP, "scales": {"pose": 0.5}}).task
+    assert scaled.scales == TrackingScales(pose=0.5)
+    assert float(scaled.terms(q, qd, torch.tensor(9)).pose) == pytest.approx(np.exp(-0.5 * 0.04))
+
+
+def test_env_config_terms_are_the_task_defaults() -> None:
+    """configs/env/cmu_track.yaml spells out the default weights and scales (so that one term
+    can be overridden from the command line); they must not drift apart."""
+    cfg = OmegaConf.load(Path(__file__).parents[1] / "configs" / "env" / "cmu_track.yaml")
+    assert TrackingWeights(**cfg.task.weights) == TrackingWeights()
+    assert TrackingScales(**cfg.task.scales) == TrackingScales()
+
+
+@pytest.mark.parametrize(
+    ("weights", "message"),
+    [
+        ({"pose": 1.0, "balance": 0.0}, "no term balance"),
+        ({"pose": "high"}, "not numbers"),
+        ([0.3, 0.7], "mapping of term -> number"),
+        ({"pose": 0.9}, "add to 1"),
+    ],
+)
+def test_bad_weights_are_named(weights: object, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        make_env_parts("cmu_track", task_options={**RUN_CLIP, "weights": weights})
+
+
+@pytest.mark.parametrize(
+    ("scales", "message"),
+    [({"pose": 0.0}, "finite and > 0"), ({"reach": 1.0}, "scales: no term reach")],
+)
+def test_bad_scales_are_named(scales: object, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        make_env_parts("cmu_track", task_options={**RUN_CLIP, "scales": scales})
 
 
 def test_initial_state_is_the_first_reference_frame(track) -> None:

@@ -47,7 +47,7 @@ COMPILED_SUFFIX = "_compiled"
 # world models of suite humanoid: DeLaN + residual, the DeLaN ensemble, the MLP ensemble
 HUMANOID_MODELS = ("delan", "delan_ensemble", "ensemble")
 # tasks on which suite humanoid runs the oracle planner for one episode
-HUMANOID_ORACLE_TASKS = ("humanoid_stand", "humanoid_walk")
+HUMANOID_ORACLE_TASKS = ("humanoid_stand", "humanoid_walk", "cmu_track")
 
 
 class UnknownSuiteError(KeyError):

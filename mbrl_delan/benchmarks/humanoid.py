@@ -26,10 +26,11 @@ transitions? For each training-set size n in `sizes`:
    state std), averaged over the test episodes weighted by their number of starts.
 
 Before the models, the oracle: for each task in `oracle_tasks` (`humanoid_stand`,
-`humanoid_walk`), one episode of the loop's planner (MPPI, `configs/planner/mppi.yaml` with
-the humanoid envs' horizon 15, temperature 0.05 and noise 0.3) on MuJoCo's true dynamics, on
-the real env, from the task's initial state, for at most `oracle_steps` control steps
-(default: the task's own 1,000). It ends early when the humanoid falls (the task terminates).
+`humanoid_walk`, `cmu_track`), one episode of the loop's planner (MPPI, `configs/planner/mppi.yaml`
+with the humanoid envs' horizon 15, temperature 0.05 and noise 0.3) on MuJoCo's true dynamics,
+on the real env, from the task's initial state, for at most `oracle_steps` control steps
+(default: the task's own: 1,000 standing or walking, the clip's length for cmu_track). It
+ends early when the task terminates (the humanoid fell, or left the clip's root by 0.5 m).
 
 Records: case ``{model}-n{n}``, metric ``rollout_error`` (field ``horizon``), and
 ``fit_s`` (seconds of the fit, both phases), with field ``rollout_steps`` (the K it was fitted

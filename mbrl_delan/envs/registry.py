@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 
@@ -14,7 +14,12 @@ from mbrl_delan.systems.system import System, load_system
 from mbrl_delan.tasks import AcrobotSwingup, ArmReach, CartpoleSwingup, PendulumSwingup
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.humanoid import HUMANOID_V5_BODY, HumanoidTask
-from mbrl_delan.tasks.tracking import MotionTracking, ground_reference
+from mbrl_delan.tasks.tracking import (
+    MotionTracking,
+    TrackingScales,
+    TrackingWeights,
+    ground_reference,
+)
 
 ENV_NAMES = (
     "pendulum",
@@ -26,6 +31,7 @@ ENV_NAMES = (
     "cmu_track",
 )
 TaskOptions = Mapping[str, Any]
+TermSettings = TypeVar("TermSettings", TrackingWeights, TrackingScales)
 # cmu_track's task options: the clip to follow and where to find its AMC and ASF files
 # (`data.mocap.find_clip`: the folders first, relative to the cwd, then the download cache)
 CMU_TRACK_OPTIONS: dict[str, Any] = {
@@ -34,6 +40,8 @@ CMU_TRACK_OPTIONS: dict[str, Any] = {
     "cache_dir": None,
     "download": True,
     "ground": True,
+    "weights": None,  # {pose, velocity, end_effector, root}; None: TrackingWeights' defaults
+    "scales": None,  # k of each term exp(-k error^2); None: TrackingScales' defaults
 }
 
 
@@ -100,8 +108,37 @@ def _cmu_track_task(system: System, episode_len: int | None, options: TaskOption
     if options["ground"]:
         ref_q, ref_qd = ground_reference(system.mj_model(), ref_q, ref_qd, system.control_dt)
     return MotionTracking(
-        system.mj_model(), system.layout, ref_q, ref_qd, episode_len=episode_len, name="cmu_track"
+        system.mj_model(),
+        system.layout,
+        ref_q,
+        ref_qd,
+        weights=term_settings(TrackingWeights, options["weights"], "weights"),
+        scales=term_settings(TrackingScales, options["scales"], "scales"),
+        episode_len=episode_len,
+        name="cmu_track",
     )
+
+
+def term_settings(
+    cls: type[TermSettings], given: Mapping[str, Any] | None, option: str
+) -> TermSettings:
+    """`cls` (`TrackingWeights` or `TrackingScales`) with the given terms replaced (None: its
+    defaults); a term that is not one of its fields, or a value that is not a number, is
+    refused with the option's name."""
+    if given is None:
+        return cls()
+    if not isinstance(given, Mapping):
+        raise ValueError(f"{option}={given!r} is not valid; give a mapping of term -> number")
+    terms = {f.name for f in fields(cls)}
+    unknown = sorted(map(str, set(given) - terms))
+    if unknown:
+        raise ValueError(
+            f"{option}: no term {', '.join(unknown)} (terms: {', '.join(sorted(terms))})"
+        )
+    bad = {k: v for k, v in given.items() if isinstance(v, bool) or not isinstance(v, int | float)}
+    if bad:
+        raise ValueError(f"{option}: {bad} are not numbers")
+    return cls(**{k: float(v) for k, v in given.items()})
 
 
 _DEFAULTS: dict[str, _EnvDefaults] = {

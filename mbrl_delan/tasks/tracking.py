@@ -19,6 +19,7 @@ The episode terminates when the root is more than `fail_distance` from the refer
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -59,6 +60,11 @@ class TrackingScales:
     velocity: float = 0.1  # 1 / (rad/s)^2
     end_effector: float = 40.0  # 1 / m^2
     root: float = 10.0  # 1 / m^2
+
+    def __post_init__(self) -> None:
+        values = (self.pose, self.velocity, self.end_effector, self.root)
+        if not all(math.isfinite(v) and v > 0 for v in values):
+            raise ValueError(f"tracking scales must be finite and > 0, got {self}")
 
 
 @dataclass
