@@ -165,7 +165,7 @@ def test_models_and_rollout_steps_options() -> None:
 
 def test_oracle_planner_is_the_loops_mppi_on_the_humanoid() -> None:
     cfg = HumanoidBenchConfig()
-    for env in ("humanoid_stand", "humanoid_walk"):
+    for env in cfg.oracle_tasks:
         with initialize_config_dir(config_dir=str(CONFIGS.resolve()), version_base=None):
             planner = compose("config", overrides=[f"env={env}", "planner=mppi"]).planner
         setting = cfg.oracle_planner
