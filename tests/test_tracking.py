@@ -225,9 +225,13 @@ def test_env_config_terms_are_the_task_defaults() -> None:
         ({"pose": 0.9}, "add to 1"),
     ],
 )
-def test_bad_weights_are_named(weights: object, message: str) -> None:
+def test_bad_weights_are_named(weights: object, message: str, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=message):
         make_env_parts("cmu_track", task_options={**RUN_CLIP, "weights": weights})
+    # refused before the clip is looked for: no clip here, and no download
+    nowhere = {"folders": [str(tmp_path)], "cache_dir": str(tmp_path), "download": False}
+    with pytest.raises(ValueError, match=message):
+        make_env_parts("cmu_track", task_options={**nowhere, "weights": weights})
 
 
 @pytest.mark.parametrize(

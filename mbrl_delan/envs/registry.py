@@ -96,6 +96,8 @@ def _cmu_track_task(system: System, episode_len: int | None, options: TaskOption
         )
     if not isinstance(options["ground"], bool):
         raise ValueError(f"ground={options['ground']!r} is not valid; it must be true or false")
+    weights = term_settings(TrackingWeights, options["weights"], "weights")
+    scales = term_settings(TrackingScales, options["scales"], "scales")
     files = find_clip(
         clip_name,
         folders=list(options["folders"]),
@@ -112,8 +114,8 @@ def _cmu_track_task(system: System, episode_len: int | None, options: TaskOption
         system.layout,
         ref_q,
         ref_qd,
-        weights=term_settings(TrackingWeights, options["weights"], "weights"),
-        scales=term_settings(TrackingScales, options["scales"], "scales"),
+        weights=weights,
+        scales=scales,
         episode_len=episode_len,
         name="cmu_track",
     )
