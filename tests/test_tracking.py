@@ -223,6 +223,7 @@ def test_env_config_terms_are_the_task_defaults() -> None:
         ({"pose": "high"}, "not numbers"),
         ([0.3, 0.7], "mapping of term -> number"),
         ({"pose": 0.9}, "add to 1"),
+        ({"pose": float("nan")}, "finite"),
     ],
 )
 def test_bad_weights_are_named(weights: object, message: str, tmp_path: Path) -> None:

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 
 import mujoco
 import numpy as np
@@ -47,9 +47,9 @@ class TrackingWeights:
     root: float = 0.1
 
     def __post_init__(self) -> None:
-        values = (self.pose, self.velocity, self.end_effector, self.root)
-        if min(values) < 0 or abs(sum(values) - 1.0) > 1e-9:
-            raise ValueError(f"tracking weights must be >= 0 and add to 1, got {self}")
+        values = astuple(self)
+        if not all(math.isfinite(v) and v >= 0 for v in values) or abs(sum(values) - 1.0) > 1e-9:
+            raise ValueError(f"tracking weights must be finite, >= 0 and add to 1, got {self}")
 
 
 @dataclass(frozen=True)
@@ -62,8 +62,7 @@ class TrackingScales:
     root: float = 10.0  # 1 / m^2
 
     def __post_init__(self) -> None:
-        values = (self.pose, self.velocity, self.end_effector, self.root)
-        if not all(math.isfinite(v) and v > 0 for v in values):
+        if not all(math.isfinite(v) and v > 0 for v in astuple(self)):
             raise ValueError(f"tracking scales must be finite and > 0, got {self}")
 
 
