@@ -2,8 +2,10 @@
 
 import pytest
 import torch
+from tensordict import TensorDict
 from torch.nn import functional as F
 
+from mbrl_delan import keys
 from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.delan import SMALL_SOLVE, DeLaN, unrolled_cholesky_solve
@@ -74,3 +76,46 @@ def test_log1p_unit_polynomial_matches_log1p_on_the_unit_interval() -> None:
     rel = (log1p_unit(small.float()).double() - torch.log1p(small)).abs() / torch.log1p(small)
     assert float(rel.max()) < 1e-6
     assert torch.equal(log1p_unit(e64), torch.log1p(e64))  # float64: log1p itself
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("loss", ["inverse", "both"])
+def test_compiled_fit_loss_and_gradients_equal_eager(loss: str) -> None:
+    """`compile_fit`: the loss of a full batch and its gradient come from the compiled graph
+    and equal eager autograd's; a batch of another shape (an epoch's last) runs eagerly."""
+    system = load_system("acrobot")
+    torch.manual_seed(0)
+    model = DeLaN(system.layout, system.actuation.float(), system.control_dt, hidden=16, loss=loss)
+    g = torch.Generator().manual_seed(3)
+    batch = TensorDict(
+        {
+            keys.Q: torch.randn(16, system.nq, generator=g),
+            keys.QD: torch.randn(16, system.nv, generator=g),
+            keys.ACTION: torch.randn(16, system.nu, generator=g),
+            keys.NEXT_Q: torch.randn(16, system.nq, generator=g),
+            keys.NEXT_QD: torch.randn(16, system.nv, generator=g),
+        },
+        batch_size=[16],
+    )
+    model.fit_normalization(batch)
+
+    def loss_and_grads(part: TensorDict) -> tuple[dict[str, float], list[torch.Tensor]]:
+        model.zero_grad(set_to_none=True)
+        out = model.loss(part)
+        out.loss.backward()
+        return out.metrics, [p.grad.clone() for p in model.parameters() if p.grad is not None]
+
+    eager_metrics, eager_grads = loss_and_grads(batch)
+    model.compile_fit = True
+    metrics, grads = loss_and_grads(batch)
+    assert model._compiled_losses is not None and model._compiled_losses_shape == (16, system.nq)
+    assert metrics.keys() == eager_metrics.keys()
+    for name, value in metrics.items():
+        assert value == pytest.approx(eager_metrics[name], rel=1e-5), name
+    assert len(grads) == len(eager_grads) > 0
+    for grad, eager in zip(grads, eager_grads, strict=True):
+        torch.testing.assert_close(grad, eager, rtol=1e-4, atol=1e-6)
+    compiled_fn = model._compiled_losses
+    assert model._losses_for(torch.Size([5, system.nq])) != compiled_fn  # partial batch: eager
+    model.double()  # moving the model drops the compiled loss (it is specific to a dtype)
+    assert model._compiled_losses is None

@@ -71,12 +71,15 @@ class HumanoidIdentifyConfig:
         max_epochs=100, batch_size=256, patience=30, dtype=torch.float32, n_test=16
     )
     systems: tuple[str, ...] = tuple(MODELS)
+    compile: bool = True  # fit through the compiled loss (`DeLaN.compile_fit`)
 
     @classmethod
     def quick(cls) -> HumanoidIdentifyConfig:
-        """Seconds: 256 samples, 2 epochs, Humanoid-v5 only (for tests of the plumbing)."""
+        """Seconds: 256 samples, 2 epochs, Humanoid-v5 only, eager (for tests of the plumbing)."""
         fit = replace(cls.fit, max_epochs=2, stages=1, patience=2, batch_size=64)
-        return cls(n_samples=256, n_test=64, hidden=16, fit=fit, systems=("humanoid",))
+        return cls(
+            n_samples=256, n_test=64, hidden=16, fit=fit, systems=("humanoid",), compile=False
+        )
 
 
 @dataclass
@@ -108,6 +111,7 @@ def make_model(system: System, cfg: HumanoidIdentifyConfig) -> DeLaN:
         coulomb=False,
         inertia_scaling=True,
         diagonal_init=True,
+        compile_fit=cfg.compile,
     )
     return model.to(cfg.fit.dtype)
 

@@ -37,6 +37,15 @@ from mbrl_delan.systems.posarith import differentiate_pos
 from mbrl_delan.systems.system import BALL, FREE, JointLayout, State
 
 LOSSES = ("forward", "inverse", "both")
+# the batch entries a per-transition loss reads (`DeLaN._transition_losses`; absent: None)
+LOSS_INPUTS = {
+    "q": keys.Q,
+    "qd": keys.QD,
+    "action": keys.ACTION,
+    "qdd": keys.QDD,
+    "next_q": keys.NEXT_Q,
+    "next_qd": keys.NEXT_QD,
+}
 SMALL_SOLVE = 6  # compiled forward dynamics solve M x = b by unrolled substitution up to this n
 
 
@@ -601,6 +610,7 @@ class DeLaN(WorldModel):
         velocity_margin: float = 3.0,
         max_velocity: float = 100.0,
         compile_step: bool = False,
+        compile_fit: bool = False,
         inertia_scaling: bool = False,
         diagonal_init: bool = False,
         residual: bool = False,
@@ -625,6 +635,9 @@ class DeLaN(WorldModel):
         self.velocity_margin = velocity_margin
         self.compile_step, self.inertia_scaling = compile_step, inertia_scaling
         self._compiled_step: Callable[[Tensor, Tensor, Tensor], State] | None = None
+        self.compile_fit = compile_fit
+        self._compiled_losses: Callable[..., dict[str, Tensor]] | None = None
+        self._compiled_losses_shape: torch.Size | None = None
         n = layout.nv
         features = QFeatures(layout)
         self.layout, self.control_dt = layout, control_dt
@@ -665,6 +678,7 @@ class DeLaN(WorldModel):
 
     def _apply(self, fn: Callable[..., Any], recurse: bool = True) -> DeLaN:
         self._compiled_step = None  # a compiled step is specific to a device and dtype
+        self._compiled_losses = self._compiled_losses_shape = None
         return super()._apply(fn, recurse)
 
     def terms(self, q: Tensor, qd: Tensor) -> LagrangianTerms:
@@ -833,35 +847,58 @@ class DeLaN(WorldModel):
         a K-step rollout from each window's first state (`rollout_mse`) and the inverse term
         (loss 'both') is taken on each window's first transition."""
         windows = batch.batch_dims == 2
+        terms: dict[str, Tensor] = {}
         if windows:
             if not self.trains_on_windows:
                 raise ValueError("windows of transitions need loss 'forward' or 'both'")
             rollout = self._rollout_mse(batch)  # (K,)
+            terms = {"rollout_mse": rollout.mean(), "forward_mse": rollout[0]}
             batch = batch[:, 0]  # the inverse term below: first transitions only
-        q, qd, action = batch[keys.Q], batch[keys.QD], batch[keys.ACTION]
-        metrics: dict[str, float] = {}
-        total = q.new_zeros(())
-        if self.loss_kind in ("forward", "both"):
-            if windows:
-                forward = rollout.mean()
-                metrics["rollout_mse"] = float(forward.detach())
-                metrics["forward_mse"] = float(rollout[0].detach())
-            else:
-                pred = self.step(q, qd, action)
-                forward = self._state_mse(pred, batch[keys.NEXT_Q], batch[keys.NEXT_QD])
-                metrics["forward_mse"] = float(forward.detach())
-            total = total + forward
-        if self.loss_kind in ("inverse", "both"):
-            qdd = batch.get(keys.QDD, None)
-            if qdd is None:
-                qdd = (batch[keys.NEXT_QD] - qd) / self.control_dt
-            tau = self.applied_force(q, qd, action)
-            e_tau = (self.dynamics.inverse_dynamics(q, qd, qdd) - tau) / self.tau_scale
-            inverse = e_tau.pow(2).mean()
-            metrics["inverse_mse"] = float(inverse.detach())
-            total = total + inverse
+        inputs = {name: batch.get(key, None) for name, key in LOSS_INPUTS.items()}
+        terms |= self._losses_for(batch[keys.Q].shape)(**inputs, forward=not windows)
+        forward_term = "rollout_mse" if windows else "forward_mse"
+        total = sum(terms[k] for k in (forward_term, "inverse_mse") if k in terms)
+        metrics = {name: float(value.detach()) for name, value in terms.items()}
         metrics["loss"] = float(total.detach())
         return LossOutput(loss=total, metrics=metrics)
+
+    def _transition_losses(
+        self,
+        q: Tensor,
+        qd: Tensor,
+        action: Tensor,
+        qdd: Tensor | None,
+        next_q: Tensor | None,
+        next_qd: Tensor | None,
+        forward: bool = True,
+    ) -> dict[str, Tensor]:
+        """The loss terms of transitions (B,) as scalars: `forward_mse` (when `forward` and
+        the loss has it) and `inverse_mse`, at `qdd` or else the finite difference."""
+        terms = {}
+        if forward and self.loss_kind in ("forward", "both"):
+            assert next_q is not None and next_qd is not None
+            terms["forward_mse"] = self._state_mse(self.step(q, qd, action), next_q, next_qd)
+        if self.loss_kind in ("inverse", "both"):
+            if qdd is None:
+                assert next_qd is not None
+                qdd = (next_qd - qd) / self.control_dt
+            tau = self.applied_force(q, qd, action)
+            e_tau = (self.dynamics.inverse_dynamics(q, qd, qdd) - tau) / self.tau_scale
+            terms["inverse_mse"] = e_tau.pow(2).mean()
+        return terms
+
+    def _losses_for(self, shape: torch.Size) -> Callable[..., dict[str, Tensor]]:
+        """`_transition_losses`; with `compile_fit` under autograd, its `torch.compile`d copy
+        (forward and backward graphs) for batches of the first shape it meets. Other shapes
+        (an epoch's last, partial batch) run eagerly, so the fit compiles once."""
+        if not (self.compile_fit and torch.is_grad_enabled()):
+            return self._transition_losses
+        if self._compiled_losses is None:
+            self._compiled_losses = torch.compile(self._transition_losses, dynamic=False)
+            self._compiled_losses_shape = shape
+        if shape != self._compiled_losses_shape:
+            return self._transition_losses
+        return self._compiled_losses
 
     def _state_mse(self, pred: State, q_next: Tensor, qd_next: Tensor) -> Tensor:
         """Per-DoF normalised squared error of a predicted next state (scalar)."""
