@@ -545,6 +545,13 @@ def _scale(x: Tensor, floor_ratio: float = 1e-2) -> Tensor:
     return std.clamp_min(floor_ratio * float(std.max().clamp_min(1e-8)))
 
 
+def _needed(value: Tensor | None, key: str | tuple[str, ...]) -> Tensor:
+    """A loss input the batch must hold."""
+    if value is None:
+        raise KeyError(f"the loss needs {key!r} in the batch")
+    return value
+
+
 class DeLaN(WorldModel):
     """DeLaN world model: the Lagrangian equations over networks, stepped by an integrator.
 
@@ -590,6 +597,9 @@ class DeLaN(WorldModel):
     ``dof_armature`` (the motors' rotor inertia), added to the learned part:
     M = L L^T + diag(armature). It bounds M's eigenvalues from below where the data do not
     (joints motion capture holds still); forward dynamics then factors M whole.
+
+    `compile_step` / `compile_fit`: planning steps (no autograd) / training losses and their
+    backward pass run through `torch.compile` (`step`, `_losses_for`).
     """
 
     def __init__(
@@ -876,12 +886,11 @@ class DeLaN(WorldModel):
         the loss has it) and `inverse_mse`, at `qdd` or else the finite difference."""
         terms = {}
         if forward and self.loss_kind in ("forward", "both"):
-            assert next_q is not None and next_qd is not None
+            next_q, next_qd = _needed(next_q, keys.NEXT_Q), _needed(next_qd, keys.NEXT_QD)
             terms["forward_mse"] = self._state_mse(self.step(q, qd, action), next_q, next_qd)
         if self.loss_kind in ("inverse", "both"):
             if qdd is None:
-                assert next_qd is not None
-                qdd = (next_qd - qd) / self.control_dt
+                qdd = (_needed(next_qd, keys.NEXT_QD) - qd) / self.control_dt
             tau = self.applied_force(q, qd, action)
             e_tau = (self.dynamics.inverse_dynamics(q, qd, qdd) - tau) / self.tau_scale
             terms["inverse_mse"] = e_tau.pow(2).mean()
