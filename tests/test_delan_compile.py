@@ -79,13 +79,16 @@ def test_log1p_unit_polynomial_matches_log1p_on_the_unit_interval() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("loss", ["inverse", "both"])
-def test_compiled_fit_loss_and_gradients_equal_eager(loss: str) -> None:
-    """`compile_fit`: the loss of a full batch and its gradient come from the compiled graph
-    and equal eager autograd's; a batch of another shape (an epoch's last) runs eagerly."""
+def test_compiled_fit_loss_and_gradients_equal_eager() -> None:
+    """`compile_fit`: the inverse-dynamics loss of a full batch (as the humanoid
+    identification fits it) and its gradient come from the compiled graphs and equal eager
+    autograd's; a batch of another shape (an epoch's last) runs eagerly. (The one-step term
+    compiles the same way; its graph takes several times longer to compile.)"""
     system = load_system("acrobot")
     torch.manual_seed(0)
-    model = DeLaN(system.layout, system.actuation.float(), system.control_dt, hidden=16, loss=loss)
+    model = DeLaN(
+        system.layout, system.actuation.float(), system.control_dt, hidden=16, loss="inverse"
+    )
     g = torch.Generator().manual_seed(3)
     batch = TensorDict(
         {
