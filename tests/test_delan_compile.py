@@ -3,6 +3,7 @@
 import pytest
 import torch
 from tensordict import TensorDict
+from torch._dynamo.utils import counters
 from torch.nn import functional as F
 
 from mbrl_delan import keys
@@ -61,9 +62,15 @@ def test_compiled_planning_objective_equals_eager() -> None:
     actions = torch.randn(32, 6, 1, generator=torch.Generator().manual_seed(2))
     eager = model_objective_factory(model, parts.task)(q0, qd0)(actions)
     factory = model_objective_factory(model, parts.task, compile=True)
+    graphs = counters["stats"]["unique_graphs"]
     compiled = factory(q0, qd0)(actions)
     assert factory._compiled is not None  # the compiled path ran
     torch.testing.assert_close(compiled, eager, rtol=1e-5, atol=1e-5)
+    # one graph for all H steps of a batch size: the start state is no different kind of
+    # tensor from the states the model returns (a stride-0 or non-inference start compiled
+    # a second graph, whose compile time doubled the first call's)
+    factory(q0 + 0.1, qd0)(actions)
+    assert counters["stats"]["unique_graphs"] - graphs == 1
 
 
 def test_log1p_unit_polynomial_matches_log1p_on_the_unit_interval() -> None:

@@ -89,10 +89,12 @@ class ModelObjective:
         n, horizon, _ = actions.shape
         p = f.particles
         flat = actions.to(place.device, place.dtype).repeat_interleave(p, dim=0)  # (N*P, H, nu)
-        q = self.q0.to(place.device, place.dtype).expand(n * p, -1)  # (N*P, nq)
-        qd = self.qd0.to(place.device, place.dtype).expand(n * p, -1)  # (N*P, nv)
         rewards, terminated = [], []
         with torch.inference_mode(), eval_mode(f.model):
+            # the start as the later states are (contiguous inference tensors): a compiled
+            # transition then needs one graph per batch size, not a second for the first step
+            q = self.q0.to(place.device, place.dtype).expand(n * p, -1).contiguous()  # (N*P, nq)
+            qd = self.qd0.to(place.device, place.dtype).expand(n * p, -1).contiguous()  # (N*P, nv)
             steps = self.step + torch.arange(horizon, device=place.device)  # (H,)
             for t in range(horizon):
                 q, qd, reward, term = f.transition(q, qd, flat[:, t], steps[t])
