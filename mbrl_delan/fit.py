@@ -260,6 +260,7 @@ def build_inverse_model(
             still_first_order=cfg.still_first_order,
             dof_parents=dof_parents if cfg.tree_sparse else None,
             armature=armature if cfg.get("armature", False) else None,
+            compile_fit=cfg.get("compile", False),
         )
     if cfg.name == "mlp":
         return MLPInverse(

@@ -10,6 +10,7 @@ from mbrl_delan import keys
 from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.delan import SMALL_SOLVE, DeLaN, unrolled_cholesky_solve
+from mbrl_delan.models.inverse import DeLaNInverse
 from mbrl_delan.models.tangent_mlp import _activate, log1p_unit
 from mbrl_delan.systems.system import load_system
 
@@ -129,3 +130,45 @@ def test_compiled_fit_loss_and_gradients_equal_eager() -> None:
     assert model._losses_for(torch.Size([5, system.nq])) != compiled_fn  # partial batch: eager
     model.double()  # moving the model drops the compiled loss (it is specific to a dtype)
     assert model._compiled_losses is None
+
+
+@pytest.mark.slow
+def test_compiled_inverse_fit_loss_and_gradients_equal_eager() -> None:
+    """`DeLaNInverse(compile_fit=True)` (the mocap fit's model): a full batch's torque loss and
+    its gradient come from the compiled graphs and equal eager autograd's; another batch
+    shape runs eagerly; moving the model drops the compiled graph."""
+    system = load_system("acrobot")
+    torch.manual_seed(0)
+    model = DeLaNInverse(system.layout, hidden=16, coulomb=True)
+    g = torch.Generator().manual_seed(4)
+    batch = TensorDict(
+        {
+            keys.Q: torch.randn(16, system.nq, generator=g),
+            keys.QD: torch.randn(16, system.nv, generator=g),
+            keys.QDD: torch.randn(16, system.nv, generator=g),
+            keys.TAU: 3.0 * torch.randn(16, system.nv, generator=g),
+        },
+        batch_size=[16],
+    )
+    model.fit_normalization(batch)
+
+    def loss_and_grads(part: TensorDict) -> tuple[dict[str, float], list[torch.Tensor]]:
+        model.zero_grad(set_to_none=True)
+        out = model.loss(part)
+        out.loss.backward()
+        return out.metrics, [p.grad.clone() for p in model.parameters() if p.grad is not None]
+
+    eager_metrics, eager_grads = loss_and_grads(batch)
+    model.compile_fit = True
+    metrics, grads = loss_and_grads(batch)
+    assert model._compiled is not None and model._compiled_shape == (16, system.nv)
+    for name, value in metrics.items():
+        assert value == pytest.approx(eager_metrics[name], rel=1e-5), name
+    assert len(grads) == len(eager_grads) > 0
+    for grad, eager in zip(grads, eager_grads, strict=True):
+        torch.testing.assert_close(grad, eager, rtol=1e-4, atol=1e-6)
+    assert model._predictions_for(torch.Size([5, system.nv])) == model.member_predictions
+    with torch.no_grad():  # evaluation: eager
+        assert model._predictions_for(torch.Size([16, system.nv])) == model.member_predictions
+    model.double()
+    assert model._compiled is None

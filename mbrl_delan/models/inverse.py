@@ -46,6 +46,7 @@ from __future__ import annotations
 import abc
 import math
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -88,14 +89,23 @@ class InverseDynamicsModel(nn.Module, abc.ABC):
     Args:
         nv: number of generalized velocities (and forces).
         std_floor: floor of the per-DoF torque std, relative to the largest, in (0, 1).
+        compile_fit: under autograd, the predictions of a batch and their backward pass run
+            through `torch.compile`, for the first batch shape met (`_predictions_for`).
     """
 
-    def __init__(self, nv: int, std_floor: float) -> None:
+    def __init__(self, nv: int, std_floor: float, compile_fit: bool = False) -> None:
         super().__init__()
         if not 0.0 < std_floor < 1.0:
             raise ValueError(f"std_floor must be in (0, 1), got {std_floor}")
         self.nv, self.std_floor = nv, std_floor
+        self.compile_fit = compile_fit
+        self._compiled: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None
+        self._compiled_shape: torch.Size | None = None
         self.register_buffer("tau_scale", torch.ones(nv))
+
+    def _apply(self, fn: Callable[..., Any], recurse: bool = True) -> InverseDynamicsModel:
+        self._compiled = self._compiled_shape = None  # compiled for one device and dtype
+        return super()._apply(fn, recurse)
 
     @abc.abstractmethod
     def predict_torque(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
@@ -114,7 +124,8 @@ class InverseDynamicsModel(nn.Module, abc.ABC):
     def loss(self, batch: TensorDictBase) -> LossOutput:
         """Normalised torque MSE on a batch with keys q, qd, qdd, tau."""
         tau = batch[keys.TAU]  # (B, nv)
-        members = self.member_predictions(batch[keys.Q], batch[keys.QD], batch[keys.QDD])
+        predict = self._predictions_for(tau.shape)
+        members = predict(batch[keys.Q], batch[keys.QD], batch[keys.QDD])  # (M, B, nv)
         loss = ((members - tau) / self.tau_scale).pow(2).mean()
         with torch.no_grad():
             error = members.mean(0) - tau  # (B, nv)
@@ -124,6 +135,17 @@ class InverseDynamicsModel(nn.Module, abc.ABC):
                 "mse_si": float(error.pow(2).mean()),
             }
         return LossOutput(loss=loss, metrics=metrics)
+
+    def _predictions_for(self, shape: torch.Size) -> Callable[[Tensor, Tensor, Tensor], Tensor]:
+        """`member_predictions`; with `compile_fit` under autograd, its `torch.compile`d copy
+        (forward and backward graphs) for batches of the first shape it meets. Other shapes
+        (an epoch's last, partial batch) run eagerly, so a fit compiles once."""
+        if not (self.compile_fit and torch.is_grad_enabled()):
+            return self.member_predictions
+        if self._compiled is None:
+            self._compiled = torch.compile(self.member_predictions, dynamic=False)
+            self._compiled_shape = shape
+        return self._compiled if shape == self._compiled_shape else self.member_predictions
 
 
 # ---------------------------------------------------------------- feed-forward baselines
@@ -263,6 +285,7 @@ class DeLaNInverse(InverseDynamicsModel):
             M does not depend on them, V is linear in them (see `DeLaN`).
         dof_parents: MuJoCo's ``dof_parentid``: M gets the kinematic tree's sparsity.
         armature: MuJoCo's ``dof_armature``: M = L L^T + diag(armature) (see `DeLaN`).
+        compile_fit: see `InverseDynamicsModel`.
     """
 
     def __init__(
@@ -280,8 +303,9 @@ class DeLaNInverse(InverseDynamicsModel):
         still_first_order: bool = False,
         dof_parents: Sequence[int] | None = None,
         armature: Sequence[float] | None = None,
+        compile_fit: bool = False,
     ) -> None:
-        super().__init__(layout.nv, std_floor)
+        super().__init__(layout.nv, std_floor, compile_fit)
         self.delan = DeLaN(
             layout,
             torch.eye(layout.nv),
