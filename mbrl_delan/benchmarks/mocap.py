@@ -118,6 +118,7 @@ class MocapBenchConfig:
     delan_still_first_order: bool = True
     delan_tree_sparse: bool = True
     delan_armature: bool = False
+    delan_compile: bool = False
     mlp_hidden: int = 256
     mlp_activation: str = "silu"
     ensemble_size: int = 5
