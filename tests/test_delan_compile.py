@@ -86,6 +86,16 @@ def test_log1p_unit_polynomial_matches_log1p_on_the_unit_interval() -> None:
     assert torch.equal(log1p_unit(e64), torch.log1p(e64))  # float64: log1p itself
 
 
+def _loss_and_grads(
+    model: torch.nn.Module, batch: TensorDict
+) -> tuple[dict[str, float], list[torch.Tensor]]:
+    """The metrics of `model.loss(batch)` and the gradient of every parameter that gets one."""
+    model.zero_grad(set_to_none=True)
+    out = model.loss(batch)
+    out.loss.backward()
+    return out.metrics, [p.grad.clone() for p in model.parameters() if p.grad is not None]
+
+
 @pytest.mark.slow
 def test_compiled_fit_loss_and_gradients_equal_eager() -> None:
     """`compile_fit`: the inverse-dynamics loss of a full batch (as the humanoid
@@ -110,26 +120,20 @@ def test_compiled_fit_loss_and_gradients_equal_eager() -> None:
     )
     model.fit_normalization(batch)
 
-    def loss_and_grads(part: TensorDict) -> tuple[dict[str, float], list[torch.Tensor]]:
-        model.zero_grad(set_to_none=True)
-        out = model.loss(part)
-        out.loss.backward()
-        return out.metrics, [p.grad.clone() for p in model.parameters() if p.grad is not None]
-
-    eager_metrics, eager_grads = loss_and_grads(batch)
+    eager_metrics, eager_grads = _loss_and_grads(model, batch)
     model.compile_fit = True
-    metrics, grads = loss_and_grads(batch)
-    assert model._compiled_losses is not None and model._compiled_losses_shape == (16, system.nq)
+    metrics, grads = _loss_and_grads(model, batch)
+    assert model._fit_graph.graph is not None and model._fit_graph.shape == (16, system.nq)
     assert metrics.keys() == eager_metrics.keys()
     for name, value in metrics.items():
         assert value == pytest.approx(eager_metrics[name], rel=1e-5), name
     assert len(grads) == len(eager_grads) > 0
     for grad, eager in zip(grads, eager_grads, strict=True):
         torch.testing.assert_close(grad, eager, rtol=1e-4, atol=1e-6)
-    compiled_fn = model._compiled_losses
+    compiled_fn = model._fit_graph.graph
     assert model._losses_for(torch.Size([5, system.nq])) != compiled_fn  # partial batch: eager
     model.double()  # moving the model drops the compiled loss (it is specific to a dtype)
-    assert model._compiled_losses is None
+    assert model._fit_graph.graph is None
 
 
 @pytest.mark.slow
@@ -152,16 +156,10 @@ def test_compiled_inverse_fit_loss_and_gradients_equal_eager() -> None:
     )
     model.fit_normalization(batch)
 
-    def loss_and_grads(part: TensorDict) -> tuple[dict[str, float], list[torch.Tensor]]:
-        model.zero_grad(set_to_none=True)
-        out = model.loss(part)
-        out.loss.backward()
-        return out.metrics, [p.grad.clone() for p in model.parameters() if p.grad is not None]
-
-    eager_metrics, eager_grads = loss_and_grads(batch)
+    eager_metrics, eager_grads = _loss_and_grads(model, batch)
     model.compile_fit = True
-    metrics, grads = loss_and_grads(batch)
-    assert model._compiled is not None and model._compiled_shape == (16, system.nv)
+    metrics, grads = _loss_and_grads(model, batch)
+    assert model._fit_graph.graph is not None and model._fit_graph.shape == (16, system.nv)
     for name, value in metrics.items():
         assert value == pytest.approx(eager_metrics[name], rel=1e-5), name
     assert len(grads) == len(eager_grads) > 0
@@ -171,4 +169,4 @@ def test_compiled_inverse_fit_loss_and_gradients_equal_eager() -> None:
     with torch.no_grad():  # evaluation: eager
         assert model._predictions_for(torch.Size([16, system.nv])) == model.member_predictions
     model.double()
-    assert model._compiled is None
+    assert model._fit_graph.graph is None

@@ -62,6 +62,30 @@ def compile_dynamics(fn: Callable[..., Any]) -> Callable[..., Any]:
     return torch.compile(fn, dynamic=False, options=options)
 
 
+class FitGraph:
+    """A training function through `torch.compile` (forward and backward graphs) for the
+    first batch shape met under autograd. Other shapes (an epoch's last, partial batch) and
+    calls without autograd run eagerly, so a fit compiles once."""
+
+    def __init__(self) -> None:
+        self.reset()
+
+    def reset(self) -> None:
+        """Drop the graph (it is specific to a device and dtype)."""
+        self.graph: Callable[..., Any] | None = None
+        self.shape: torch.Size | None = None
+
+    def choose(
+        self, fn: Callable[..., Any], shape: torch.Size, enabled: bool
+    ) -> Callable[..., Any]:
+        """`fn`, or its compiled copy for a batch of `shape` when `enabled`."""
+        if not (enabled and torch.is_grad_enabled()):
+            return fn
+        if self.graph is None:
+            self.graph, self.shape = torch.compile(fn, dynamic=False), shape
+        return self.graph if shape == self.shape else fn
+
+
 @dataclass
 class MechanicsJet:
     """L(q), V(q), the derivative of L along qd, and the pullback of cotangents to velocity space.
@@ -646,8 +670,7 @@ class DeLaN(WorldModel):
         self.compile_step, self.inertia_scaling = compile_step, inertia_scaling
         self._compiled_step: Callable[[Tensor, Tensor, Tensor], State] | None = None
         self.compile_fit = compile_fit
-        self._compiled_losses: Callable[..., dict[str, Tensor]] | None = None
-        self._compiled_losses_shape: torch.Size | None = None
+        self._fit_graph = FitGraph()  # `_losses_for`
         n = layout.nv
         features = QFeatures(layout)
         self.layout, self.control_dt = layout, control_dt
@@ -688,7 +711,7 @@ class DeLaN(WorldModel):
 
     def _apply(self, fn: Callable[..., Any], recurse: bool = True) -> DeLaN:
         self._compiled_step = None  # a compiled step is specific to a device and dtype
-        self._compiled_losses = self._compiled_losses_shape = None
+        self._fit_graph.reset()
         return super()._apply(fn, recurse)
 
     def terms(self, q: Tensor, qd: Tensor) -> LagrangianTerms:
@@ -897,17 +920,9 @@ class DeLaN(WorldModel):
         return terms
 
     def _losses_for(self, shape: torch.Size) -> Callable[..., dict[str, Tensor]]:
-        """`_transition_losses`; with `compile_fit` under autograd, its `torch.compile`d copy
-        (forward and backward graphs) for batches of the first shape it meets. Other shapes
-        (an epoch's last, partial batch) run eagerly, so the fit compiles once."""
-        if not (self.compile_fit and torch.is_grad_enabled()):
-            return self._transition_losses
-        if self._compiled_losses is None:
-            self._compiled_losses = torch.compile(self._transition_losses, dynamic=False)
-            self._compiled_losses_shape = shape
-        if shape != self._compiled_losses_shape:
-            return self._transition_losses
-        return self._compiled_losses
+        """`_transition_losses`, compiled for the fit's batch shape with `compile_fit`
+        (`FitGraph`)."""
+        return self._fit_graph.choose(self._transition_losses, shape, self.compile_fit)
 
     def _state_mse(self, pred: State, q_next: Tensor, qd_next: Tensor) -> Tensor:
         """Per-DoF normalised squared error of a predicted next state (scalar)."""

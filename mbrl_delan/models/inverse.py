@@ -55,7 +55,7 @@ from torch.nn import functional as F
 
 from mbrl_delan import keys
 from mbrl_delan.models.base import LossOutput
-from mbrl_delan.models.delan import DeLaN, LagrangianDynamics, LagrangianNetwork
+from mbrl_delan.models.delan import DeLaN, FitGraph, LagrangianDynamics, LagrangianNetwork
 from mbrl_delan.models.features import QFeatures
 from mbrl_delan.systems.system import JointLayout
 
@@ -99,12 +99,11 @@ class InverseDynamicsModel(nn.Module, abc.ABC):
             raise ValueError(f"std_floor must be in (0, 1), got {std_floor}")
         self.nv, self.std_floor = nv, std_floor
         self.compile_fit = compile_fit
-        self._compiled: Callable[[Tensor, Tensor, Tensor], Tensor] | None = None
-        self._compiled_shape: torch.Size | None = None
+        self._fit_graph = FitGraph()  # `_predictions_for`
         self.register_buffer("tau_scale", torch.ones(nv))
 
     def _apply(self, fn: Callable[..., Any], recurse: bool = True) -> InverseDynamicsModel:
-        self._compiled = self._compiled_shape = None  # compiled for one device and dtype
+        self._fit_graph.reset()
         return super()._apply(fn, recurse)
 
     @abc.abstractmethod
@@ -137,15 +136,9 @@ class InverseDynamicsModel(nn.Module, abc.ABC):
         return LossOutput(loss=loss, metrics=metrics)
 
     def _predictions_for(self, shape: torch.Size) -> Callable[[Tensor, Tensor, Tensor], Tensor]:
-        """`member_predictions`; with `compile_fit` under autograd, its `torch.compile`d copy
-        (forward and backward graphs) for batches of the first shape it meets. Other shapes
-        (an epoch's last, partial batch) run eagerly, so a fit compiles once."""
-        if not (self.compile_fit and torch.is_grad_enabled()):
-            return self.member_predictions
-        if self._compiled is None:
-            self._compiled = torch.compile(self.member_predictions, dynamic=False)
-            self._compiled_shape = shape
-        return self._compiled if shape == self._compiled_shape else self.member_predictions
+        """`member_predictions`, compiled for the fit's batch shape with `compile_fit`
+        (`FitGraph`)."""
+        return self._fit_graph.choose(self.member_predictions, shape, self.compile_fit)
 
 
 # ---------------------------------------------------------------- feed-forward baselines
