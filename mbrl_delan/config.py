@@ -160,7 +160,10 @@ def build_model(cfg: DictConfig, system: System) -> WorldModel:
     """The world model named by `cfg.name`, with the system's layout and actuation."""
     if cfg.name == "delan":
         return DeLaN(
-            **_delan_arguments(cfg, system), compile_step=cfg.compile, residual=cfg.residual
+            **_delan_arguments(cfg, system),
+            compile_step=cfg.compile,
+            compile_fit=cfg.get("compile_fit", False),
+            residual=cfg.residual,
         )
     if cfg.name == "delan_ensemble":
         return DeLaNEnsemble(

@@ -1,5 +1,7 @@
 """The optional compiled planning step and objective give the eager results."""
 
+from pathlib import Path
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -170,3 +172,36 @@ def test_compiled_inverse_fit_loss_and_gradients_equal_eager() -> None:
         assert model._predictions_for(torch.Size([16, system.nv])) == model.member_predictions
     model.double()
     assert model._fit_graph.graph is None
+
+
+@pytest.mark.slow
+def test_train_config_compile_fit_compiles_the_one_step_loss_as_eager() -> None:
+    """`model.compile_fit=true` reaches the loop's DeLaN, and the loop's one-step (forward)
+    loss and its gradient from the compiled graph equal eager autograd's."""
+    from hydra import compose, initialize_config_dir
+
+    from mbrl_delan.config import build_model
+    from mbrl_delan.data.synthetic import dynamics_dataset
+
+    configs = str(Path(__file__).resolve().parents[1] / "configs")
+    with initialize_config_dir(config_dir=configs, version_base=None):
+        default = compose("config", overrides=["env=pendulum", "model=delan"])
+        cfg = compose("config", overrides=["env=pendulum", "model=delan", "model.compile_fit=true"])
+    system = make_env_parts("pendulum").system
+    assert not build_model(default.model, system).compile_fit
+    torch.manual_seed(0)
+    model = build_model(cfg.model, system)
+    assert model.compile_fit and model.loss_kind == "forward"
+    batch = dynamics_dataset(system, 16, torch.Generator().manual_seed(2)).float()
+    model.fit_normalization(batch)
+
+    model.compile_fit = False
+    eager_metrics, eager_grads = _loss_and_grads(model, batch)
+    model.compile_fit = True
+    metrics, grads = _loss_and_grads(model, batch)
+    assert model._fit_graph.graph is not None  # the compiled path ran
+    for name, value in metrics.items():
+        assert value == pytest.approx(eager_metrics[name], rel=1e-5, abs=1e-7), name
+    assert len(grads) == len(eager_grads) > 0
+    for grad, eager in zip(grads, eager_grads, strict=True):
+        torch.testing.assert_close(grad, eager, rtol=1e-4, atol=1e-6)
