@@ -111,6 +111,22 @@ def test_tsinf_equals_a_loop_over_members(batch: int) -> None:
             torch.testing.assert_close(out.qd[b], ref.qd, **TOL)
 
 
+def test_member_after_a_vectorised_step_is_that_member() -> None:
+    """`member` copies a template that the vmapped calls run through; a call must not leave
+    anything in it that breaks the copy (the features' buffers, shared by three paths with
+    the residual force, once did)."""
+    members = reference_members(residual=True)
+    ens = ensemble(members, residual=True)
+    q, qd, action = states(2 * E)
+    with torch.no_grad():
+        ens.step(q, qd, action)
+    copy = ens.member(1)
+    with torch.inference_mode():
+        out, ref = copy.step(q, qd, action), members[1].step(q, qd, action)
+    torch.testing.assert_close(out.q, ref.q, **TOL)
+    torch.testing.assert_close(out.qd, ref.qd, **TOL)
+
+
 def test_members_with_a_residual_and_translation_invariance_equal_a_loop() -> None:
     """Every DeLaN option reaches the members: with the residual force and the height
     potential, the ensemble's step and loss are still those of E separate DeLaNs."""

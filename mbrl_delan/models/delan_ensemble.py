@@ -216,7 +216,13 @@ class DeLaNEnsemble(WorldModel):
 
     def member(self, index: int) -> DeLaN:
         """A standalone DeLaN holding copies of member `index`'s parameters and buffers."""
-        module = copy.deepcopy(self._call[0].model)
+        template = self._call[0].model
+        for name, t in self.members.named_buffers():
+            # a vmapped call can leave its batched value in a buffer that two paths of the
+            # module tree share (the features): put a meta tensor back before copying
+            if t.is_floating_point():
+                _replace(template, name, torch.empty_like(t[index], device="meta"))
+        module = copy.deepcopy(template)
         for name, t in self.members.named_parameters():
             value = nn.Parameter(t[index].detach().clone(), requires_grad=t.requires_grad)
             _replace(module, name, value)
