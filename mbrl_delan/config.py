@@ -153,6 +153,7 @@ def _delan_arguments(cfg: DictConfig, system: System) -> dict[str, Any]:
         still_first_order=cfg.still_first_order,
         dof_parents=system.mj_model().dof_parentid.tolist() if cfg.tree_sparse else None,
         armature=system.mj_model().dof_armature.tolist() if cfg.armature else None,
+        yaw_invariant=cfg.get("yaw_invariant", False),
     )
 
 

@@ -113,7 +113,10 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
     )
     env = make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
     eval_env = make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
-    model = build_model(cfg.model, system).to(device=device, dtype=dtype)
+    try:
+        model = build_model(cfg.model, system).to(device=device, dtype=dtype)
+    except ValueError as err:  # a structure the env's system cannot have (yaw_invariant)
+        raise ConfigError(f"model={cfg.model.name} on env={cfg.env.name}: {err}") from err
     optimizer = torch.optim.Adam(
         model.parameters(), lr=cfg.model.lr, weight_decay=cfg.model.weight_decay
     )
@@ -235,6 +238,7 @@ def _start_mechanics(model_cfg: DictConfig, model: DeLaN) -> None:
         raise ConfigError(f"{where}: that fit is model={fit_cfg.model.name}, not a DeLaN")
     shared = {k: fit_cfg.model.get(k, False) for k in MOCAP_SHARED}
     shared["translation_invariant"] = fit_cfg.get("translation_invariant", False)
+    shared["yaw_invariant"] = False  # the mocap fit's DeLaN sees the root's heading
     differ = [f"model.{k}={_yaml(v)}" for k, v in shared.items() if model_cfg.get(k) != v]
     if differ:
         raise ConfigError(

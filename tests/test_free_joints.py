@@ -163,9 +163,10 @@ def test_without_euler_poincare_the_free_body_is_wrong(tmp_path) -> None:
     assert np.abs(bias - data.qfrc_bias).max() > 1e-2
 
 
-def test_features_jvp_vjp_equal_autograd_through_integrate_pos(tmp_path) -> None:
+@pytest.mark.parametrize("yaw_invariant", [False, True])
+def test_features_jvp_vjp_equal_autograd_through_integrate_pos(tmp_path, yaw_invariant) -> None:
     system = system_of(MIXED, tmp_path)
-    features = QFeatures(system.layout)
+    features = QFeatures(system.layout, yaw_invariant=yaw_invariant)
     q, v = random_states(system, 8, seed=1)
     zero = torch.zeros(q.shape[:-1] + (1,))
     _, expected = torch.func.jvp(
@@ -177,14 +178,19 @@ def test_features_jvp_vjp_equal_autograd_through_integrate_pos(tmp_path) -> None
         lambda d: features(integrate_pos(system.layout, q, d, 1.0)), torch.zeros_like(v)
     )
     torch.testing.assert_close(features.vjp(q, cot), vjp(cot)[0])
-    assert features.n_features == 1 + 9 + 9 + 1 + 2  # z, R_root, R_ball, limited hinge, sin/cos
+    root = 3 if yaw_invariant else 9  # the root's tilt e_z^T R, or all of R
+    assert features.n_features == 1 + root + 9 + 1 + 2  # z, root, R_ball, limited hinge, sin/cos
 
 
-def test_network_coriolis_equals_autograd_on_mixed_joints(tmp_path) -> None:
-    """The network's explicit c(q, qd) equals Mdot qd - 1/2 grad(qd^T M qd) + EP by autograd."""
+@pytest.mark.parametrize("yaw_invariant", [False, True])
+def test_network_coriolis_equals_autograd_on_mixed_joints(tmp_path, yaw_invariant) -> None:
+    """The network's explicit c(q, qd) equals Mdot qd - 1/2 grad(qd^T M qd) + EP by autograd
+    (with `yaw_invariant`, through the root's rotation of L too)."""
     system = system_of(MIXED, tmp_path)
     torch.manual_seed(0)
-    model = DeLaN(system.layout, system.actuation, 0.01, hidden=32).double()
+    model = DeLaN(
+        system.layout, system.actuation, 0.01, hidden=32, yaw_invariant=yaw_invariant
+    ).double()
     q, qd = random_states(system, 4, seed=2)
     terms = model.terms(q, qd)
     layout, dyn = system.layout, model.dynamics

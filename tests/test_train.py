@@ -139,6 +139,7 @@ def test_sigkill_then_resume_continues_identically(finished_run: Path, tmp_path:
         ("env=cmu_track env.task.clip='99_99' env.task.download=false", "clip '99_99' not found"),
         ("env=cmu_track env.task.clip=131_03", "clip=13103 is not a clip name; quote it"),
         ("planner.temperature=-1", "temperature must be finite and > 0"),
+        ("model.yaw_invariant=true", "yaw_invariant needs a model whose first joint is a free"),
     ],
 )
 def test_bad_config_value_fails_at_start_naming_it(

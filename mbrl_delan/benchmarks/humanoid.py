@@ -85,8 +85,8 @@ MODEL_CASES = HUMANOID_MODELS
 _DELAN = dict(
     hidden=64, layers=2, activation="softplus", diag_shift=0.001, integrator="euler",
     substeps=2, loss="forward", dissipation=True, coulomb=True, velocity_margin=3.0,
-    residual=True, inertia_scaling=True, translation_invariant=False, tree_sparse=False,
-    still_first_order=False, armature=False,
+    residual=True, inertia_scaling=True, translation_invariant=False, yaw_invariant=False,
+    tree_sparse=False, still_first_order=False, armature=False,
     lr=0.003, weight_decay=0.0,
 )  # fmt: skip
 MODEL_SETTINGS: dict[str, dict[str, Any]] = {

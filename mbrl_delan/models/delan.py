@@ -30,7 +30,7 @@ from torch.nn import functional as F
 
 from mbrl_delan import keys
 from mbrl_delan.models.base import LossOutput, WorldModel
-from mbrl_delan.models.features import QFeatures
+from mbrl_delan.models.features import QFeatures, rotation_matrix, skew, unskew_of_rt
 from mbrl_delan.models.integrators import INTEGRATORS, integrate
 from mbrl_delan.models.tangent_mlp import TangentMLP, linear
 from mbrl_delan.systems.posarith import differentiate_pos
@@ -97,6 +97,11 @@ class MechanicsJet:
     L_dot: Tensor  # (..., n, n) dL/dt = dL/dq [qd]
     potential_energy: Tensor  # (...)
     pullback: Callable[[Tensor, Tensor], Tensor]  # (..., n, n), (...) -> (..., n)
+    # with a free root's frame (`LagrangianNetwork`, ``root_frame``): L = S factor, S the
+    # rotation `frame` (..., 3, 3) on L's first three rows and the identity elsewhere, so
+    # L is not triangular; M = L L^T is solved with the triangular `factor` (..., n, n)
+    frame: Tensor | None = None
+    factor: Tensor | None = None
 
 
 @dataclass
@@ -163,8 +168,10 @@ class LagrangianNetwork(MechanicsField):
         heights: Sequence[tuple[int, int]] = (),
         still_potential: bool = False,
         dof_parents: Sequence[int] | None = None,
+        root_frame: bool = False,
     ) -> None:
         super().__init__()
+        self.root_frame = root_frame
         if diag_shift <= 0:
             raise ValueError(
                 f"diag_shift must be > 0 so M stays positive definite, got {diag_shift}"
@@ -257,6 +264,11 @@ class LagrangianNetwork(MechanicsField):
         return weight, bias.index_select(0, self.layout) * scale
 
     def jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
+        """L, V and their derivatives; with ``root_frame``, L = S L_b (`root_frame_jet`)."""
+        jet = self._network_jet(q, qd)
+        return root_frame_jet(jet, q, qd) if self.root_frame else jet
+
+    def _network_jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
         """With one DoF the tangent along a unit velocity is the whole Jacobian of the
         trunk, so the pullback is a dot product with it (no reverse pass through the trunk)."""
         n, head = self.n, self.trunk.head
@@ -307,6 +319,51 @@ class LagrangianNetwork(MechanicsField):
             return grad
 
         return MechanicsJet(L=L, L_dot=L_dot, potential_energy=potential, pullback=pullback)
+
+
+def to_root_frame(R: Tensor, x: Tensor) -> Tensor:
+    """A free root's world-frame linear entries x[..., :3] into its body frame (R^T x);
+    the other entries as they are. (..., 3, 3), (..., n) -> (..., n)"""
+    top = (R.transpose(-1, -2) @ x[..., :3].unsqueeze(-1)).squeeze(-1)
+    return torch.cat([top, x[..., 3:]], dim=-1)
+
+
+def from_root_frame(R: Tensor, x: Tensor) -> Tensor:
+    """The inverse of `to_root_frame` (R x on the first three entries)."""
+    top = (R @ x[..., :3].unsqueeze(-1)).squeeze(-1)
+    return torch.cat([top, x[..., 3:]], dim=-1)
+
+
+def root_frame_jet(jet: MechanicsJet, q: Tensor, qd: Tensor) -> MechanicsJet:
+    """L = S L_b for a free root first (q[0:7], qd[0:6]): S = diag(R, I), R its rotation.
+
+    MuJoCo's free joint moves with the world-frame linear velocity v and the body-frame
+    angular velocity omega; in the body frame (R^T v, omega, joint rates) the kinetic
+    energy of a free-floating body does not depend on where the root is or how it is
+    turned, so M(q) = S M_b S^T with M_b = L_b L_b^T from features that leave the heading
+    out: M (and with it c) turns with the body about the vertical. dS/dt = diag(R [omega]x, 0).
+    """
+    R = rotation_matrix(q[..., 3:7])  # (..., 3, 3)
+    top, top_dot = jet.L[..., :3, :], jet.L_dot[..., :3, :]
+    L = torch.cat([R @ top, jet.L[..., 3:, :]], dim=-2)
+    R_dot = R @ skew(qd[..., 3:6])
+    L_dot = torch.cat([R_dot @ top + R @ top_dot, jet.L_dot[..., 3:, :]], dim=-2)
+    n = jet.L.shape[-1]
+
+    def pullback(d_L: Tensor, d_V: Tensor) -> Tensor:
+        d_top = d_L[..., :3, :]
+        d_factor = torch.cat([R.transpose(-1, -2) @ d_top, d_L[..., 3:, :]], dim=-2)
+        turn = unskew_of_rt(R, d_top @ top.transpose(-1, -2))  # through R: omega's cotangent
+        return jet.pullback(d_factor, d_V) + F.pad(turn, (3, n - 6))
+
+    return MechanicsJet(
+        L=L,
+        L_dot=L_dot,
+        potential_energy=jet.potential_energy,
+        pullback=pullback,
+        frame=R,
+        factor=jet.L,
+    )
 
 
 class Dissipation(nn.Module):
@@ -386,8 +443,13 @@ class LagrangianDynamics(nn.Module):
         m_dot_qd = (jet.L_dot @ w.unsqueeze(-1) + jet.L @ w_dot.unsqueeze(-1)).squeeze(-1)
         return w, m_dot_qd
 
-    def _dissipation(self, qd: Tensor) -> Tensor:
-        return torch.zeros_like(qd) if self.dissipation is None else self.dissipation(qd)
+    def _dissipation(self, qd: Tensor, frame: Tensor | None = None) -> Tensor:
+        """d(qd); with a root `frame` R, in the root's frame: S d(S^T qd) (still qd^T d >= 0)."""
+        if self.dissipation is None:
+            return torch.zeros_like(qd)
+        if frame is None:
+            return self.dissipation(qd)
+        return from_root_frame(frame, self.dissipation(to_root_frame(frame, qd)))
 
     def terms(self, q: Tensor, qd: Tensor) -> LagrangianTerms:
         """All terms at (q, qd): (..., nq), (..., n). Two reverse passes (c and g apart)."""
@@ -401,20 +463,21 @@ class LagrangianDynamics(nn.Module):
         kinetic = 0.5 * (w * w).sum(-1)
         if self.has_armature:
             mass_matrix = mass_matrix + torch.diag_embed(self.armature.expand_as(qd))
-            factor = torch.linalg.cholesky(mass_matrix)
             kinetic = kinetic + 0.5 * (self.armature * qd * qd).sum(-1)
+        if self.has_armature or jet.frame is not None:  # L is not M's Cholesky factor
+            factor = torch.linalg.cholesky(mass_matrix)
         return LagrangianTerms(
             mass_matrix=mass_matrix,
             cholesky=factor,
             coriolis=self._add_euler_poincare(m_dot_qd - half_grad_kinetic, jet.L, w, qd),
             gravity=gravity,
-            dissipation=self._dissipation(qd),
+            dissipation=self._dissipation(qd, jet.frame),
             kinetic_energy=kinetic,
             potential_energy=jet.potential_energy,
         )
 
-    def _bias_and_cholesky(self, q: Tensor, qd: Tensor) -> tuple[Tensor, Tensor]:
-        """c + g + d with one reverse pass (the pullback is linear), and L."""
+    def _bias_and_jet(self, q: Tensor, qd: Tensor) -> tuple[Tensor, MechanicsJet]:
+        """c + g + d with one reverse pass (the pullback is linear), and the jet (L)."""
         jet = self.field.jet(q, qd)
         w, m_dot_qd = self._velocity_products(jet, qd)
         minus_kinetic_cotangent = (-qd).unsqueeze(-1) * w.unsqueeze(-2)  # -qd w^T
@@ -422,11 +485,12 @@ class LagrangianDynamics(nn.Module):
             minus_kinetic_cotangent, torch.ones_like(jet.potential_energy)
         )
         coriolis_gravity = self._add_euler_poincare(coriolis_gravity, jet.L, w, qd)
-        return coriolis_gravity + self._dissipation(qd), jet.L
+        return coriolis_gravity + self._dissipation(qd, jet.frame), jet
 
     def inverse_dynamics(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
         """Generalized force tau = M qdd + c + g + d. (..., n)"""
-        bias, L = self._bias_and_cholesky(q, qd)
+        bias, jet = self._bias_and_jet(q, qd)
+        L = jet.L
         m_qdd = (L @ (L.transpose(-1, -2) @ qdd.unsqueeze(-1))).squeeze(-1)
         if self.has_armature:
             m_qdd = m_qdd + self.armature * qdd
@@ -434,16 +498,26 @@ class LagrangianDynamics(nn.Module):
 
     def forward_dynamics(self, q: Tensor, qd: Tensor, tau: Tensor) -> Tensor:
         """qdd = M^-1 (tau - c - g - d) by two triangular solves with L. (..., n)"""
-        bias, L = self._bias_and_cholesky(q, qd)
-        rhs = (tau - bias).unsqueeze(-1)  # (..., n, 1)
+        bias, jet = self._bias_and_jet(q, qd)
         if self.has_armature:  # M = L L^T + diag(armature): factor it whole
+            L = jet.L
+            rhs = (tau - bias).unsqueeze(-1)  # (..., n, 1)
             mass_matrix = L @ L.transpose(-1, -2) + torch.diag_embed(self.armature.expand_as(tau))
             return torch.cholesky_solve(rhs, torch.linalg.cholesky(mass_matrix)).squeeze(-1)
+        if jet.frame is None or jet.factor is None:
+            return self._solve(jet.L, tau - bias)
+        # M = S M_b S^T with S orthogonal: M^-1 b = S M_b^-1 S^T b
+        solved = self._solve(jet.factor, to_root_frame(jet.frame, tau - bias))
+        return from_root_frame(jet.frame, solved)
+
+    def _solve(self, L: Tensor, b: Tensor) -> Tensor:
+        """x with L L^T x = b, L the field's triangular factor. (..., n, n), (..., n) -> (..., n)"""
+        rhs = b.unsqueeze(-1)  # (..., n, 1)
         if self.field.upper:  # M = U U^T: U y = rhs, then U^T x = y
             y = torch.linalg.solve_triangular(L, rhs, upper=True)
             return torch.linalg.solve_triangular(L.transpose(-1, -2), y, upper=False).squeeze(-1)
         if torch.compiler.is_compiling() and L.shape[-1] <= SMALL_SOLVE:
-            return unrolled_cholesky_solve(L, tau - bias)
+            return unrolled_cholesky_solve(L, b)
         return torch.cholesky_solve(rhs, L).squeeze(-1)
 
     def generalized_force(self, action: Tensor) -> Tensor:
@@ -609,6 +683,12 @@ class DeLaN(WorldModel):
     free-floating body under uniform gravity this is the whole dependence of M and V on the
     root's position. The residual force still sees the height (contacts depend on it).
 
+    `yaw_invariant` (a free root first): nothing depends on the root's heading or
+    horizontal position. The networks see its tilt (e_z^T R), height and the joints, and
+    M = S M_b S^T turns the world-frame linear velocity into the root's frame
+    (`root_frame_jet`); the residual force sees body-frame velocities and acts in that frame.
+    Turning a state about the vertical turns the predicted accelerations with it, exactly.
+
     `still_first_order`: coordinates that do not move in the data given to
     `fit_normalization` (motion capture's uncaptured fingers and fixed clavicles) are taken to
     first order about their held value: M does not depend on them and V is linear in them
@@ -652,8 +732,11 @@ class DeLaN(WorldModel):
         still_first_order: bool = False,
         dof_parents: Sequence[int] | None = None,
         armature: Sequence[float] | Tensor | None = None,
+        yaw_invariant: bool = False,
     ) -> None:
         super().__init__()
+        if yaw_invariant and not (layout.types and layout.types[0] == FREE):
+            raise ValueError("yaw_invariant needs a model whose first joint is a free root")
         if integrator not in INTEGRATORS:
             raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
         if loss not in LOSSES:
@@ -672,13 +755,19 @@ class DeLaN(WorldModel):
         self.compile_fit = compile_fit
         self._fit_graph = FitGraph()  # `_losses_for`
         n = layout.nv
-        features = QFeatures(layout)
+        self.yaw_invariant = yaw_invariant
+        features = QFeatures(layout, yaw_invariant=yaw_invariant)
         self.layout, self.control_dt = layout, control_dt
         self.integrator, self.substeps, self.loss_kind = integrator, substeps, loss
         heights = free_root_heights(layout) if translation_invariant else []
         own_features = bool(heights) or still_first_order
         network = LagrangianNetwork(
-            QFeatures(layout, root_height=not heights, freeze_still=still_first_order)
+            QFeatures(
+                layout,
+                root_height=not heights,
+                freeze_still=still_first_order,
+                yaw_invariant=yaw_invariant,
+            )
             if own_features
             else features,
             n,
@@ -689,6 +778,7 @@ class DeLaN(WorldModel):
             heights=heights,
             still_potential=still_first_order,
             dof_parents=dof_parents,
+            root_frame=yaw_invariant,
         )
         raw_init = 0.0 if diagonal_init else -4.0
         self.dynamics = LagrangianDynamics(
@@ -730,7 +820,11 @@ class DeLaN(WorldModel):
         if self.residual is None:
             return tau
         qd_unit = self.velocity_limit / self.velocity_margin  # the largest |qd| in the data
-        return tau + self.tau_scale * self.residual(q, qd, action, qd_unit)
+        if not self.yaw_invariant:
+            return tau + self.tau_scale * self.residual(q, qd, action, qd_unit)
+        R = rotation_matrix(q[..., 3:7])  # in the root's frame, turned back to the world's
+        force = self.tau_scale * self.residual(q, to_root_frame(R, qd), action, qd_unit)
+        return tau + from_root_frame(R, force)
 
     def step(
         self, q: Tensor, qd: Tensor, action: Tensor, generator: torch.Generator | None = None
@@ -745,15 +839,23 @@ class DeLaN(WorldModel):
 
     def _step(self, q: Tensor, qd: Tensor, action: Tensor) -> State:
         tau = self.dynamics.generalized_force(action)  # B a: once per step, not per stage
-        limit = self.velocity_limit
 
         def accel(q_: Tensor, qd_: Tensor) -> Tensor:
-            qd_ = torch.clamp(qd_, -limit, limit)
+            qd_ = self._clamp_velocity(q_, qd_)
             force = self._with_residual(tau, q_, qd_, action)
             return self.dynamics.forward_dynamics(q_, qd_, force)
 
         nxt = integrate(self.layout, accel, q, qd, self.control_dt, self.integrator, self.substeps)
-        return State(q=nxt.q, qd=torch.clamp(nxt.qd, -limit, limit))
+        return State(q=nxt.q, qd=self._clamp_velocity(nxt.q, nxt.qd))
+
+    def _clamp_velocity(self, q: Tensor, qd: Tensor) -> Tensor:
+        """qd within +-`velocity_limit` per DoF; with `yaw_invariant` the root's linear
+        velocity is clamped in its own frame, so the clamp turns with the body too."""
+        limit = self.velocity_limit
+        if not self.yaw_invariant:
+            return torch.clamp(qd, -limit, limit)
+        R = rotation_matrix(q[..., 3:7])
+        return from_root_frame(R, torch.clamp(to_root_frame(R, qd), -limit, limit))
 
     @torch.no_grad()
     def fit_normalization(self, data: TensorDictBase) -> None:

@@ -10,6 +10,8 @@ Per joint (MuJoCo layout):
 - free: the root height z and R; the x/y position is left out (the physics does not depend
   on it), unless `translation_invariant=False`; `root_height=False` also leaves z out (for
   models whose only dependence on the height is gravity's linear potential, or none).
+  `yaw_invariant=True` keeps only R's last row, e_z^T R (the world's vertical in the root's
+  frame: its tilt), which does not change when the body turns about the vertical.
 
 DeLaN differentiates the features along a generalized velocity. Angular velocities of ball
 and free joints are body-frame (quasi-velocities), so the derivative of R along omega is
@@ -67,15 +69,21 @@ class QFeatures(nn.Module):
         bound_plain: bool = True,
         root_height: bool = True,
         freeze_still: bool = False,
+        yaw_invariant: bool = False,
     ) -> None:
         """`bound_plain=False` gives the plain coordinates as they are (for models that
         standardise their inputs themselves); `root_height=False` leaves a free joint's
         height out (with `translation_invariant`: no position of the root at all).
         `freeze_still`: a plain coordinate that does not move in the data given to
         `standardize` becomes a constant feature 0 with zero derivative (``plain_still``
-        marks it): nothing the network computes depends on it."""
+        marks it): nothing the network computes depends on it. `yaw_invariant`: a free
+        joint's features are its tilt (and height), not its heading (needs
+        `translation_invariant`)."""
         super().__init__()
+        if yaw_invariant and not translation_invariant:
+            raise ValueError("yaw_invariant features need translation_invariant=True")
         periodic, plain_q, plain_v, rotations, positions = [], [], [], [], []
+        tilts = []
         for jtype, qa, va, limited in zip(
             layout.types, layout.qpos_adr, layout.dof_adr, layout.limited, strict=True
         ):
@@ -84,7 +92,7 @@ class QFeatures(nn.Module):
             elif jtype == FREE:
                 coords = ((2,) if root_height else ()) if translation_invariant else (0, 1, 2)
                 positions += [(qa + k, va + k) for k in coords]
-                rotations.append((qa + 3, va + 3))
+                (tilts if yaw_invariant else rotations).append((qa + 3, va + 3))
             elif jtype == BALL:
                 rotations.append((qa, va))
             else:  # slide, limited hinge
@@ -98,9 +106,12 @@ class QFeatures(nn.Module):
         self._index("plain_v", plain_v)
         self._index("rot_q", [[r[0] + k for k in range(4)] for r in rotations], (0, 4))
         self._index("rot_v", [[r[1] + k for k in range(3)] for r in rotations], (0, 3))
+        self._index("tilt_q", [[r[0] + k for k in range(4)] for r in tilts], (0, 4))
+        self._index("tilt_v", [[r[1] + k for k in range(3)] for r in tilts], (0, 3))
         self.n_periodic, self.n_plain, self.n_rot = len(periodic), len(plain_q), len(rotations)
+        self.n_tilt = len(tilts)
         self.nq, self.nv = layout.nq, layout.nv
-        self.n_features = 2 * self.n_periodic + self.n_plain + 9 * self.n_rot
+        self.n_features = 2 * self.n_periodic + self.n_plain + 9 * self.n_rot + 3 * self.n_tilt
         self.bound_plain, self.freeze_still = bound_plain, freeze_still
         self.register_buffer("plain_mean", torch.zeros(self.n_plain))
         self.register_buffer("plain_std", torch.ones(self.n_plain))
@@ -142,13 +153,19 @@ class QFeatures(nn.Module):
 
     def _velocity_order(self) -> list[int]:
         """For each velocity index, its place in [periodic, plain, rotation, zero] cotangents."""
-        placed = self.periodic_v.tolist() + self.plain_v.tolist() + self.rot_v.flatten().tolist()
+        placed = (
+            self.periodic_v.tolist()
+            + self.plain_v.tolist()
+            + self.rot_v.flatten().tolist()
+            + self.tilt_v.flatten().tolist()
+        )
         where = {v: i for i, v in enumerate(placed)}
         return [where.get(v, len(placed)) for v in range(self.nv)]
 
-    def _rotations(self, q: Tensor) -> Tensor:
-        """(..., nq) -> (..., K, 3, 3)."""
-        return rotation_matrix(_take(q, self.rot_q.flatten()).unflatten(-1, (self.n_rot, 4)))
+    def _rotations(self, q: Tensor, index: Tensor | None = None) -> Tensor:
+        """(..., nq) -> (..., K, 3, 3) of the joints in `index` (K, 4) (default `rot_q`)."""
+        index = self.rot_q if index is None else index
+        return rotation_matrix(_take(q, index.flatten()).unflatten(-1, (index.shape[0], 4)))
 
     def forward(self, q: Tensor) -> Tensor:
         """(..., nq) -> (..., n_features)."""
@@ -156,6 +173,8 @@ class QFeatures(nn.Module):
         parts = [torch.sin(qp), torch.cos(qp), self._plain(q)[0]]
         if self.n_rot:
             parts.append(self._rotations(q).flatten(-3))
+        if self.n_tilt:
+            parts.append(self._rotations(q, self.tilt_q)[..., 2, :].flatten(-2))
         return torch.cat(parts, dim=-1)
 
     def jvp(self, q: Tensor, v: Tensor) -> Tensor:
@@ -169,6 +188,10 @@ class QFeatures(nn.Module):
         if self.n_rot:
             omega = _take(v, self.rot_v.flatten()).unflatten(-1, (self.n_rot, 3))
             parts.append((self._rotations(q) @ skew(omega)).flatten(-3))
+        if self.n_tilt:  # e_z^T R [omega]x
+            omega = _take(v, self.tilt_v.flatten()).unflatten(-1, (self.n_tilt, 3))
+            rate = self._rotations(q, self.tilt_q)[..., 2:3, :] @ skew(omega)  # (..., K, 1, 3)
+            parts.append(rate.flatten(-3))
         return torch.cat(parts, dim=-1)
 
     def vjp(self, q: Tensor, cotangent: Tensor) -> Tensor:
@@ -180,9 +203,14 @@ class QFeatures(nn.Module):
             torch.cos(qp) * c_sin - torch.sin(qp) * c_cos,
             self._plain(q)[1] * cotangent[..., 2 * k : 2 * k + m],
         ]
+        r = 2 * k + m + 9 * self.n_rot
         if self.n_rot:
-            G = cotangent[..., 2 * k + m :].unflatten(-1, (self.n_rot, 3, 3))
+            G = cotangent[..., 2 * k + m : r].unflatten(-1, (self.n_rot, 3, 3))
             parts.append(unskew_of_rt(self._rotations(q), G).flatten(-2))
+        if self.n_tilt:  # a cotangent on R's last row only
+            row = cotangent[..., r:].unflatten(-1, (self.n_tilt, 1, 3))
+            G = torch.cat([torch.zeros_like(row), torch.zeros_like(row), row], dim=-2)
+            parts.append(unskew_of_rt(self._rotations(q, self.tilt_q), G).flatten(-2))
         parts.append(cotangent.new_zeros(cotangent.shape[:-1] + (1,)))
         return _take(torch.cat(parts, dim=-1), self.velocity_order)
 
