@@ -16,15 +16,12 @@ from mbrl_delan.models.features import rotation_matrix
 from mbrl_delan.models.integrators import integrate
 from mbrl_delan.systems.external import humanoid_v5_xml
 from mbrl_delan.systems.system import load_system
-from tests.test_free_joints import MIXED, random_states, system_of
-
-
-@pytest.fixture(autouse=True)
-def float64():
-    previous = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    yield
-    torch.set_default_dtype(previous)
+from tests.test_free_joints import (  # noqa: F401  (float64: an autouse fixture)
+    MIXED,
+    float64,
+    random_states,
+    system_of,
+)
 
 
 def turn(q: Tensor, qd: Tensor, angle: float) -> tuple[Tensor, Tensor, Tensor]:
