@@ -98,6 +98,16 @@ def _loss_and_grads(
     return out.metrics, [p.grad.clone() for p in model.parameters() if p.grad is not None]
 
 
+def _assert_same_loss_and_grads(compiled: tuple, eager: tuple, abs: float | None = None) -> None:
+    """(metrics, grads) of the compiled fit equal eager autograd's (as `_loss_and_grads` gives)."""
+    (metrics, grads), (eager_metrics, eager_grads) = compiled, eager
+    for name, value in metrics.items():
+        assert value == pytest.approx(eager_metrics[name], rel=1e-5, abs=abs), name
+    assert len(grads) == len(eager_grads) > 0
+    for grad, ref in zip(grads, eager_grads, strict=True):
+        torch.testing.assert_close(grad, ref, rtol=1e-4, atol=1e-6)
+
+
 @pytest.mark.slow
 def test_compiled_fit_loss_and_gradients_equal_eager() -> None:
     """`compile_fit`: the inverse-dynamics loss of a full batch (as the humanoid
@@ -127,11 +137,7 @@ def test_compiled_fit_loss_and_gradients_equal_eager() -> None:
     metrics, grads = _loss_and_grads(model, batch)
     assert model._fit_graph.graph is not None and model._fit_graph.shape == (16, system.nq)
     assert metrics.keys() == eager_metrics.keys()
-    for name, value in metrics.items():
-        assert value == pytest.approx(eager_metrics[name], rel=1e-5), name
-    assert len(grads) == len(eager_grads) > 0
-    for grad, eager in zip(grads, eager_grads, strict=True):
-        torch.testing.assert_close(grad, eager, rtol=1e-4, atol=1e-6)
+    _assert_same_loss_and_grads((metrics, grads), (eager_metrics, eager_grads))
     compiled_fn = model._fit_graph.graph
     assert model._losses_for(torch.Size([5, system.nq])) != compiled_fn  # partial batch: eager
     model.double()  # moving the model drops the compiled loss (it is specific to a dtype)
@@ -162,11 +168,7 @@ def test_compiled_inverse_fit_loss_and_gradients_equal_eager() -> None:
     model.compile_fit = True
     metrics, grads = _loss_and_grads(model, batch)
     assert model._fit_graph.graph is not None and model._fit_graph.shape == (16, system.nv)
-    for name, value in metrics.items():
-        assert value == pytest.approx(eager_metrics[name], rel=1e-5), name
-    assert len(grads) == len(eager_grads) > 0
-    for grad, eager in zip(grads, eager_grads, strict=True):
-        torch.testing.assert_close(grad, eager, rtol=1e-4, atol=1e-6)
+    _assert_same_loss_and_grads((metrics, grads), (eager_metrics, eager_grads))
     assert model._predictions_for(torch.Size([5, system.nv])) == model.member_predictions
     with torch.no_grad():  # evaluation: eager
         assert model._predictions_for(torch.Size([16, system.nv])) == model.member_predictions
@@ -200,8 +202,4 @@ def test_train_config_compile_fit_compiles_the_one_step_loss_as_eager() -> None:
     model.compile_fit = True
     metrics, grads = _loss_and_grads(model, batch)
     assert model._fit_graph.graph is not None  # the compiled path ran
-    for name, value in metrics.items():
-        assert value == pytest.approx(eager_metrics[name], rel=1e-5, abs=1e-7), name
-    assert len(grads) == len(eager_grads) > 0
-    for grad, eager in zip(grads, eager_grads, strict=True):
-        torch.testing.assert_close(grad, eager, rtol=1e-4, atol=1e-6)
+    _assert_same_loss_and_grads((metrics, grads), (eager_metrics, eager_grads), abs=1e-7)

@@ -152,7 +152,7 @@ class QFeatures(nn.Module):
         self.register_buffer(name, t, persistent=False)
 
     def _velocity_order(self) -> list[int]:
-        """For each velocity index, its place in [periodic, plain, rotation, zero] cotangents."""
+        """Each velocity index's place in [periodic, plain, rotation, tilt, zero] cotangents."""
         placed = (
             self.periodic_v.tolist()
             + self.plain_v.tolist()
