@@ -13,6 +13,7 @@ from mbrl_delan import keys
 from mbrl_delan.models.base import LossOutput, WorldModel
 from mbrl_delan.systems.system import State
 from mbrl_delan.training import FitConfig, TrainingDivergedError, fit_model
+from mbrl_delan.training.fit import _split
 
 
 class LinearModel(WorldModel):
@@ -89,6 +90,24 @@ def test_fit_is_reproducible_with_the_generator():
         weights.append((model.lin.weight.detach().clone(), report.val_loss))
     torch.testing.assert_close(weights[0][0], weights[1][0], rtol=0, atol=0)
     assert weights[0][1] == weights[1][1]
+
+
+def test_a_growing_buffer_keeps_each_transition_on_its_side_of_the_split():
+    """The loop refits on a buffer that grows by appending: a transition that validated one
+    fit must not train the next, and one that trained it must not validate the next (a new
+    random split each refit scores the warm-started model on data it has just fitted)."""
+    cfg = FitConfig(val_fraction=0.1)
+    train_a, val_a, _ = _split(600, cfg)
+    for n in (800, 2400):
+        train_b, val_b, on_train = _split(n, cfg)
+        assert not on_train
+        assert set(val_a.tolist()) <= set(val_b.tolist())
+        assert set(train_a.tolist()) <= set(train_b.tolist())
+        assert set(train_b.tolist()).isdisjoint(val_b.tolist())
+        assert sorted(train_b.tolist() + val_b.tolist()) == list(range(n))
+        assert abs(len(val_b) - 0.1 * n) <= 2  # the asked share
+        new_val = val_b[val_b >= 600]
+        assert new_val.numel() > 0 and (new_val.diff() > 1).all()  # spread over new data too
 
 
 def test_too_few_samples_validates_on_train():

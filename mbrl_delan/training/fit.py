@@ -1,7 +1,8 @@
 """Fitting a world model on a dataset of transitions.
 
-Epochs of shuffled minibatches, a random validation split, early stopping on the validation
-loss, best-weights restoring, gradient clipping and a loud failure on NaN/inf.
+Epochs of shuffled minibatches, a validation split that keeps each sample on its side as the
+data grows, early stopping on the validation loss, best-weights restoring, gradient clipping
+and a loud failure on NaN/inf.
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ class FitConfig:
     Attributes:
         batch_size: transitions per minibatch (training and validation).
         max_epochs: upper bound on the number of epochs.
-        val_fraction: share of the data held out for validation, in [0, 1).
+        val_fraction: share of the data held out for validation, in [0, 1); which samples,
+            is fixed by their index (`_split`), so a growing buffer keeps its split.
         min_val_size: fewest validation transitions worth a split; with fewer (or with
             ``val_fraction == 0``) the model is validated on the training data.
         patience: epochs without improvement before stopping; ``None`` never stops early.
@@ -158,13 +160,24 @@ def transition_windows(data: TensorDictBase, steps: int) -> TensorDictBase:
     return data[starts.unsqueeze(-1) + torch.arange(steps, device=starts.device)]
 
 
-def _split(n: int, cfg: FitConfig, generator: torch.Generator) -> tuple[Tensor, Tensor, bool]:
-    """Random train / validation indices (CPU int64); the bool says val == train."""
-    perm = torch.randperm(n, generator=generator, device=generator.device).cpu()
-    n_val = int(round(cfg.val_fraction * n))
+# the fractional part of i * (sqrt(5) - 1) / 2 spreads the indices i evenly over [0, 1)
+_SPLIT_STRIDE = (math.sqrt(5.0) - 1.0) / 2.0
+
+
+def _split(n: int, cfg: FitConfig) -> tuple[Tensor, Tensor, bool]:
+    """Train / validation indices (CPU int64) of samples 0..n-1; the bool says val == train.
+
+    Sample i is held out when frac(i * 0.618...) < val_fraction: a function of its index
+    alone, so in the loop's refits, where the buffer grows by appending, a transition that
+    validated one fit never trains a later one and none that trained one validates a later
+    one. (A fresh random split per refit would score a warm-started model on data it has
+    just fitted, and stop its training early.)"""
+    index = torch.arange(n, dtype=torch.long)
+    held_out = torch.frac(index.double() * _SPLIT_STRIDE) < cfg.val_fraction  # (n,)
+    n_val = int(held_out.sum())
     if n_val < max(cfg.min_val_size, 1) or n - n_val < 1:
-        return perm, perm, True
-    return perm[n_val:], perm[:n_val], False
+        return index, index, True
+    return index[~held_out], index[held_out], False
 
 
 def batches(
@@ -271,8 +284,9 @@ def fit_model(
     ``cfg.rollout_steps > 1``) and keep its best weights.
 
     Calls ``model.fit_normalization`` on the training part, then runs up to ``cfg.max_epochs``
-    epochs of shuffled minibatches (shuffling and the split use ``generator`` only). After
-    every epoch the validation loss decides the best weights, which are restored at the end.
+    epochs of shuffled minibatches (the shuffling uses ``generator`` only; the validation
+    split is fixed by each sample's index, see `_split`). After every epoch the validation
+    loss decides the best weights, which are restored at the end.
 
     With ``cfg.rollout_steps`` K > 1 this is done twice: on single transitions first (a
     K-step rollout of an untrained model can overflow), then on windows of K transitions
@@ -307,7 +321,7 @@ def _fit(
 ) -> FitReport:
     """`fit_model` on samples (N,) or windows (M, K); `normalize`: call fit_normalization."""
     was_training = model.training
-    train_idx, val_idx, on_train = _split(data.shape[0], cfg, generator)
+    train_idx, val_idx, on_train = _split(data.shape[0], cfg)
     train_data = data[train_idx]
     val_data = train_data if on_train else data[val_idx]
     report = FitReport(validated_on_train=on_train, n_train=len(train_idx), n_val=len(val_idx))
