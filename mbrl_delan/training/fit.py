@@ -171,7 +171,8 @@ def _split(n: int, cfg: FitConfig) -> tuple[Tensor, Tensor, bool]:
     alone, so in the loop's refits, where the buffer grows by appending, a transition that
     validated one fit never trains a later one and none that trained one validates a later
     one. (A fresh random split per refit would score a warm-started model on data it has
-    just fitted, and stop its training early.)"""
+    just fitted, and stop its training early.) This holds until the replay buffer is full:
+    from then on the oldest transitions drop out, the indices shift and so does the split."""
     index = torch.arange(n, dtype=torch.long)
     held_out = torch.frac(index.double() * _SPLIT_STRIDE) < cfg.val_fraction  # (n,)
     n_val = int(held_out.sum())
