@@ -81,7 +81,7 @@ def test_fit_recovers_true_weights():
 def test_fit_is_reproducible_with_the_generator():
     weights = []
     for _ in range(2):
-        torch.manual_seed(123)  # the model init does not matter here (zeros); the split does
+        torch.manual_seed(123)  # the init is zeros; the minibatch order comes from the generator
         model = LinearModel()
         opt = torch.optim.SGD(model.parameters(), lr=0.05)
         cfg = FitConfig(batch_size=16, max_epochs=3, val_fraction=0.25)
