@@ -15,7 +15,9 @@ Quaternions are (w, x, y, z). `tests/test_forward_kinematics.py` compares with M
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import mujoco
 import torch
@@ -92,6 +94,9 @@ class ForwardKinematics(nn.Module):
         self.register_buffer("body_pos", body_pos.double())
         self.register_buffer("body_quat", body_quat.double())
         self.register_buffer("site_pos", site_pos.double().reshape(-1, 3))
+        # constant tensors on each (device, dtype) met: built once, so a call on a GPU copies
+        # nothing from the host (a CUDA graph can capture it, see `placed`)
+        self._placed: dict[tuple[torch.device, torch.dtype], _Placed] = {}
 
     @classmethod
     def from_mujoco(cls, model: mujoco.MjModel) -> ForwardKinematics:
@@ -120,29 +125,31 @@ class ForwardKinematics(nn.Module):
             site_pos=torch.from_numpy(model.site_pos.copy()),
         )
 
+    def placed(self, like: Tensor) -> _Placed:
+        """The tree's constants on `like`'s device and in its dtype (built on first use)."""
+        key = (like.device, like.dtype)
+        if key not in self._placed:
+            self._placed[key] = _Placed.build(self, like)
+        return self._placed[key]
+
+    def _apply(self, fn: Callable[..., Any], recurse: bool = True) -> ForwardKinematics:
+        self._placed = {}  # a moved or cast module rebuilds its constants from its buffers
+        return super()._apply(fn, recurse)
+
     def forward(self, q: Tensor) -> Poses:
         """Poses at positions q (..., nq), in q's dtype."""
-        batch, like = q.shape[:-1], q
-        body_pos, body_quat = self.body_pos.to(q.dtype), self.body_quat.to(q.dtype)
-        world_quat = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=q.dtype, device=q.device)
-        xpos = [like.new_zeros((*batch, 3))]
-        xquat = [world_quat.expand(*batch, 4)]
+        batch, c = q.shape[:-1], self.placed(q)
+        xpos = [q.new_zeros((*batch, 3))]
+        xquat = [c.world_quat.expand(*batch, 4)]
         for b in range(1, len(self.parent)):
-            pos, quat = self._body(q, b, xpos, xquat, body_pos[b], body_quat[b])
+            pos, quat = self._body(q, b, xpos, xquat, c)
             xpos.append(pos)
             xquat.append(_unit(quat))
         xpos_t, xquat_t = torch.stack(xpos, dim=-2), torch.stack(xquat, dim=-2)
-        site_xpos = self._sites(xpos_t, xquat_t)
-        return Poses(xpos=xpos_t, xquat=xquat_t, site_xpos=site_xpos)
+        return Poses(xpos=xpos_t, xquat=xquat_t, site_xpos=self._sites(xpos_t, xquat_t, c))
 
     def _body(
-        self,
-        q: Tensor,
-        b: int,
-        xpos: list[Tensor],
-        xquat: list[Tensor],
-        offset: Tensor,
-        rotation: Tensor,
+        self, q: Tensor, b: int, xpos: list[Tensor], xquat: list[Tensor], c: _Placed
     ) -> tuple[Tensor, Tensor]:
         """Position (..., 3) and orientation (..., 4) of body b from its parent's."""
         joints = self.joints[b]
@@ -150,17 +157,19 @@ class ForwardKinematics(nn.Module):
             adr = joints[0].qpos_adr
             return q[..., adr : adr + 3], _unit(q[..., adr + 3 : adr + 7])
         p = self.parent[b]
-        pos = xpos[p] + quat_rotate(xquat[p], offset.expand_as(xpos[p]))
-        quat = quat_mul(xquat[p], rotation.expand_as(xquat[p]))
-        for joint in joints:
-            pos, quat = self._joint(q, joint, pos, quat)
+        pos = xpos[p] + quat_rotate(xquat[p], c.body_pos[b].expand_as(xpos[p]))
+        quat = quat_mul(xquat[p], c.body_quat[b].expand_as(xquat[p]))
+        for joint, axis, anchor in zip(joints, c.axes[b], c.anchors[b], strict=True):
+            pos, quat = self._joint(q, joint, axis, anchor, pos, quat)
         return pos, quat
 
     @staticmethod
-    def _joint(q: Tensor, joint: Joint, pos: Tensor, quat: Tensor) -> tuple[Tensor, Tensor]:
-        """Apply one joint to the body frame (pos (..., 3), quat (..., 4))."""
-        axis = pos.new_tensor(joint.axis).expand_as(pos)
-        anchor = pos.new_tensor(joint.anchor).expand_as(pos)
+    def _joint(
+        q: Tensor, joint: Joint, axis: Tensor, anchor: Tensor, pos: Tensor, quat: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """Apply one joint (its axis and anchor (3,)) to the body frame (pos (..., 3), quat
+        (..., 4))."""
+        axis, anchor = axis.expand_as(pos), anchor.expand_as(pos)
         value = q[..., joint.qpos_adr : joint.qpos_adr + 1] - joint.qpos0  # (..., 1)
         if joint.kind == SLIDE:
             return pos + quat_rotate(quat, axis) * value, quat
@@ -174,11 +183,38 @@ class ForwardKinematics(nn.Module):
         quat = quat_mul(quat, local)
         return world_anchor - quat_rotate(quat, anchor), quat
 
-    def _sites(self, xpos: Tensor, xquat: Tensor) -> Tensor:
+    def _sites(self, xpos: Tensor, xquat: Tensor, c: _Placed) -> Tensor:
         """(..., nbody, 3), (..., nbody, 4) -> site positions (..., nsite, 3)."""
         if not self.site_body:
             return xpos[..., :0, :]
-        index = torch.tensor(self.site_body, device=xpos.device)
-        body_pos, body_quat = xpos.index_select(-2, index), xquat.index_select(-2, index)
-        offset = self.site_pos.to(xpos.dtype).expand_as(body_pos)
-        return body_pos + quat_rotate(body_quat, offset)
+        body_pos = xpos.index_select(-2, c.site_body)
+        body_quat = xquat.index_select(-2, c.site_body)
+        return body_pos + quat_rotate(body_quat, c.site_pos.expand_as(body_pos))
+
+
+@dataclass(frozen=True)
+class _Placed:
+    """`ForwardKinematics`' constants on one device, in one dtype."""
+
+    body_pos: Tensor  # (nbody, 3)
+    body_quat: Tensor  # (nbody, 4)
+    site_pos: Tensor  # (nsite, 3)
+    site_body: Tensor  # (nsite,) int64
+    world_quat: Tensor  # (4,) the identity
+    axes: list[list[Tensor]]  # per body, per joint: (3,)
+    anchors: list[list[Tensor]]  # per body, per joint: (3,)
+
+    @classmethod
+    def build(cls, fk: ForwardKinematics, like: Tensor) -> _Placed:
+        def vec(values: tuple[float, ...]) -> Tensor:
+            return torch.tensor(values, dtype=like.dtype, device=like.device)
+
+        return cls(
+            body_pos=fk.body_pos.to(like),
+            body_quat=fk.body_quat.to(like),
+            site_pos=fk.site_pos.to(like),
+            site_body=torch.tensor(fk.site_body, dtype=torch.long, device=like.device),
+            world_quat=vec((1.0, 0.0, 0.0, 0.0)),
+            axes=[[vec(j.axis) for j in joints] for joints in fk.joints],
+            anchors=[[vec(j.anchor) for j in joints] for joints in fk.joints],
+        )

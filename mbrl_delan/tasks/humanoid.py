@@ -27,6 +27,7 @@ from torch import Tensor
 from mbrl_delan.systems.forward_kinematics import ForwardKinematics, Poses, quat_rotate
 from mbrl_delan.systems.system import State
 from mbrl_delan.tasks.base import Task
+from mbrl_delan.tasks.common import PlacedConstants
 
 MARGIN_VALUE = 0.1  # a tolerance factor's value one margin away from its bound
 
@@ -93,20 +94,23 @@ class HumanoidTask(Task):
         self.stand_height, self.fall_height = stand_height, fall_height
         self.ctrl_max, self.episode_len, self.reset_noise = ctrl_max, episode_len, reset_noise
         self.qpos0 = torch.from_numpy(model.qpos0.copy())  # (nq,) float64
+        self.constants = PlacedConstants(
+            head_offset=torch.tensor(body.head_offset, dtype=torch.float64),  # (3,)
+            torso_up=torch.tensor(body.torso_up, dtype=torch.float64),  # (3,)
+        )
         self.nv, self.name = model.nv, name
 
     def _head_z(self, poses: Poses) -> Tensor:
         """Head height (...) in m."""
         pos, quat = poses.xpos[..., self.head, :], poses.xquat[..., self.head, :]
-        offset = pos.new_tensor(self.body.head_offset).expand_as(pos)
+        offset = self.constants.on(pos)["head_offset"].expand_as(pos)
         return (pos + quat_rotate(quat, offset))[..., 2]
 
     def _up_z(self, poses: Poses) -> Tensor:
         """World z of the torso's up axis (...), in [-1, 1]."""
         quat = poses.xquat[..., self.torso, :]
-        return quat_rotate(quat, quat.new_tensor(self.body.torso_up).expand_as(quat[..., 1:]))[
-            ..., 2
-        ]
+        up = self.constants.on(quat)["torso_up"].expand_as(quat[..., 1:])
+        return quat_rotate(quat, up)[..., 2]
 
     def head_height(self, q: Tensor) -> Tensor:
         """(..., nq) -> (...) m."""

@@ -32,6 +32,7 @@ from mbrl_delan.systems.forward_kinematics import ForwardKinematics
 from mbrl_delan.systems.posarith import differentiate_pos
 from mbrl_delan.systems.system import FREE, JointLayout, State
 from mbrl_delan.tasks.base import Task
+from mbrl_delan.tasks.common import PlacedConstants
 
 # dm_control's CMU humanoid: hands, feet and head
 CMU_END_EFFECTORS = ("lhand", "rhand", "lfoot", "rfoot", "head")
@@ -118,14 +119,19 @@ class MotionTracking(Task):
         self.episode_len = ref_q.shape[0] - 1 if episode_len is None else episode_len
         self.fk = ForwardKinematics.from_mujoco(model)
         self.bodies = _body_ids(model, end_effectors)  # (E,)
+        self.indices = PlacedConstants(bodies=self.bodies)
         self.root_body = int(model.jnt_bodyid[0])
         self.ref_root, self.ref_ee = self._points(self.ref_q)  # (T+1, 3), (T+1, E, 3)
+        self.constants = PlacedConstants(
+            ref_q=self.ref_q, ref_qd=self.ref_qd, ref_root=self.ref_root, ref_ee=self.ref_ee
+        )
 
     def _points(self, q: Tensor) -> tuple[Tensor, Tensor]:
         """Root position (..., 3) and end-effector positions relative to it (..., E, 3)."""
         xpos = self.fk(q).xpos  # (..., nbody, 3)
         root = xpos[..., self.root_body, :]
-        return root, xpos[..., self.bodies, :] - root.unsqueeze(-2)
+        ee = xpos.index_select(-2, self.indices.on(q)["bodies"])
+        return root, ee - root.unsqueeze(-2)
 
     def reference_index(self, step: Tensor) -> Tensor:
         """Index of the reference state the action of `step` should reach: min(step + 1, T)."""
@@ -133,15 +139,16 @@ class MotionTracking(Task):
 
     def terms(self, q: Tensor, qd: Tensor, step: Tensor) -> TrackingTerms:
         """The four terms of the reward. (..., nq), (..., nv), step -> each (...)."""
-        k = self.reference_index(step.to(device=self.ref_q.device, dtype=torch.long))
-        q, ref_q = torch.broadcast_tensors(q, self.ref_q.to(q)[k])  # the state or the steps
-        qd, ref_qd = torch.broadcast_tensors(qd, self.ref_qd.to(qd)[k])  # may be batched
+        k = self.reference_index(step.to(device=q.device, dtype=torch.long))
+        ref = self.constants.on(q)
+        q, ref_q = torch.broadcast_tensors(q, ref["ref_q"][k])  # the state or the steps
+        qd, ref_qd = torch.broadcast_tensors(qd, ref["ref_qd"].to(qd)[k])  # may be batched
         rot = slice(3, None)  # the root's rotation and the hinges, in velocity space
         pose_err = differentiate_pos(self.layout, ref_q, q, 1.0)[..., rot]
         vel_err = (qd - ref_qd)[..., rot]
         root, ee = self._points(q)
-        ee_err = ee - self.ref_ee.to(q)[k]
-        root_err = root - self.ref_root.to(q)[k]
+        ee_err = ee - ref["ref_ee"][k]
+        root_err = root - ref["ref_root"][k]
         s = self.scales
         return TrackingTerms(
             pose=torch.exp(-s.pose * pose_err.square().sum(-1)),
@@ -165,9 +172,9 @@ class MotionTracking(Task):
 
     def terminated_at(self, q: Tensor, qd: Tensor, step: Tensor) -> Tensor:
         """The root farther than `fail_distance` from the reference root. -> (...) bool"""
-        k = self.reference_index(step.to(device=self.ref_q.device, dtype=torch.long))
+        k = self.reference_index(step.to(device=q.device, dtype=torch.long))
         root, _ = self._points(q)
-        distance = torch.linalg.vector_norm(root - self.ref_root.to(q)[k], dim=-1)
+        distance = torch.linalg.vector_norm(root - self.constants.on(q)["ref_root"][k], dim=-1)
         return distance > self.fail_distance
 
     def terminated(self, q: Tensor, qd: Tensor) -> Tensor:
