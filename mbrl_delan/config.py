@@ -61,6 +61,8 @@ def validate_train_config(cfg: DictConfig) -> None:
     _choice("planner.name", cfg.planner.name, PLANNER_NAMES)
     _choice("dtype", cfg.dtype, tuple(DTYPES))
     check_device(cfg.device)
+    if cfg.model.get("cuda_graph", False) and not str(cfg.device).startswith("cuda"):
+        raise ConfigError(f"model.cuda_graph=true needs device=cuda, got device={cfg.device}")
     for path in (
         "planner.horizon",
         "planner.num_samples",

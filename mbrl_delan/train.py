@@ -129,6 +129,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         generator=model_gen,
         risk=cfg.planner.get("risk", 0.0),
         compile=cfg.model.get("compile", False),
+        cuda_graph=cfg.model.get("cuda_graph", False),
     )
     policy = _policy(cfg.planner, _planner(cfg, system, dtype), factory, cfg.seed, device)
     oracle_factory = mujoco_objective_factory(system, task, discount=cfg.planner.discount)

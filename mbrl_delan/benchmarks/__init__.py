@@ -34,7 +34,8 @@ SUITE_NAMES = tuple(_SUITES)
 # world-model cases of suite planner (here so the entry point can check names without
 # importing the suite): DeLaN on the pendulum and on Humanoid-v5's layout, the MLP ensemble on
 # the pendulum, and MuJoCo's true pendulum dynamics (the oracle); the two DeLaN cases again
-# with every control step `torch.compile`d (`model.compile=true`)
+# with every control step `torch.compile`d (`model.compile=true`), and on CUDA with each
+# rollout replayed from a CUDA graph, eager or compiled (`model.cuda_graph=true`)
 PLANNER_MODELS = (
     "pendulum_delan",
     "humanoid_delan",
@@ -42,8 +43,13 @@ PLANNER_MODELS = (
     "pendulum_oracle",
     "pendulum_delan_compiled",
     "humanoid_delan_compiled",
+    "pendulum_delan_graph",
+    "humanoid_delan_graph",
+    "pendulum_delan_compiled_graph",
+    "humanoid_delan_compiled_graph",
 )
 COMPILED_SUFFIX = "_compiled"
+GRAPH_SUFFIX = "_graph"
 # world models of suite humanoid: DeLaN + residual, the DeLaN ensemble, the MLP ensemble
 HUMANOID_MODELS = ("delan", "delan_ensemble", "ensemble")
 # tasks on which suite humanoid runs the oracle planner for one episode

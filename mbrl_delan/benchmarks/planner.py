@@ -58,6 +58,7 @@ from torchrl.modules.planners import MPPIPlanner as TorchRLMPPIPlanner
 from mbrl_delan import keys
 from mbrl_delan.benchmarks import (
     COMPILED_SUFFIX,
+    GRAPH_SUFFIX,
     PLANNER_MODELS,
     SuiteOptions,
     Timing,
@@ -159,8 +160,9 @@ class PlannerGrid:
     @classmethod
     def quick(cls) -> PlannerGrid:
         """Tiny sizes for tests and smoke runs: N 64, H 5, one iteration, MPPI only, and no
-        compiled cases (each compiles for 10-60 s)."""
-        models = tuple(m for m in PLANNER_MODELS if not m.endswith(COMPILED_SUFFIX))
+        compiled cases (each compiles for 10-60 s) or CUDA-graph ones."""
+        models = tuple(m for m in PLANNER_MODELS if m == m.split(COMPILED_SUFFIX)[0])
+        models = tuple(m for m in models if not m.endswith(GRAPH_SUFFIX))
         return cls(
             models=models, planners=("mppi",), num_samples=(64,), horizons=(5,), iterations=(1,)
         )
@@ -225,6 +227,7 @@ class Case:
     q0: Tensor  # (nq,) float64 on the CPU
     qd0: Tensor  # (nv,)
     compile: bool = False  # torch.compile each control step (ours) and the model step (TorchRL)
+    cuda_graph: bool = False  # replay each rollout from a CUDA graph (ours, on CUDA only)
 
 
 def build_delan(system: System, compile_step: bool = False) -> DeLaN:
@@ -246,8 +249,9 @@ def build_ensemble(system: System) -> GaussianEnsemble:
 def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
     """The world-model case `name` (one of `PLANNER_MODELS`), its model on `device`."""
     torch.manual_seed(seed)
-    compiled = name.endswith(COMPILED_SUFFIX)
-    name_base = name.removesuffix(COMPILED_SUFFIX)
+    graph = name.endswith(GRAPH_SUFFIX)
+    compiled = name.removesuffix(GRAPH_SUFFIX).endswith(COMPILED_SUFFIX)
+    name_base = name.removesuffix(GRAPH_SUFFIX).removesuffix(COMPILED_SUFFIX)
     if name_base == "humanoid_delan":
         system = load_system(humanoid_v5_xml(), frame_skip=HUMANOID_FRAME_SKIP, name="humanoid")
         task: Task = StandTask(torch.from_numpy(system.mj_model().qpos0.copy()), system.nv)
@@ -265,7 +269,9 @@ def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
         model = build_delan(system, compile_step=compiled)
     if model is not None:
         model = model.to(device=device, dtype=DTYPE).eval()
-    return Case(name, system, task, model, particles, start.q, start.qd, compile=compiled)
+    return Case(
+        name, system, task, model, particles, start.q, start.qd, compile=compiled, cuda_graph=graph
+    )
 
 
 # ----------------------------------------------------------------------------- planners
@@ -467,7 +473,12 @@ def _objective_factory(case: Case, device: torch.device) -> ObjectiveFactory:
         return mujoco_objective_factory(case.system, case.task, nthread=torch.get_num_threads())
     generator = torch.Generator(device=device).manual_seed(0)
     return model_objective_factory(
-        case.model, case.task, particles=case.particles, generator=generator, compile=case.compile
+        case.model,
+        case.task,
+        particles=case.particles,
+        generator=generator,
+        compile=case.compile,
+        cuda_graph=case.cuda_graph,
     )
 
 
@@ -491,7 +502,11 @@ def our_records(
             policy = PlannerPolicy(planner, factory, replan_every=1, seed=0, device=device)
             return lambda: policy.act(q0, qd0)
 
-        measured = measure(make, setting, predictor, opts, sync, case.compile)
+        if case.cuda_graph and device.type != "cuda":
+            measured = Measured(None, "not run: CUDA graphs need device=cuda")
+        else:
+            compiles = case.compile or case.cuda_graph  # its first call compiles or captures
+            measured = measure(make, setting, predictor, opts, sync, compiles)
         name = f"{case.name}-{kind}-{setting.tag()}"
         yield from latency_records(
             name, "plan_latency_ms", measured, case.system.control_dt, device, fields
@@ -577,8 +592,8 @@ def run_planner(grid: PlannerGrid, opts: SuiteOptions) -> Iterator[BenchRecord]:
         case = make_case(name, opts.device)
         for kind in grid.planners:
             yield from our_records(case, kind, grid, opts, host)
-        if case.model is None or not grid.torchrl:
-            continue
+        if case.model is None or case.cuda_graph or not grid.torchrl:
+            continue  # TorchRL's planners on a graph case would time the compiled case again
         for kind in (k for k in grid.planners if k in TORCHRL_PLANNERS):
             yield from torchrl_records(case, kind, grid, opts, host)
 

@@ -24,6 +24,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.model_based import ModelBasedEnvBase
 
 from mbrl_delan import keys
+from mbrl_delan.envs.cuda_graphs import GraphedCalls
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.delan import compile_dynamics
 from mbrl_delan.planners.base import discounted_masked_return, risk_adjusted_return
@@ -86,24 +87,12 @@ class ModelObjective:
             raise ValueError(f"actions must be (N, H, nu), got {tuple(actions.shape)}")
         f = self.factory
         place = f.placement(actions.device)
-        n, horizon, _ = actions.shape
-        p = f.particles
-        flat = actions.to(place.device, place.dtype).repeat_interleave(p, dim=0)  # (N*P, H, nu)
-        rewards, terminated = [], []
+        flat = actions.to(place.device, place.dtype).repeat_interleave(f.particles, dim=0)
         with torch.inference_mode(), eval_mode(f.model):
-            # the start as the later states are (contiguous inference tensors): a compiled
-            # transition then needs one graph per batch size, not a second for the first step
-            q = self.q0.to(place.device, place.dtype).expand(n * p, -1).contiguous()  # (N*P, nq)
-            qd = self.qd0.to(place.device, place.dtype).expand(n * p, -1).contiguous()  # (N*P, nv)
-            steps = self.step + torch.arange(horizon, device=place.device)  # (H,)
-            for t in range(horizon):
-                q, qd, reward, term = f.transition(q, qd, flat[:, t], steps[t])
-                rewards.append(reward)  # (N*P,)
-                terminated.append(term)  # (N*P,)
-            returns = discounted_masked_return(
-                torch.stack(rewards, dim=-1), torch.stack(terminated, dim=-1), f.discount
-            )  # (N*P,)
-            returns = risk_adjusted_return(returns.reshape(n, p), f.risk)  # (N,)
+            q0 = self.q0.to(place.device, place.dtype)  # (nq,)
+            qd0 = self.qd0.to(place.device, place.dtype)  # (nv,)
+            step = torch.tensor(self.step, dtype=torch.long, device=place.device)  # ()
+            returns = f.returns(q0, qd0, flat, step)  # (N,)
         dtype = actions.dtype if actions.is_floating_point() else returns.dtype
         return returns.to(actions.device, dtype)
 
@@ -121,6 +110,7 @@ class ModelObjectiveFactory:
         dtype: torch.dtype | None = None,
         risk: float = 0.0,
         compile: bool = False,
+        cuda_graph: bool = False,
     ) -> None:
         if particles < 1:
             raise ValueError(f"particles must be >= 1, got {particles}")
@@ -137,6 +127,39 @@ class ModelObjectiveFactory:
         self.risk = float(risk)
         self.compile = compile
         self._compiled: Callable[[Tensor, Tensor, Tensor, Tensor], Transition] | None = None
+        self.cuda_graph = cuda_graph
+        self._graphs = GraphedCalls(
+            self._returns,
+            watched=lambda: [*model.parameters(), *model.buffers()],
+            generators=[generator] if generator is not None else [],
+        )
+
+    def returns(self, q0: Tensor, qd0: Tensor, actions: Tensor, step: Tensor) -> Tensor:
+        """Scores of action sequences from one start, on the model's device and dtype.
+
+        (nq,), (nv,), (N*P, H, nu) with particle p of sample n at n * P + p, episode step of
+        the first action () int64 -> (N,). With `cuda_graph` and CUDA tensors, replayed from a
+        CUDA graph per shape (`GraphedCalls`).
+        """
+        if self.cuda_graph and actions.is_cuda:
+            return self._graphs(q0, qd0, actions, step)
+        return self._returns(q0, qd0, actions, step)
+
+    def _returns(self, q0: Tensor, qd0: Tensor, actions: Tensor, step: Tensor) -> Tensor:
+        batch, horizon, _ = actions.shape
+        # the start as the later states are (contiguous): a compiled transition then needs
+        # one graph per batch size, not a second for the first step
+        q, qd = q0.expand(batch, -1).contiguous(), qd0.expand(batch, -1).contiguous()
+        steps = step + torch.arange(horizon, device=actions.device)  # (H,)
+        rewards, terminated = [], []
+        for t in range(horizon):
+            q, qd, reward, term = self.transition(q, qd, actions[:, t], steps[t])
+            rewards.append(reward)  # (N*P,)
+            terminated.append(term)  # (N*P,)
+        returns = discounted_masked_return(
+            torch.stack(rewards, dim=-1), torch.stack(terminated, dim=-1), self.discount
+        )  # (N*P,)
+        return risk_adjusted_return(returns.reshape(-1, self.particles), self.risk)  # (N,)
 
     def transition(self, q: Tensor, qd: Tensor, action: Tensor, step: Tensor) -> Transition:
         """One control step in the model and its task reward and termination.
@@ -181,6 +204,7 @@ def model_objective_factory(
     dtype: torch.dtype | None = None,
     risk: float = 0.0,
     compile: bool = False,
+    cuda_graph: bool = False,
 ) -> ModelObjectiveFactory:
     """Objectives over (N, H, nu) action sequences rolled out in the learned world model.
 
@@ -197,6 +221,9 @@ def model_objective_factory(
             `risk_adjusted_return`); 0 (default) is the plain mean, > 0 is risk-averse.
         compile: run each control step (model step, reward, termination) as one
             `torch.compile`d function (for deterministic models such as DeLaN).
+        cuda_graph: on a CUDA device, replay each rollout (all H steps and the returns)
+            from a CUDA graph captured once per batch shape (`GraphedCalls`); with
+            `compile`, the graph replays the compiled steps' kernels.
     """
     return ModelObjectiveFactory(
         model,
@@ -207,6 +234,7 @@ def model_objective_factory(
         dtype=dtype,
         risk=risk,
         compile=compile,
+        cuda_graph=cuda_graph,
     )
 
 

@@ -501,9 +501,9 @@ class LagrangianDynamics(nn.Module):
         bias, jet = self._bias_and_jet(q, qd)
         if self.has_armature:  # M = L L^T + diag(armature): factor it whole
             L = jet.L
-            rhs = (tau - bias).unsqueeze(-1)  # (..., n, 1)
             mass_matrix = L @ L.transpose(-1, -2) + torch.diag_embed(self.armature.expand_as(tau))
-            return torch.cholesky_solve(rhs, torch.linalg.cholesky(mass_matrix)).squeeze(-1)
+            factor = torch.linalg.cholesky_ex(mass_matrix).L  # PD by construction: no check
+            return cholesky_solve(factor, tau - bias)
         if jet.frame is None or jet.factor is None:
             return self._solve(jet.L, tau - bias)
         # M = S M_b S^T with S orthogonal: M^-1 b = S M_b^-1 S^T b
@@ -518,11 +518,24 @@ class LagrangianDynamics(nn.Module):
             return torch.linalg.solve_triangular(L.transpose(-1, -2), y, upper=False).squeeze(-1)
         if torch.compiler.is_compiling() and L.shape[-1] <= SMALL_SOLVE:
             return unrolled_cholesky_solve(L, b)
-        return torch.cholesky_solve(rhs, L).squeeze(-1)
+        return cholesky_solve(L, b)
 
     def generalized_force(self, action: Tensor) -> Tensor:
         """tau = B a: (..., nu) -> (..., n)."""
         return action @ self.actuation.T
+
+
+def cholesky_solve(L: Tensor, b: Tensor) -> Tensor:
+    """x with L L^T x = b, L lower triangular: (..., n, n), (..., n) -> (..., n).
+
+    On CUDA by two triangular solves (cuBLAS): a batched `torch.cholesky_solve` runs MAGMA
+    there, which allocates device memory per call, so a CUDA graph cannot capture it.
+    """
+    rhs = b.unsqueeze(-1)  # (..., n, 1)
+    if not L.is_cuda:
+        return torch.cholesky_solve(rhs, L).squeeze(-1)
+    y = torch.linalg.solve_triangular(L, rhs, upper=False)
+    return torch.linalg.solve_triangular(L.transpose(-1, -2), y, upper=True).squeeze(-1)
 
 
 def unrolled_cholesky_solve(L: Tensor, b: Tensor) -> Tensor:
