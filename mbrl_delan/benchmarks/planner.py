@@ -161,8 +161,9 @@ class PlannerGrid:
     def quick(cls) -> PlannerGrid:
         """Tiny sizes for tests and smoke runs: N 64, H 5, one iteration, MPPI only, and no
         compiled cases (each compiles for 10-60 s) or CUDA-graph ones."""
-        models = tuple(m for m in PLANNER_MODELS if m == m.split(COMPILED_SUFFIX)[0])
-        models = tuple(m for m in models if not m.endswith(GRAPH_SUFFIX))
+        models = tuple(
+            m for m in PLANNER_MODELS if COMPILED_SUFFIX not in m and not m.endswith(GRAPH_SUFFIX)
+        )
         return cls(
             models=models, planners=("mppi",), num_samples=(64,), horizons=(5,), iterations=(1,)
         )

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 WARMUP_CALLS = 2  # eager (or compiling) calls on a side stream before a capture
+Signature = tuple[tuple[torch.Size, torch.dtype, torch.device], ...]  # per input
 
 
 @dataclass
@@ -49,8 +50,7 @@ class GraphedCalls:
         self.fn = fn
         self.watched = watched
         self.generators = tuple(g for g in generators if g.device.type == "cuda")
-        self._graphs: dict[tuple[tuple[torch.Size, torch.dtype, torch.device], ...], _Captured]
-        self._graphs = {}
+        self._graphs: dict[Signature, _Captured] = {}
         self._addresses: tuple[int, ...] = ()
 
     def __call__(self, *inputs: Tensor) -> Tensor:
@@ -60,7 +60,7 @@ class GraphedCalls:
         if addresses != self._addresses:
             self._graphs.clear()  # their memory was freed or moved
             self._addresses = addresses
-        key = tuple((t.shape, t.dtype, t.device) for t in inputs)
+        key: Signature = tuple((t.shape, t.dtype, t.device) for t in inputs)
         captured = self._graphs.get(key)
         if captured is None:
             captured = self._graphs[key] = self._capture(inputs)

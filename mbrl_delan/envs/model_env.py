@@ -87,7 +87,9 @@ class ModelObjective:
             raise ValueError(f"actions must be (N, H, nu), got {tuple(actions.shape)}")
         f = self.factory
         place = f.placement(actions.device)
-        flat = actions.to(place.device, place.dtype).repeat_interleave(f.particles, dim=0)
+        flat = actions.to(place.device, place.dtype).repeat_interleave(
+            f.particles, dim=0
+        )  # (N*P, H, nu)
         with torch.inference_mode(), eval_mode(f.model):
             q0 = self.q0.to(place.device, place.dtype)  # (nq,)
             qd0 = self.qd0.to(place.device, place.dtype)  # (nv,)
