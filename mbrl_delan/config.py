@@ -78,6 +78,7 @@ def validate_train_config(cfg: DictConfig) -> None:
     ):
         _at_least(path, _get(cfg, path), 1)
     _check_rollout_steps(cfg)
+    _check_buffer(cfg)
     for path in (
         "budget.random_episodes",
         "budget.eval_episodes",
@@ -108,6 +109,25 @@ def validate_train_config(cfg: DictConfig) -> None:
             f"model.particles={cfg.model.particles} is not valid with tsinf: it "
             f"must be a multiple of model.ensemble_size={cfg.model.ensemble_size}"
         )
+
+
+def _check_buffer(cfg: DictConfig) -> None:
+    """buffer.device: auto or a device; a memmap lives on disk (auto or cpu)."""
+    buffer = cfg.buffer
+    device = str(buffer.get("device", "auto"))
+    if device != "auto":
+        try:
+            check_device(device)
+        except ConfigError as err:
+            raise ConfigError(f"buffer.{err}; or use buffer.device=auto") from err
+        if buffer.memmap and device != "cpu":
+            raise ConfigError(
+                f"buffer.device={device!r} is not valid with buffer.memmap=true: a memmap "
+                "lives on disk (use auto or cpu)"
+            )
+    fraction = buffer.get("device_fraction", 0.5)
+    if not isinstance(fraction, int | float) or isinstance(fraction, bool) or not 0 < fraction <= 1:
+        raise ConfigError(f"buffer.device_fraction={fraction!r} is not valid; use (0, 1]")
 
 
 def _check_rollout_steps(cfg: DictConfig) -> None:

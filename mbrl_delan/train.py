@@ -8,6 +8,7 @@ every round (atomically) and writes `metrics.jsonl`, `summary.json` and plots in
 from __future__ import annotations
 
 import logging
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +16,8 @@ import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
+from torchrl.data import TensorDictReplayBuffer
+from torchrl.envs import EnvBase
 from tqdm import tqdm
 
 from mbrl_delan.config import (
@@ -25,7 +28,13 @@ from mbrl_delan.config import (
     check_device,
     validate_train_config,
 )
-from mbrl_delan.data.buffer import NonFiniteDataError, make_replay_buffer
+from mbrl_delan.data.buffer import (
+    NonFiniteDataError,
+    free_device_bytes,
+    make_replay_buffer,
+    place_buffer,
+    transition_nbytes,
+)
 from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import EnvParts, make_env_parts
@@ -140,8 +149,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         cfg.seed,
         torch.device("cpu"),
     )
-    memmap = str(run_dir / "buffer") if cfg.buffer.memmap else None
-    buffer = make_replay_buffer(cfg.buffer.capacity, memmap_dir=memmap)
+    buffer = _replay_buffer(cfg, run_dir, env, device)
     fit_cfg = FitConfig(**OmegaConf.to_container(cfg.fit))
     loop = MBRLLoop(
         env,
@@ -159,6 +167,32 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         keep_eval_rollouts=cfg.video_episodes if cfg.get("video", False) else 0,
     )
     return loop, oracle
+
+
+MEMMAP_DIR = "buffer"  # <run dir>/buffer: the memmap of `buffer.memmap=true`
+
+
+def _replay_buffer(
+    cfg: DictConfig, run_dir: Path, env: EnvBase, model_device: torch.device
+) -> TensorDictReplayBuffer:
+    """The replay buffer: a memmap in `<run dir>/buffer` (`buffer.memmap`), else in memory on
+    `buffer.device` (auto: the model's device when the full buffer fits, see `place_buffer`)."""
+    if cfg.buffer.memmap:
+        folder = run_dir / MEMMAP_DIR
+        if folder.exists():  # an earlier process's files; a resume reloads from the checkpoint
+            log.info("replay buffer: clearing the earlier memmap in %s", folder)
+            shutil.rmtree(folder)
+        log.info("replay buffer: memmap in %s", folder)
+        return make_replay_buffer(cfg.buffer.capacity, memmap_dir=str(folder))
+    place = place_buffer(
+        str(cfg.buffer.device),
+        model_device,
+        cfg.buffer.capacity * transition_nbytes(env),
+        free_device_bytes(model_device),
+        cfg.buffer.device_fraction,
+    )
+    log.info("replay buffer: on %s (%s)", place.device, place.reason)
+    return make_replay_buffer(cfg.buffer.capacity, device=place.device)
 
 
 def _save(run_dir: Path, loop: MBRLLoop, extra: dict[str, Any]) -> None:

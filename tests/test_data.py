@@ -10,10 +10,19 @@ from mbrl_delan import keys
 from mbrl_delan.data import (
     add_transitions,
     all_transitions,
+    buffer_state,
     check_finite,
     episode_transitions,
+    load_buffer_state,
     make_replay_buffer,
+    place_buffer,
+    storage_device,
+    transition_nbytes,
 )
+from mbrl_delan.data.buffer import state_to_device
+from mbrl_delan.envs.real import make_real_env
+
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 
 
 def fake_rollout(batch: int = 2, steps: int = 5, nq: int = 2, nu: int = 1) -> TensorDict:
@@ -132,10 +141,10 @@ def test_buffer_state_round_trip(tmp_path, memmap):
     buffer.extend(tr[:7])
     buffer.extend(tr[7:])  # wraps: cursor = 2
     path = tmp_path / "buffer.pt"
-    torch.save(buffer.state_dict(), path)
+    torch.save(buffer_state(buffer), path)
 
     restored = make("b")
-    restored.load_state_dict(torch.load(path, weights_only=True))
+    load_buffer_state(restored, torch.load(path, weights_only=True))
     assert len(restored) == len(buffer) == 8
     assert restored.writer.state_dict() == buffer.writer.state_dict()
     assert (all_transitions(restored) == all_transitions(buffer)).all()
@@ -146,3 +155,91 @@ def test_buffer_state_round_trip(tmp_path, memmap):
     restored.extend(extra)
     assert (all_transitions(restored) == all_transitions(buffer)).all()
     assert all_transitions(restored)[keys.Q][-1, 0] == 1000
+
+
+@pytest.mark.parametrize("env_name", ["pendulum", "humanoid_stand"])
+def test_transition_nbytes_is_what_a_full_buffer_stores(env_name: str) -> None:
+    env = make_real_env(env_name, seed=0)
+    rollout = env.rollout(6, break_when_any_done=False)
+    transitions = episode_transitions(rollout)
+    buffer = make_replay_buffer(capacity=6)
+    add_transitions(buffer, transitions)
+    stored = buffer.storage.get(torch.arange(6))  # every slot, with the buffer's index key
+    assert transition_nbytes(env) * 6 == stored.bytes()
+
+
+def test_place_buffer_auto_fits_on_the_model_device_or_falls_back_to_the_host() -> None:
+    cuda, cpu, mib = torch.device("cuda"), torch.device("cpu"), 2**20
+    fits = place_buffer("auto", cuda, 40 * mib, free_bytes=100 * mib, max_fraction=0.5)
+    assert fits.device == cuda and "fits in 0.5 of 100 MiB" in fits.reason
+    too_big = place_buffer("auto", cuda, 60 * mib, free_bytes=100 * mib, max_fraction=0.5)
+    assert too_big.device == cpu and "60.0 MiB at capacity exceeds" in too_big.reason
+    assert place_buffer("auto", cuda, 1, None, 0.5).device == cpu  # free memory unknown
+    assert place_buffer("auto", cpu, 1, 10**12, 0.5).device == cpu
+    forced = place_buffer("cuda:1", cpu, 10**12, None, 0.5)
+    assert forced.device == torch.device("cuda:1") and "as configured" in forced.reason
+
+
+def test_state_to_device_moves_every_tensor_and_keeps_the_rest() -> None:
+    state = {"_storage": {"q": torch.ones(2), "inner": [torch.zeros(1), 3]}, "_len": 2}
+    moved = state_to_device(state, torch.device("meta"))
+    assert moved["_storage"]["q"].is_meta and moved["_storage"]["inner"][0].is_meta
+    assert moved["_storage"]["inner"][1] == 3 and moved["_len"] == 2
+    assert not state["_storage"]["q"].is_meta  # the input is not changed
+
+
+def test_torchrl_state_dict_of_older_checkpoints_still_loads() -> None:
+    buffer = make_replay_buffer(8)
+    add_transitions(buffer, episode_transitions(fake_rollout()))
+    restored = make_replay_buffer(8)  # a TensorDict's state keeps its batch sizes as metadata
+    load_buffer_state(restored, state_to_device(buffer.state_dict(), torch.device("cpu")))
+    assert (all_transitions(restored) == all_transitions(buffer)).all()
+    assert restored.writer.state_dict() == buffer.writer.state_dict()
+
+
+@pytest.mark.parametrize("memmap", [False, True])
+def test_buffer_state_grows_with_the_data_not_the_capacity(tmp_path, memmap) -> None:
+    def saved_bytes(buffer) -> int:
+        path = tmp_path / "state.pt"
+        torch.save(buffer_state(buffer), path)
+        return path.stat().st_size
+
+    memmap_dir = str(tmp_path / "mm") if memmap else None
+    small = make_replay_buffer(10, memmap_dir=memmap_dir)
+    large = make_replay_buffer(100_000, memmap_dir=str(tmp_path / "mm2") if memmap else None)
+    tr = episode_transitions(fake_rollout())  # 10 transitions, about 100 bytes each
+    for buffer in (small, large):
+        add_transitions(buffer, tr)
+    assert saved_bytes(large) == pytest.approx(saved_bytes(small), abs=64)
+    assert saved_bytes(large) < 20_000  # all 10^5 slots would take over 10 MB
+
+
+def test_load_buffer_state_refuses_a_full_buffer_or_too_small_capacity() -> None:
+    buffer = make_replay_buffer(20)
+    add_transitions(buffer, episode_transitions(fake_rollout()))
+    state = buffer_state(buffer)
+    with pytest.raises(ValueError, match="needs an empty buffer, this one holds 10"):
+        load_buffer_state(buffer, state)
+    with pytest.raises(ValueError, match="holds 10 transitions, more than capacity 4"):
+        load_buffer_state(make_replay_buffer(4), state)
+
+
+@needs_cuda
+def test_buffer_on_cuda_takes_host_transitions_and_round_trips_across_devices(tmp_path) -> None:
+    tr = episode_transitions(fake_rollout())  # (10,) on the host
+    on_gpu = make_replay_buffer(8, device="cuda")
+    add_transitions(on_gpu, tr)  # wraps: cursor 2
+    data = all_transitions(on_gpu)
+    assert storage_device(on_gpu).type == "cuda" and data[keys.Q].is_cuda
+    assert torch.equal(data[keys.Q].cpu(), tr[keys.Q][2:])
+    for name, state in (("ours", buffer_state(on_gpu)), ("torchrl", on_gpu.state_dict())):
+        path = tmp_path / f"{name}.pt"
+        torch.save(state, path)
+        for device in ("cpu", "cuda"):  # a checkpoint loads on the host (map_location="cpu")
+            restored = make_replay_buffer(8, device=device)
+            load_buffer_state(restored, torch.load(path, map_location="cpu", weights_only=True))
+            again = all_transitions(restored)
+            assert again[keys.Q].device.type == device
+            assert torch.equal(again[keys.Q].cpu(), tr[keys.Q][2:])
+            add_transitions(restored, tr[:1])  # the cursor carried over; the next write lands
+            assert torch.equal(all_transitions(restored)[keys.Q][-1].cpu(), tr[keys.Q][0])

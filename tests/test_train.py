@@ -98,10 +98,13 @@ def test_tiny_cmu_track_run_follows_the_clip_in_time(tmp_path: Path) -> None:
     assert 0.0 < summary["oracle_return_mean"] <= 6.0
 
 
-def test_sigkill_then_resume_continues_identically(finished_run: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("memmap", [False, True])
+def test_sigkill_then_resume_continues_identically(
+    finished_run: Path, tmp_path: Path, memmap: bool
+) -> None:
     """A run killed mid-way and resumed matches the uninterrupted run record for record."""
     run_dir = tmp_path / "killed"
-    proc = train(run_dir, "budget.iterations=3", wait=False)
+    proc = train(run_dir, "budget.iterations=3", f"buffer.memmap={memmap}", wait=False)
     deadline = time.time() + 300
     try:
         while time.time() < deadline:
@@ -139,6 +142,8 @@ def test_sigkill_then_resume_continues_identically(finished_run: Path, tmp_path:
         ("env=cmu_track env.task.clip='99_99' env.task.download=false", "clip '99_99' not found"),
         ("env=cmu_track env.task.clip=131_03", "clip=13103 is not a clip name; quote it"),
         ("planner.temperature=-1", "temperature must be finite and > 0"),
+        ("buffer.device=tpu", "buffer.device='tpu' is not valid"),
+        ("buffer.device_fraction=0", "buffer.device_fraction=0 is not valid"),
         ("model.yaw_invariant=true", "yaw_invariant needs a model whose first joint is a free"),
     ],
 )

@@ -14,11 +14,16 @@ number of rollouts.
 
 from __future__ import annotations
 
+import copy
 import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import EnvBase
 
 from mbrl_delan import keys
 
@@ -27,12 +32,15 @@ log = logging.getLogger(__name__)
 # Key that TensorDictReplayBuffer writes into stored samples; not part of a transition.
 _BUFFER_INDEX_KEY = "index"
 _TIME_DIM_NAME = "time"
+# TensorDictReplayBuffer.state_dict(): the entry that holds the stored transitions
+_STORAGE_STATE_KEY = "_storage"
+_FILLED_KEY = "filled"  # `buffer_state`: the filled slots' transitions
 
 _STATE_KEYS = (keys.Q, keys.QD, keys.ACTION, keys.NEXT_Q, keys.NEXT_QD, keys.NEXT_REWARD)
 
 
 def make_replay_buffer(
-    capacity: int, device: str = "cpu", memmap_dir: str | None = None
+    capacity: int, device: str | torch.device = "cpu", memmap_dir: str | None = None
 ) -> TensorDictReplayBuffer:
     """A FIFO replay buffer of transitions.
 
@@ -49,6 +57,118 @@ def make_replay_buffer(
     else:
         storage = LazyMemmapStorage(capacity, scratch_dir=memmap_dir, device=device)
     return TensorDictReplayBuffer(storage=storage)
+
+
+def storage_device(buffer: TensorDictReplayBuffer) -> torch.device:
+    """Where the buffer keeps its transitions: the host for a memmap (on disk, mapped into
+    host memory), else its tensor storage's device."""
+    storage = buffer.storage
+    if isinstance(storage, LazyMemmapStorage):
+        return torch.device("cpu")
+    return torch.device(storage.device)
+
+
+def transition_nbytes(env: EnvBase) -> int:
+    """Bytes one of `env`'s transitions takes in a replay buffer: every key of a transition
+    (from the env's own specs and dtypes) and the buffer's int64 index."""
+    example = episode_transitions(env.fake_tensordict().unsqueeze(-1))  # (B,)
+    index = torch.empty((), dtype=torch.int64).element_size()
+    return example.bytes() // example.shape[0] + index
+
+
+@dataclass(frozen=True)
+class BufferPlacement:
+    """Where the replay buffer keeps its data, and why."""
+
+    device: torch.device
+    reason: str
+
+
+MiB = 2**20
+
+
+def place_buffer(
+    requested: str,
+    model_device: torch.device,
+    full_bytes: int,
+    free_bytes: int | None,
+    max_fraction: float,
+) -> BufferPlacement:
+    """The buffer's device: `requested`, or with "auto" the model's device when the full
+    buffer (`full_bytes` at capacity) takes at most `max_fraction` of that device's
+    `free_bytes` (None: unknown), else the host.
+
+    The host always holds the env's transitions first; a buffer on the model's device saves
+    the copy of all the data to the device at every refit.
+    """
+    if requested != "auto":
+        return BufferPlacement(torch.device(requested), "as configured (buffer.device)")
+    host = torch.device("cpu")
+    if model_device.type == "cpu":
+        return BufferPlacement(host, "the model is on the CPU")
+    if free_bytes is None:
+        return BufferPlacement(host, f"the free memory of {model_device} is unknown")
+    need, free = full_bytes / MiB, free_bytes / MiB
+    fits = full_bytes <= max_fraction * free_bytes
+    verdict = "fits in" if fits else "exceeds"
+    reason = f"{need:.1f} MiB at capacity {verdict} {max_fraction:g} of {free:.0f} MiB free"
+    return BufferPlacement(model_device if fits else host, f"{reason} on {model_device}")
+
+
+def free_device_bytes(device: torch.device) -> int | None:
+    """Free memory on a CUDA device (bytes); None for other devices."""
+    if device.type != "cuda":
+        return None
+    free, _total = torch.cuda.mem_get_info(device)
+    return int(free)
+
+
+def state_to_device(state: Any, device: torch.device) -> Any:
+    """A buffer's `state_dict()` with every tensor on `device` (nested dicts, lists kept)."""
+    if isinstance(state, torch.Tensor):
+        return state.to(device)
+    if isinstance(state, Mapping):
+        moved = copy.copy(state)  # keeps a TensorDict state's `_metadata` (batch sizes)
+        for key, value in state.items():
+            moved[key] = state_to_device(value, device)
+        return moved
+    if isinstance(state, list | tuple):
+        return type(state)(state_to_device(v, device) for v in state)
+    return state
+
+
+def buffer_state(buffer: TensorDictReplayBuffer) -> dict[str, Any]:
+    """What a checkpoint keeps of `buffer`: its filled slots only, in slot order, on the
+    host, and its writer's cursor. Its size grows with the transitions collected, not with
+    the capacity (TorchRL's `state_dict()` holds every slot, filled or not, memmap included).
+    Plain tensors and containers, so it loads with `torch.load(weights_only=True)`."""
+    n = len(buffer)
+    filled: dict[str, Any] = {}
+    if n:
+        slots = buffer.storage.get(torch.arange(n, device=storage_device(buffer)))
+        filled = slots.exclude(_BUFFER_INDEX_KEY).to("cpu").clone().to_dict()
+    return {_FILLED_KEY: filled, "size": n, "writer": buffer.writer.state_dict()}
+
+
+def load_buffer_state(buffer: TensorDictReplayBuffer, state: dict[str, Any]) -> None:
+    """Restore an empty `buffer` from `buffer_state` (or from TorchRL's `state_dict()`, as
+    checkpoints before session 14 hold it), onto the buffer's own device whichever device
+    saved it."""
+    device = storage_device(buffer)
+    if _FILLED_KEY not in state:  # TorchRL's state_dict: move only the stored transitions
+        stored = state_to_device(state[_STORAGE_STATE_KEY], device)
+        buffer.load_state_dict({**state, _STORAGE_STATE_KEY: stored})
+        return
+    if len(buffer):
+        raise ValueError(f"load_buffer_state needs an empty buffer, this one holds {len(buffer)}")
+    size, capacity = int(state["size"]), buffer.storage.max_size
+    if size > capacity:
+        raise ValueError(
+            f"the saved buffer holds {size} transitions, more than capacity {capacity}"
+        )
+    if size:
+        buffer.extend(TensorDict(state[_FILLED_KEY], batch_size=[size]).to(device))
+    buffer.writer.load_state_dict(state["writer"])
 
 
 def _time_dim(rollout_td: TensorDictBase) -> int:
@@ -157,7 +277,7 @@ def check_finite(td: TensorDictBase, where: str) -> None:
 def add_transitions(buffer: TensorDictReplayBuffer, transitions: TensorDictBase) -> None:
     """Check ``transitions`` (N,) for NaN/inf, then append them to ``buffer``."""
     check_finite(transitions, "transitions added to the replay buffer")
-    buffer.extend(transitions)
+    buffer.extend(transitions.to(storage_device(buffer)))
 
 
 def all_transitions(buffer: TensorDictReplayBuffer) -> TensorDict:
@@ -171,7 +291,9 @@ def all_transitions(buffer: TensorDictReplayBuffer) -> TensorDict:
         raise ValueError("the replay buffer is empty: collect data before fitting")
     storage = buffer.storage
     cursor = int(buffer.writer.state_dict().get("_cursor", 0)) % n
-    idx = (torch.arange(n) + cursor) % n if n == storage.max_size else torch.arange(n)
+    idx = torch.arange(n, device=storage_device(buffer))
+    if n == storage.max_size:
+        idx = (idx + cursor) % n
     data = storage.get(idx)
     if _BUFFER_INDEX_KEY in data.keys():
         data = data.exclude(_BUFFER_INDEX_KEY)

@@ -22,7 +22,13 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 
 from mbrl_delan import keys
-from mbrl_delan.data.buffer import add_transitions, all_transitions, episode_transitions
+from mbrl_delan.data.buffer import (
+    add_transitions,
+    all_transitions,
+    buffer_state,
+    episode_transitions,
+    load_buffer_state,
+)
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.posarith import differentiate_pos
@@ -252,7 +258,7 @@ class MBRLLoop:
             "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(),
             "policy": self.policy.state_dict(),
-            "buffer": self.buffer.state_dict(),
+            "buffer": buffer_state(self.buffer),
             "counters": vars(self.counters).copy(),
             "fit_generator": self.fit_generator.get_state(),
             "random_generator": self.random_policy.generator.get_state(),
@@ -265,7 +271,7 @@ class MBRLLoop:
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
         self.policy.load_state_dict(state["policy"])
-        self.buffer.load_state_dict(state["buffer"])
+        load_buffer_state(self.buffer, state["buffer"])
         self.counters = LoopCounters(**state["counters"])
         self.fit_generator.set_state(state["fit_generator"])
         self.random_policy.generator.set_state(state["random_generator"])
