@@ -132,6 +132,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         horizons=_optional_positive_ints("horizons", values["horizons"]),
         iterations=_optional_positive_ints("iterations", values["iterations"]),
         torchrl=bool(values["torchrl"]),
+        paired=bool(values["paired"]),
         transitions=_optional_positive_ints("transitions", values["transitions"]),
         rollout_steps=_optional_positive_int("rollout_steps", values["rollout_steps"]),
         oracle_tasks=_optional_choices(

@@ -34,6 +34,7 @@ from mbrl_delan.benchmarks.planner import (
     make_case,
     measure,
     model_steps_per_call,
+    paired_ratio,
     run_planner,
     time_plan,
 )
@@ -245,3 +246,56 @@ def test_a_compiling_call_is_timed_after_two_untimed_calls() -> None:
     # repeats from the warm 0.5 s: min(repeats 2, floor(2.5 s / 0.5 s)); the 30 s is not timed
     assert len(calls) == 2 + timing.repeats and timing.repeats == 2
     assert timing.seconds_per_call == pytest.approx(0.5)
+
+
+# ---------------------------------------------------------------------------- paired
+def test_paired_ratio_alternates_and_takes_the_median_of_the_rounds_ratios() -> None:
+    """Round r: ours then TorchRL's (r even) or the reverse; a slow spell (x3) hits both."""
+
+    def ours() -> None: ...
+
+    def theirs() -> None: ...
+
+    order: list[str] = []
+    slow = {2, 3}  # the measurements in round 1 (the 3rd and 4th taken) are slowed down
+
+    def seconds_per_call(call) -> float:
+        order.append("ours" if call is ours else "theirs")
+        base = 0.02 if call is ours else 0.08
+        return base * (3.0 if len(order) - 1 in slow else 1.0)
+
+    paired = paired_ratio(ours, theirs, rounds=3, seconds_per_call=seconds_per_call)
+    assert order == ["ours", "theirs", "theirs", "ours", "ours", "theirs"]
+    assert paired.ratio == pytest.approx(0.25)  # every round's ratio is 0.02 / 0.08
+    assert paired.spread == pytest.approx(0.0)
+    assert paired.ours_s == pytest.approx(0.02) and paired.theirs_s == pytest.approx(0.08)
+    assert paired.rounds == 3
+
+
+def test_paired_ratio_is_the_median_ratio_not_the_ratio_of_medians() -> None:
+    def ours() -> None: ...
+
+    def theirs() -> None: ...
+
+    times = iter([1.0, 2.0, 4.0, 3.0, 1.0, 10.0])  # (ours, theirs): (1, 2), (3, 4), (1, 10)
+    paired = paired_ratio(ours, theirs, rounds=3, seconds_per_call=lambda call: next(times))
+    assert paired.ratio == pytest.approx(0.5)  # ratios 0.5, 0.75, 0.1
+    assert paired.ours_s == pytest.approx(1.0) and paired.theirs_s == pytest.approx(4.0)
+    assert paired.spread == pytest.approx((0.75 - 0.1) / 0.5)
+
+
+def test_paired_records_time_ours_against_torchrl_on_the_eager_twin() -> None:
+    grid = replace(
+        PlannerGrid.quick(),
+        models=("pendulum_delan",),
+        num_samples=(16,),
+        horizons=(3,),
+        paired=True,
+    )
+    records = list(run_planner(grid, OPTS))
+    paired = [r for r in records if r.metric == "latency_ratio_vs_torchrl"]
+    assert [r.case for r in paired] == ["pendulum_delan-mppi_vs_torchrl-n16-h3-i1"]
+    fields = paired[0].extra
+    assert fields["torchrl_model"] == "pendulum_delan" and fields["repeats"] == 2
+    assert fields["plan_latency_ms"] > 0 and fields["torchrl_plan_latency_ms"] > 0
+    assert paired[0].value > 0 and math.isfinite(paired[0].value)

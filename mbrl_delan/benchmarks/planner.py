@@ -13,6 +13,13 @@ For each world-model case in `PlannerGrid.models`, planner in `planners`, sample
   `torchrl.modules.planners.MPPIPlanner` / `CEMPlanner` on our `ModelEnv` (same model, N, H,
   iterations; they start every call from mean 0 and std 1: no warm start), plus its
   `realtime_factor`.
+- `latency_ratio_vs_torchrl` (with `paired=true`): for mppi and cem, our plan latency divided
+  by TorchRL's planner of the same kind on the eager model, both timed in alternation
+  (`paired_ratio`): the median over `repeats` rounds of (ours / TorchRL's), each a
+  `time_call` measurement of at least `min_time_s`. A slow spell of a shared machine then
+  weighs on both sides of each ratio, where the two latency figures above are minutes apart.
+  On a `_compiled` case ours is compiled and TorchRL's is not: its model is the case's eager
+  twin (the same weights, from the same seed).
 
 World-model cases (`PLANNER_MODELS`), all untrained (timing does not depend on the weights),
 float32, with the settings of `configs/model/*.yaml` (`DELAN_SETTINGS`, `ENSEMBLE_SETTINGS`;
@@ -156,6 +163,7 @@ class PlannerGrid:
     horizons: tuple[int, ...] = (15, 30)
     iterations: tuple[int, ...] = (1, 5)
     torchrl: bool = True
+    paired: bool = False  # also `latency_ratio_vs_torchrl` (ours and TorchRL's in alternation)
 
     @classmethod
     def quick(cls) -> PlannerGrid:
@@ -188,7 +196,7 @@ def grid_from_options(opts: SuiteOptions) -> PlannerGrid:
         for name in ("models", "planners", "num_samples", "horizons", "iterations")
         if getattr(opts, name) is not None
     }
-    return replace(grid, torchrl=opts.torchrl, **overrides)
+    return replace(grid, torchrl=opts.torchrl, paired=opts.paired, **overrides)
 
 
 # ----------------------------------------------------------------------------- cases
@@ -483,6 +491,14 @@ def _objective_factory(case: Case, device: torch.device) -> ObjectiveFactory:
     )
 
 
+def our_call(
+    planner: SamplingPlanner, factory: ObjectiveFactory, q0: Tensor, qd0: Tensor
+) -> Callable[[], Tensor]:
+    """One warm-started control step of our planner from (q0, qd0), as in the loop."""
+    policy = PlannerPolicy(planner, factory, replan_every=1, seed=0, device=q0.device)
+    return lambda: policy.act(q0, qd0)
+
+
 def our_records(
     case: Case, kind: str, grid: PlannerGrid, opts: SuiteOptions, host: dict[str, Any]
 ) -> Iterator[BenchRecord]:
@@ -500,8 +516,7 @@ def our_records(
         def make(setting: Setting = setting, fields: dict[str, Any] = fields) -> Callable[[], Any]:
             planner = build_planner(kind, setting, case.system, dtype)
             fields["model_steps_per_call"] = model_steps_per_call(planner, case.particles)
-            policy = PlannerPolicy(planner, factory, replan_every=1, seed=0, device=device)
-            return lambda: policy.act(q0, qd0)
+            return our_call(planner, factory, q0, qd0)
 
         if case.cuda_graph and device.type != "cuda":
             measured = Measured(None, "not run: CUDA graphs need device=cuda")
@@ -583,6 +598,89 @@ def torchrl_records(
         )
 
 
+# ----------------------------------------------------------------------------- paired
+
+
+@dataclass(frozen=True)
+class PairedTiming:
+    """Ours against TorchRL's planner, timed in alternation."""
+
+    ratio: float  # median over rounds of ours / TorchRL's seconds per call
+    ours_s: float  # median of our seconds per call over the rounds
+    theirs_s: float  # median of TorchRL's
+    spread: float  # (max - min) / median of the rounds' ratios
+    rounds: int
+
+
+def paired_ratio(
+    ours: Callable[[], object],
+    theirs: Callable[[], object],
+    rounds: int,
+    seconds_per_call: Callable[[Callable[[], object]], float],
+) -> PairedTiming:
+    """Median over `rounds` of seconds_per_call(ours) / seconds_per_call(theirs), measured
+    back to back in each round (ours first in even rounds, TorchRL's first in odd ones)."""
+    pairs = []
+    for r in range(rounds):
+        if r % 2 == 0:
+            a = seconds_per_call(ours)
+            b = seconds_per_call(theirs)
+        else:
+            b = seconds_per_call(theirs)
+            a = seconds_per_call(ours)
+        pairs.append((a, b))
+    ratios = [a / b for a, b in pairs]
+    ratio = statistics.median(ratios)
+    return PairedTiming(
+        ratio=ratio,
+        ours_s=statistics.median(a for a, _ in pairs),
+        theirs_s=statistics.median(b for _, b in pairs),
+        spread=(max(ratios) - min(ratios)) / ratio,
+        rounds=rounds,
+    )
+
+
+PAIRED_METRIC = "latency_ratio_vs_torchrl"
+
+
+def paired_records(
+    case: Case, kind: str, grid: PlannerGrid, opts: SuiteOptions, host: dict[str, Any]
+) -> Iterator[BenchRecord]:
+    """`latency_ratio_vs_torchrl` of our planner `kind` on `case` against TorchRL's on the
+    case's eager model, for every setting (see the module docstring)."""
+    device = opts.device
+    eager = make_case(case.name.removesuffix(COMPILED_SUFFIX), device) if case.compile else case
+    env = ModelEnv(eager.model, eager.task, eager.system, device=device, dtype=DTYPE)
+    factory, start = _objective_factory(case, device), _start_tensordict(eager, env)
+    q0, qd0 = case.q0.to(device, DTYPE), case.qd0.to(device, DTYPE)
+    sync = synchronizer(device)
+    one = replace(opts.timing, repeats=1, warmup=0)
+
+    def seconds_per_call(call: Callable[[], object]) -> float:
+        return time_call(call, one, sync).seconds_per_call
+
+    for setting in grid.settings():
+        log.info("planner suite: %s %s vs torchrl %s", case.name, kind, setting.tag())
+        fields = {**_fields(case, setting, kind, DTYPE), **host, "torchrl_model": eager.name}
+        ours = our_call(build_planner(kind, setting, case.system, DTYPE), factory, q0, qd0)
+        theirs = torchrl_call(build_torchrl_planner(kind, setting, env), start, [])
+        warm = [_seconds(ours, sync), _seconds(ours, sync), _seconds(theirs, sync)]
+        value = None
+        if max(warm[1:]) > opts.max_call_s:
+            fields["note"] = f"not timed: a call took {max(warm[1:]):.1f} s > max_call_s"
+        else:
+            paired = paired_ratio(ours, theirs, opts.timing.repeats, seconds_per_call)
+            value = paired.ratio
+            fields.update(
+                plan_latency_ms=1e3 * paired.ours_s,
+                torchrl_plan_latency_ms=1e3 * paired.theirs_s,
+                spread=paired.spread,
+                repeats=paired.rounds,
+            )
+        name = f"{case.name}-{kind}_vs_torchrl-{setting.tag()}"
+        yield BenchRecord(SUITE, name, PAIRED_METRIC, value, "x", str(device), fields)
+
+
 # ----------------------------------------------------------------------------- the suite
 
 
@@ -597,6 +695,8 @@ def run_planner(grid: PlannerGrid, opts: SuiteOptions) -> Iterator[BenchRecord]:
             continue  # TorchRL's planners on a graph case would time the compiled case again
         for kind in (k for k in grid.planners if k in TORCHRL_PLANNERS):
             yield from torchrl_records(case, kind, grid, opts, host)
+        for kind in (k for k in grid.planners if k in TORCHRL_PLANNERS and grid.paired):
+            yield from paired_records(case, kind, grid, opts, host)
 
 
 def run_planner_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
