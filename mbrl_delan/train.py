@@ -184,12 +184,12 @@ def _replay_buffer(
             shutil.rmtree(folder)
         log.info("replay buffer: memmap in %s", folder)
         return make_replay_buffer(cfg.buffer.capacity, memmap_dir=str(folder))
-    place = place_buffer(
-        str(cfg.buffer.device),
+    place = place_buffer(  # .get: runs saved before session 14 have no such keys
+        str(cfg.buffer.get("device", "auto")),
         model_device,
         cfg.buffer.capacity * transition_nbytes(env),
         free_device_bytes(model_device),
-        cfg.buffer.device_fraction,
+        cfg.buffer.get("device_fraction", 0.5),
     )
     log.info("replay buffer: on %s (%s)", place.device, place.reason)
     return make_replay_buffer(cfg.buffer.capacity, device=place.device)
