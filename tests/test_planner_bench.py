@@ -298,4 +298,5 @@ def test_paired_records_time_ours_against_torchrl_on_the_eager_twin() -> None:
     fields = paired[0].extra
     assert fields["torchrl_model"] == "pendulum_delan" and fields["repeats"] == 2
     assert fields["plan_latency_ms"] > 0 and fields["torchrl_plan_latency_ms"] > 0
+    assert "no warm start" in fields["note"]
     assert paired[0].value > 0 and math.isfinite(paired[0].value)

@@ -566,6 +566,13 @@ def torchrl_call(
 TORCHRL_NOTE = "TorchRL planner: no warm start (mean 0, std 1 every call)"
 
 
+def torchrl_note(case: Case) -> str:
+    """How TorchRL's planner call differs from ours on `case` (its records' `note`)."""
+    if case.particles == 1:
+        return TORCHRL_NOTE
+    return f"{TORCHRL_NOTE}; one rollout per candidate (ours: {case.particles} particles)"
+
+
 def torchrl_records(
     case: Case, kind: str, grid: PlannerGrid, opts: SuiteOptions, host: dict[str, Any]
 ) -> Iterator[BenchRecord]:
@@ -573,9 +580,7 @@ def torchrl_records(
     env = ModelEnv(case.model, case.task, case.system, device=opts.device, dtype=DTYPE)
     start = _start_tensordict(case, env)
     sync, predictor = synchronizer(opts.device), LatencyPredictor()
-    note = TORCHRL_NOTE
-    if case.particles > 1:
-        note += f"; one rollout per candidate (ours: {case.particles} particles)"
+    note = torchrl_note(case)
     for setting in grid.settings():
         log.info("planner suite: %s torchrl_%s %s", case.name, kind, setting.tag())
         fields = {**_fields(case, setting, f"torchrl_{kind}", DTYPE), "particles": 1, **host}
@@ -662,12 +667,13 @@ def paired_records(
     for setting in grid.settings():
         log.info("planner suite: %s %s vs torchrl %s", case.name, kind, setting.tag())
         fields = {**_fields(case, setting, kind, DTYPE), **host, "torchrl_model": eager.name}
+        fields["note"] = torchrl_note(case)
         ours = our_call(build_planner(kind, setting, case.system, DTYPE), factory, q0, qd0)
         theirs = torchrl_call(build_torchrl_planner(kind, setting, env), start, [])
         warm = [_seconds(ours, sync), _seconds(ours, sync), _seconds(theirs, sync)]
         value = None
         if max(warm[1:]) > opts.max_call_s:
-            fields["note"] = f"not timed: a call took {max(warm[1:]):.1f} s > max_call_s"
+            fields["note"] += f"; not timed: a call took {max(warm[1:]):.1f} s > max_call_s"
         else:
             paired = paired_ratio(ours, theirs, opts.timing.repeats, seconds_per_call)
             value = paired.ratio
