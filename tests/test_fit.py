@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -10,10 +11,12 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 
 from mbrl_delan import keys
+from mbrl_delan.data.buffer import add_transitions, make_replay_buffer
 from mbrl_delan.models.base import LossOutput, WorldModel
 from mbrl_delan.systems.system import State
 from mbrl_delan.training import FitConfig, TrainingDivergedError, fit_model
 from mbrl_delan.training.fit import _split
+from mbrl_delan.training.loop import MBRLLoop
 
 
 class LinearModel(WorldModel):
@@ -97,9 +100,9 @@ def test_a_growing_buffer_keeps_each_transition_on_its_side_of_the_split():
     fit must not train the next, and one that trained it must not validate the next (a new
     random split each refit scores the warm-started model on data it has just fitted)."""
     cfg = FitConfig(val_fraction=0.1)
-    train_a, val_a, _ = _split(600, cfg)
+    train_a, val_a, _ = _split(torch.arange(600), cfg)
     for n in (800, 2400):
-        train_b, val_b, on_train = _split(n, cfg)
+        train_b, val_b, on_train = _split(torch.arange(n), cfg)
         assert not on_train
         assert set(val_a.tolist()) <= set(val_b.tolist())
         assert set(train_a.tolist()) <= set(train_b.tolist())
@@ -108,6 +111,74 @@ def test_a_growing_buffer_keeps_each_transition_on_its_side_of_the_split():
         assert abs(len(val_b) - 0.1 * n) <= 2  # the asked share
         new_val = val_b[val_b >= 600]
         assert new_val.numel() > 0 and (new_val.diff() > 1).all()  # spread over new data too
+
+
+class RecordingModel(LinearModel):
+    """Records the running numbers (kept in q[:, 0]) of the samples it trains and validates on."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: dict[bool, set[int]] = {True: set(), False: set()}  # training -> ids
+
+    def loss(self, batch: TensorDictBase) -> LossOutput:
+        self.seen[self.training].update(batch[keys.Q][:, 0].long().tolist())
+        return super().loss(batch)
+
+
+def numbered_data(first: int, n: int) -> TensorDict:
+    data = linear_data(n, TRUE_W)
+    data[keys.Q][:, 0] = torch.arange(first, first + n, dtype=torch.float32)
+    return data
+
+
+def test_a_full_buffer_keeps_each_transition_on_its_side_of_the_split():
+    """Once the buffer is full its oldest transitions drop out and every position shifts;
+    the split follows each transition's running number (`first_index`), not its position:
+    of the transitions two fits share, the same ones validate both."""
+    cfg = FitConfig(batch_size=32, max_epochs=1, val_fraction=0.2)
+    before, after = RecordingModel(), RecordingModel()
+    for model, first in ((before, 0), (after, 200)):  # after: the oldest 200 have left
+        opt = torch.optim.SGD(model.parameters(), lr=0.01)
+        fit_model(
+            model, opt, numbered_data(first, 600), cfg, torch.Generator().manual_seed(0), first
+        )
+    shared = set(range(200, 600))
+    assert before.seen[False] & shared == after.seen[False] & shared
+    assert before.seen[True] & shared == after.seen[True] & shared
+    assert after.seen[False].isdisjoint(after.seen[True])
+    assert after.seen[False] | after.seen[True] == set(range(200, 800))
+    assert len(after.seen[False] & shared) == pytest.approx(0.2 * 400, abs=3)
+    # by position instead, 0.2 of the shared transitions would change sides
+    _, by_position, _ = _split(torch.arange(600), cfg)
+    moved = {200 + int(i) for i in by_position} ^ (after.seen[False])
+    assert len(moved & shared) > 50
+
+
+def test_the_loop_numbers_its_transitions_past_a_full_buffer():
+    """`MBRLLoop.fit` gives `fit_model` the running number of the buffer's oldest
+    transition: the count that has left the full buffer."""
+    buffer = make_replay_buffer(50)
+    model = RecordingModel()
+    system = SimpleNamespace(ctrl_low=torch.tensor([-1.0]), ctrl_high=torch.tensor([1.0]))
+    loop = MBRLLoop(
+        None, None, system, 20, model, torch.optim.SGD(model.parameters(), lr=0.01), None,
+        buffer, FitConfig(batch_size=8, max_epochs=1, val_fraction=0.2), seed=0, error_horizon=1,
+    )  # fmt: skip
+    for first in (0, 20, 40):  # episodes of 20 transitions; the third wraps the buffer
+        add_transitions(buffer, numbered_data(first, 20))
+        loop.counters.env_steps += 20
+    loop.fit()
+    seen = model.seen[False] | model.seen[True]
+    assert seen == set(range(10, 60))  # the 50 the buffer keeps
+    _, held_out, _ = _split(torch.arange(10, 60), loop.fit_config)
+    assert model.seen[False] == {10 + int(i) for i in held_out}
+
+
+def test_first_index_must_not_be_negative():
+    model = LinearModel()
+    opt = torch.optim.SGD(model.parameters(), lr=0.1)
+    with pytest.raises(ValueError, match="first_index"):
+        fit_model(model, opt, linear_data(20, TRUE_W), FitConfig(), torch.Generator(), -1)
 
 
 def test_too_few_samples_validates_on_train():

@@ -142,21 +142,27 @@ def _snapshot(model: WorldModel, optimizer: torch.optim.Optimizer) -> _Snapshot:
     return _Snapshot(weights, copy.deepcopy(optimizer.state_dict()))
 
 
-def transition_windows(data: TensorDictBase, steps: int) -> TensorDictBase:
-    """Every window of `steps` consecutive transitions in time-ordered transitions (N,).
-
-    Transition i + 1 follows transition i when its state is exactly i's next state (so
-    episode ends and a replay buffer's wrap-around split windows). -> (M, steps), M <= N.
-    """
-    if steps == 1:
-        return data.unsqueeze(-1)
+def window_starts(data: TensorDictBase, steps: int) -> Tensor:
+    """Where each window of `steps` consecutive transitions starts in time-ordered
+    transitions (N,). Transition i + 1 follows transition i when its state is exactly i's
+    next state (so episode ends and a replay buffer's wrap-around split windows). -> (M,),
+    M <= N, increasing."""
     n = data.shape[0]
+    first = torch.arange(max(n - steps + 1, 0), device=data[keys.Q].device)  # (N-K+1,)
+    if steps == 1:
+        return first
     follows = (data[keys.NEXT_Q][:-1] == data[keys.Q][1:]).all(-1) & (
         data[keys.NEXT_QD][:-1] == data[keys.QD][1:]
     ).all(-1)  # (N-1,)
     links = torch.cat([follows.new_zeros(1, dtype=torch.long), follows.long().cumsum(0)])  # (N,)
-    first = torch.arange(max(n - steps + 1, 0), device=links.device)  # (N-K+1,)
-    starts = first[links[first + steps - 1] - links[first] == steps - 1]  # (M,)
+    return first[links[first + steps - 1] - links[first] == steps - 1]
+
+
+def transition_windows(data: TensorDictBase, steps: int) -> TensorDictBase:
+    """Every window of `steps` consecutive transitions (`window_starts`). -> (M, steps)."""
+    if steps == 1:
+        return data.unsqueeze(-1)
+    starts = window_starts(data, steps)
     return data[starts.unsqueeze(-1) + torch.arange(steps, device=starts.device)]
 
 
@@ -164,19 +170,21 @@ def transition_windows(data: TensorDictBase, steps: int) -> TensorDictBase:
 _SPLIT_STRIDE = (math.sqrt(5.0) - 1.0) / 2.0
 
 
-def _split(n: int, cfg: FitConfig) -> tuple[Tensor, Tensor, bool]:
-    """Train / validation indices (CPU int64) of samples 0..n-1; the bool says val == train.
+def _split(ids: Tensor, cfg: FitConfig) -> tuple[Tensor, Tensor, bool]:
+    """Train / validation positions (CPU int64) of samples with running numbers `ids` (N,);
+    the bool says val == train.
 
-    Sample i is held out when frac(i * 0.618...) < val_fraction: a function of its index
-    alone, so in the loop's refits, where the buffer grows by appending, a transition that
-    validated one fit never trains a later one and none that trained one validates a later
-    one. (A fresh random split per refit would score a warm-started model on data it has
-    just fitted, and stop its training early.) This holds until the replay buffer is full:
-    from then on the oldest transitions drop out, the indices shift and so does the split."""
-    index = torch.arange(n, dtype=torch.long)
-    held_out = torch.frac(index.double() * _SPLIT_STRIDE) < cfg.val_fraction  # (n,)
+    Sample i is held out when frac(i * 0.618...) < val_fraction: a function of its running
+    number alone (its place among all transitions ever added), so in the loop's refits a
+    transition that validated one fit never trains a later one and none that trained one
+    validates a later one, also once a full replay buffer drops its oldest transitions.
+    (A fresh random split per refit would score a warm-started model on data it has just
+    fitted, and stop its training early.)"""
+    ids = ids.cpu()
+    index = torch.arange(ids.numel(), dtype=torch.long)
+    held_out = torch.frac(ids.double() * _SPLIT_STRIDE) < cfg.val_fraction  # (N,)
     n_val = int(held_out.sum())
-    if n_val < max(cfg.min_val_size, 1) or n - n_val < 1:
+    if n_val < max(cfg.min_val_size, 1) or ids.numel() - n_val < 1:
         return index, index, True
     return index[~held_out], index[held_out], False
 
@@ -258,20 +266,21 @@ def _check_val(loss: float, metrics: dict[str, float]) -> None:
         raise Diverged("val_loss", loss, _nonfinite_metrics(metrics))
 
 
-def _windows(model: WorldModel, data: TensorDictBase, steps: int) -> TensorDictBase:
-    """The windows (M, steps) of transitions (N,) that a K-step fit trains on."""
+def _windows(model: WorldModel, data: TensorDictBase, steps: int) -> tuple[TensorDictBase, Tensor]:
+    """The windows (M, steps) of transitions (N,) that a K-step fit trains on, and the
+    position of each one's first transition (M,)."""
     if not model.trains_on_windows:
         raise ValueError(
             f"fit rollout_steps={steps} needs a model that trains on windows of transitions "
             f"(DeLaN with the forward loss); {type(model).__name__} trains on single ones"
         )
-    windows = transition_windows(data, steps)
-    if windows.shape[0] == 0:
+    starts = window_starts(data, steps)
+    if starts.numel() == 0:
         raise ValueError(
             f"fit rollout_steps={steps}: the {data.shape[0]} transitions hold no run of "
             f"{steps} consecutive ones (each one's next state the following one's state)"
         )
-    return windows
+    return data[starts.unsqueeze(-1) + torch.arange(steps, device=starts.device)], starts
 
 
 def fit_model(
@@ -280,13 +289,19 @@ def fit_model(
     data: TensorDictBase,
     cfg: FitConfig,
     generator: torch.Generator,
+    first_index: int = 0,
 ) -> FitReport:
     """Train ``model`` on transitions ``data`` (batch shape (N,), time-ordered when
     ``cfg.rollout_steps > 1``) and keep its best weights.
 
+    ``first_index``: the running number of ``data[0]`` among all transitions ever added
+    (the loop passes how many have left its full replay buffer), so that the validation
+    split, fixed by each transition's running number (`_split`), stays fixed once the
+    buffer drops its oldest transitions.
+
     Calls ``model.fit_normalization`` on the training part, then runs up to ``cfg.max_epochs``
     epochs of shuffled minibatches (the shuffling uses ``generator`` only; the validation
-    split is fixed by each sample's index, see `_split`). After every epoch the validation
+    split is fixed by each sample's running number, see `_split`). After every epoch the validation
     loss decides the best weights, which are restored at the end.
 
     With ``cfg.rollout_steps`` K > 1 this is done twice: on single transitions first (a
@@ -303,11 +318,16 @@ def fit_model(
     """
     if data.batch_dims != 1 or data.shape[0] == 0:
         raise ValueError(f"fit_model needs a non-empty flat batch (N,), got {data.batch_size}")
+    if first_index < 0:
+        raise ValueError(f"first_index must be >= 0, got {first_index}")
+    ids = first_index + torch.arange(data.shape[0])  # (N,) running numbers
     if cfg.rollout_steps == 1:
-        return _fit(model, optimizer, data, cfg, generator)
-    windows = _windows(model, data, cfg.rollout_steps)
-    warmup = _fit(model, optimizer, data, replace(cfg, rollout_steps=1), generator)
-    report = _fit(model, optimizer, windows, cfg, generator, normalize=False)
+        return _fit(model, optimizer, data, ids, cfg, generator)
+    windows, starts = _windows(model, data, cfg.rollout_steps)
+    warmup = _fit(model, optimizer, data, ids, replace(cfg, rollout_steps=1), generator)
+    report = _fit(
+        model, optimizer, windows, first_index + starts.cpu(), cfg, generator, normalize=False
+    )
     report.warmup = warmup
     return report
 
@@ -316,13 +336,15 @@ def _fit(
     model: WorldModel,
     optimizer: torch.optim.Optimizer,
     data: TensorDictBase,
+    ids: Tensor,
     cfg: FitConfig,
     generator: torch.Generator,
     normalize: bool = True,
 ) -> FitReport:
-    """`fit_model` on samples (N,) or windows (M, K); `normalize`: call fit_normalization."""
+    """`fit_model` on samples (N,) or windows (M, K) with running numbers `ids` (N,) or
+    (M,) (a window's: its first transition's); `normalize`: call fit_normalization."""
     was_training = model.training
-    train_idx, val_idx, on_train = _split(data.shape[0], cfg)
+    train_idx, val_idx, on_train = _split(ids, cfg)
     train_data = data[train_idx]
     val_data = train_data if on_train else data[val_idx]
     report = FitReport(validated_on_train=on_train, n_train=len(train_idx), n_val=len(val_idx))

@@ -206,7 +206,10 @@ class MBRLLoop:
 
     def fit(self) -> FitReport:
         data = all_transitions(self.buffer).to(next(self.model.parameters()).device)
-        return fit_model(self.model, self.optimizer, data, self.fit_config, self.fit_generator)
+        dropped = self.counters.env_steps - data.shape[0]  # left a full buffer, oldest first
+        return fit_model(
+            self.model, self.optimizer, data, self.fit_config, self.fit_generator, dropped
+        )
 
     def evaluate(
         self, policy: TensorDictModuleBase, episodes: int, keep_rollouts: int = 0
