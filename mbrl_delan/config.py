@@ -7,10 +7,11 @@ and rejects a bad value at start with a message that names it and lists what is 
 from __future__ import annotations
 
 import math
+from dataclasses import fields
 from typing import Any
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from mbrl_delan.envs.registry import ENV_NAMES
 from mbrl_delan.models.base import WorldModel
@@ -22,6 +23,7 @@ from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.systems.system import System
+from mbrl_delan.training.fit import FitConfig
 
 MODEL_NAMES = ("delan", "ensemble", "delan_ensemble")
 PLANNER_NAMES = ("cem", "icem", "mppi")
@@ -40,6 +42,46 @@ def _choice(path: str, value: Any, choices: tuple[str, ...]) -> None:
 def _at_least(path: str, value: Any, low: float) -> None:
     if not isinstance(value, int | float) or isinstance(value, bool) or value < low:
         raise ConfigError(f"{path}={value!r} is not valid; it must be a number >= {low}")
+
+
+def check_whole(path: str, value: Any, low: int, optional: bool = False) -> None:
+    """A whole number >= low (or null when `optional`), else a `ConfigError` naming it."""
+    if optional and value is None:
+        return
+    if not isinstance(value, int) or isinstance(value, bool) or value < low:
+        null = " or null" if optional else ""
+        raise ConfigError(
+            f"{path}={value!r} is not valid; it must be a whole number >= {low}{null}"
+        )
+
+
+def check_number(
+    path: str, value: Any, low: float, high: float = math.inf, open_low: bool = False
+) -> None:
+    """A finite number in [low, high] ((low, high] with `open_low`), else a `ConfigError`."""
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if ok:
+        ok = (value > low if open_low else value >= low) and value <= high
+    if not ok:
+        bound = f"> {low}" if open_low else f">= {low}"
+        limit = "" if high == math.inf else f" and <= {high}"
+        raise ConfigError(f"{path}={value!r} is not valid; it must be a number {bound}{limit}")
+
+
+def build_fit_config(cfg: DictConfig) -> FitConfig:
+    """`FitConfig` from ``cfg.fit``; a bad or unknown key is a `ConfigError` naming it."""
+    values = OmegaConf.to_container(cfg.fit)
+    assert isinstance(values, dict)
+    known = {f.name for f in fields(FitConfig)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ConfigError(
+            f"fit.{unknown[0]} is not a fit setting; known: {', '.join(sorted(known))}"
+        )
+    try:
+        return FitConfig(**values)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"fit settings are not valid: {err}") from err
 
 
 def check_device(device: str) -> torch.device:
@@ -79,6 +121,11 @@ def validate_train_config(cfg: DictConfig) -> None:
         _at_least(path, _get(cfg, path), 1)
     _check_rollout_steps(cfg)
     _check_buffer(cfg)
+    build_fit_config(cfg)
+    check_whole("seed", cfg.seed, 0)
+    check_whole("threads", cfg.threads, 1, optional=True)
+    check_number("model.lr", cfg.model.lr, 0.0, open_low=True)
+    check_number("model.weight_decay", cfg.model.weight_decay, 0.0)
     for path in (
         "budget.random_episodes",
         "budget.eval_episodes",

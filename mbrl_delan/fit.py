@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import pickle
 import sys
 import time
@@ -35,7 +34,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 
 from mbrl_delan import keys
-from mbrl_delan.config import DTYPES, ConfigError, check_device
+from mbrl_delan.config import DTYPES, ConfigError, check_device, check_number, check_whole
 from mbrl_delan.data.buffer import NonFiniteDataError, check_finite
 from mbrl_delan.data.mocap import (
     GAINS,
@@ -96,18 +95,6 @@ def _choice(path: str, value: Any, choices: Sequence[str]) -> None:
         raise ConfigError(f"{path}={value!r} is not valid; choose one of: {', '.join(choices)}")
 
 
-def _number(
-    path: str, value: Any, low: float, high: float = math.inf, open_low: bool = False
-) -> None:
-    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-    if ok:
-        ok = (value > low if open_low else value >= low) and value <= high
-    if not ok:
-        bound = f"> {low}" if open_low else f">= {low}"
-        limit = "" if high == math.inf else f" and <= {high}"
-        raise ConfigError(f"{path}={value!r} is not valid; it must be a number {bound}{limit}")
-
-
 def _flag(path: str, value: Any) -> None:
     if not isinstance(value, bool):
         raise ConfigError(f"{path}={value!r} is not valid; it must be true or false")
@@ -129,18 +116,18 @@ def _clip_names(path: str, value: Any, allow_empty: bool = False) -> list[str]:
 
 def _validate_model(cfg: DictConfig) -> None:
     _choice("model.name", cfg.name, MODEL_NAMES)
-    _number("model.hidden", cfg.hidden, 1)
+    check_number("model.hidden", cfg.hidden, 1)
     if cfg.name == "delan":
-        _number("model.layers", cfg.layers, 1)
+        check_number("model.layers", cfg.layers, 1)
         _choice("model.activation", cfg.activation, DELAN_ACTIVATIONS)
-        _number("model.diag_shift", cfg.diag_shift, 0.0, open_low=True)
+        check_number("model.diag_shift", cfg.diag_shift, 0.0, open_low=True)
         _flag("model.still_first_order", cfg.still_first_order)
         _flag("model.tree_sparse", cfg.tree_sparse)
         _flag("model.armature", cfg.get("armature", False))
     else:
         _choice("model.activation", cfg.activation, tuple(MLP_ACTIVATIONS))
     if cfg.name == "ensemble":
-        _number("model.ensemble_size", cfg.ensemble_size, 1)
+        check_number("model.ensemble_size", cfg.ensemble_size, 1)
 
 
 def _validate_data(cfg: DictConfig) -> None:
@@ -156,18 +143,18 @@ def _validate_data(cfg: DictConfig) -> None:
     if len(set(clips)) != len(clips):
         raise ConfigError(f"data.clips={clips} is not valid: a clip is listed twice")
     if cfg.samples_per_clip is not None:
-        _number("data.samples_per_clip", cfg.samples_per_clip, 1)
+        check_number("data.samples_per_clip", cfg.samples_per_clip, 1)
     if cfg.filter.cutoff_hz is not None:
-        _number("data.filter.cutoff_hz", cfg.filter.cutoff_hz, 0.0, 59.99, open_low=True)
-    _number("data.filter.order", cfg.filter.order, 1)
-    _number("data.filter.edge_trim_s", cfg.filter.edge_trim_s, 0.0)
-    _number("data.split.val_time_fraction", cfg.split.val_time_fraction, 0.0, 0.95)
-    _number("data.split.gap_s", cfg.split.gap_s, 0.0)
-    _number("data.glitch.deg", cfg.glitch.deg, 0.0, open_low=True)
-    _number("data.glitch.pad_s", cfg.glitch.pad_s, 0.0)
+        check_number("data.filter.cutoff_hz", cfg.filter.cutoff_hz, 0.0, 59.99, open_low=True)
+    check_number("data.filter.order", cfg.filter.order, 1)
+    check_number("data.filter.edge_trim_s", cfg.filter.edge_trim_s, 0.0)
+    check_number("data.split.val_time_fraction", cfg.split.val_time_fraction, 0.0, 0.95)
+    check_number("data.split.gap_s", cfg.split.gap_s, 0.0)
+    check_number("data.glitch.deg", cfg.glitch.deg, 0.0, open_low=True)
+    check_number("data.glitch.pad_s", cfg.glitch.pad_s, 0.0)
     if cfg.torques == "pd":
-        _number("data.pd.omega", cfg.pd.omega, 0.0, open_low=True)
-        _number("data.pd.zeta", cfg.pd.zeta, 0.0, open_low=True)
+        check_number("data.pd.omega", cfg.pd.omega, 0.0, open_low=True)
+        check_number("data.pd.zeta", cfg.pd.zeta, 0.0, open_low=True)
         _choice("data.pd.gains", cfg.pd.gains, GAINS)
 
 
@@ -175,17 +162,17 @@ def validate_fit_config(cfg: DictConfig) -> None:
     """Every value the fit entry point uses, checked before anything is built or written."""
     _choice("dtype", cfg.dtype, tuple(DTYPES))
     check_device(cfg.device)
-    if cfg.threads is not None:
-        _number("threads", cfg.threads, 1)
-    _number("epochs", cfg.epochs, 1)
-    _number("batch_size", cfg.batch_size, 1)
-    _number("eval_batch_size", cfg.eval_batch_size, 1)
-    _number("lr", cfg.lr, 0.0, open_low=True)
-    _number("weight_decay", cfg.weight_decay, 0.0)
+    check_whole("seed", cfg.seed, 0)
+    check_whole("threads", cfg.threads, 1, optional=True)
+    check_number("epochs", cfg.epochs, 1)
+    check_number("batch_size", cfg.batch_size, 1)
+    check_number("eval_batch_size", cfg.eval_batch_size, 1)
+    check_number("lr", cfg.lr, 0.0, open_low=True)
+    check_number("weight_decay", cfg.weight_decay, 0.0)
     _choice("lr_schedule", cfg.lr_schedule, LR_SCHEDULES)
     if cfg.max_grad_norm is not None:
-        _number("max_grad_norm", cfg.max_grad_norm, 0.0, open_low=True)
-    _number("loss.std_floor", cfg.loss.std_floor, 0.0, 1.0, open_low=True)
+        check_number("max_grad_norm", cfg.max_grad_norm, 0.0, open_low=True)
+    check_number("loss.std_floor", cfg.loss.std_floor, 0.0, 1.0, open_low=True)
     _flag("translation_invariant", cfg.translation_invariant)
     _validate_model(cfg.model)
     _validate_data(cfg.data)

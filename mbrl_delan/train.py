@@ -23,6 +23,7 @@ from tqdm import tqdm
 from mbrl_delan.config import (
     DTYPES,
     ConfigError,
+    build_fit_config,
     build_model,
     build_planner,
     check_device,
@@ -51,7 +52,7 @@ from mbrl_delan.training.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from mbrl_delan.training.fit import FitConfig, TrainingDivergedError
+from mbrl_delan.training.fit import TrainingDivergedError
 from mbrl_delan.training.loop import MBRLLoop
 from mbrl_delan.training.plots import plot_run
 from mbrl_delan.training.recorder import METRICS_FILE, Recorder, read_metrics
@@ -150,7 +151,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         torch.device("cpu"),
     )
     buffer = _replay_buffer(cfg, run_dir, env, device)
-    fit_cfg = FitConfig(**OmegaConf.to_container(cfg.fit))
+    fit_cfg = build_fit_config(cfg)
     loop = MBRLLoop(
         env,
         eval_env,

@@ -444,6 +444,9 @@ def test_bad_config_value_exits_2_naming_the_key(clip_folder, tmp_path: Path) ->
         ("translation_invariant=maybe", "translation_invariant='maybe'"),
         ("lr_schedule=linear", "lr_schedule='linear' is not valid; choose one of: constant"),
         ("model.tree_sparse=1", "model.tree_sparse=1"),
+        ("seed=abc", "seed='abc' is not valid; it must be a whole number >= 0"),
+        ("threads=1.5", "threads=1.5 is not valid"),
+        ("lr=nan", "lr=nan is not valid"),
     ],
 )
 def test_config_values_are_checked(clip_folder, override: str, expected: str) -> None:

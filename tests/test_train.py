@@ -11,8 +11,10 @@ import time
 from pathlib import Path
 
 import pytest
+from hydra import compose, initialize_config_dir
 from tiny import TINY_TRAIN
 
+from mbrl_delan.config import ConfigError, validate_train_config
 from mbrl_delan.training.checkpoint import load_checkpoint
 
 TINY = TINY_TRAIN
@@ -145,6 +147,7 @@ def test_sigkill_then_resume_continues_identically(
         ("buffer.device=tpu", "buffer.device='tpu' is not valid"),
         ("buffer.device_fraction=0", "buffer.device_fraction=0 is not valid"),
         ("model.yaw_invariant=true", "yaw_invariant needs a model whose first joint is a free"),
+        ("fit.val_fraction=2", "val_fraction must be in [0, 1), got 2"),
     ],
 )
 def test_bad_config_value_fails_at_start_naming_it(
@@ -155,6 +158,33 @@ def test_bad_config_value_fails_at_start_naming_it(
     assert expected in out.stdout + out.stderr
     assert "Traceback" not in out.stdout + out.stderr
     assert not (tmp_path / "bad" / "checkpoint.pt").exists()
+
+
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [
+        ("+fit.learning_rate=0.1", "fit.learning_rate is not a fit setting"),
+        ("fit.max_grad_norm=0", "max_grad_norm must be > 0 or None, got 0"),
+        ("fit.max_batches_per_epoch=0", "max_batches_per_epoch must be >= 1 or None"),
+        ("fit.patience=abc", "fit settings are not valid"),
+        ("seed=abc", "seed='abc' is not valid; it must be a whole number >= 0"),
+        ("seed=-3", "seed=-3 is not valid"),
+        ("threads=0", "threads=0 is not valid; it must be a whole number >= 1 or null"),
+        ("model.lr=nan", "model.lr=nan is not valid; it must be a number > 0.0"),
+        ("model.lr=0", "model.lr=0 is not valid"),
+        ("model.weight_decay=-1", "model.weight_decay=-1 is not valid"),
+    ],
+)
+def test_bad_value_is_a_config_error_naming_it(override: str, expected: str) -> None:
+    """Checked in-process: each of these once reached deep code (torch's seeding, the
+    optimizer, `FitConfig`) and failed there with a raw traceback, or ran with a silent
+    default (threads=0)."""
+    configs = str(Path(__file__).resolve().parents[1] / "configs")
+    with initialize_config_dir(config_dir=configs, version_base=None):
+        cfg = compose(config_name="config", overrides=[override])
+    with pytest.raises(ConfigError) as err:
+        validate_train_config(cfg)
+    assert expected in str(err.value)
 
 
 def test_unknown_config_group_option_lists_choices(tmp_path: Path) -> None:

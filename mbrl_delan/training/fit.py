@@ -66,6 +66,17 @@ class FitConfig:
             raise ValueError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
         if self.patience is not None and self.patience <= 0:
             raise ValueError(f"patience must be positive or None, got {self.patience}")
+        if self.min_val_size < 0 or not self.min_delta >= 0:
+            raise ValueError(
+                f"min_val_size and min_delta must be >= 0, got {self.min_val_size}, "
+                f"{self.min_delta}"
+            )
+        if self.max_grad_norm is not None and not self.max_grad_norm > 0:
+            raise ValueError(f"max_grad_norm must be > 0 or None, got {self.max_grad_norm}")
+        if self.max_batches_per_epoch is not None and self.max_batches_per_epoch < 1:
+            raise ValueError(
+                f"max_batches_per_epoch must be >= 1 or None, got {self.max_batches_per_epoch}"
+            )
 
 
 @dataclass
