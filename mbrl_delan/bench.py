@@ -148,7 +148,10 @@ def run(cfg: DictConfig) -> RecordWriter:
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
     suite = get_suite(cfg.suite)
-    writer = RecordWriter(cfg.out)
+    try:
+        writer = RecordWriter(cfg.out)
+    except OSError as err:
+        raise ConfigError(f"out={cfg.out!r}: cannot append records there ({err})") from err
     log.info(
         "suite %s on %s, %d torch threads, nv %s, batch %s%s",
         cfg.suite,

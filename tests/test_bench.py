@@ -15,7 +15,9 @@ from pathlib import Path
 import mujoco
 import pytest
 import torch
+from hydra import compose, initialize_config_dir
 
+from mbrl_delan.bench import run
 from mbrl_delan.benchmarks import (
     SUITE_NAMES,
     SuiteOptions,
@@ -45,6 +47,7 @@ from mbrl_delan.benchmarks.records import (
     format_table,
     read_records,
 )
+from mbrl_delan.config import ConfigError
 
 METRICS = (
     "fwd_dyn_per_s",
@@ -100,6 +103,21 @@ def test_records_are_appended_not_overwritten(tmp_path: Path) -> None:
     assert records[1]["value"] is None and records[1]["note"] == "skipped: x"
     assert records[0]["nv"] == 0 and list(records[0])[:6] == list(BASE_FIELDS)
     assert "skipped: x" in format_table(writer.records)
+
+
+@pytest.mark.parametrize("where", ["under_a_file", "a_folder"])
+def test_an_out_that_cannot_be_written_fails_before_measuring(tmp_path: Path, where: str) -> None:
+    """A bad `out=` is named at start, not as a traceback after the first measurement, and
+    whatever is already there is left as it was."""
+    blocker = tmp_path / "records.jsonl"
+    blocker.write_text('{"kept": 1}\n')
+    out = blocker / "x.jsonl" if where == "under_a_file" else tmp_path
+    configs = str(Path(__file__).resolve().parents[1] / "configs")
+    with initialize_config_dir(config_dir=configs, version_base=None):
+        cfg = compose(config_name="bench", overrides=["suite=planner", "quick=true", f"out={out}"])
+    with pytest.raises(ConfigError, match="cannot append records there"):
+        run(cfg)
+    assert blocker.read_text() == '{"kept": 1}\n'
 
 
 def test_record_rejects_non_finite_values_and_clashing_fields() -> None:

@@ -61,8 +61,9 @@ class RecordWriter:
     def __init__(self, path: str | Path | None) -> None:
         self.path = None if path is None else Path(path)
         self.records: list[BenchRecord] = []
-        if self.path is not None:
+        if self.path is not None:  # fail now, not after the first measurement
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            os.close(os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644))
 
     def write(self, record: BenchRecord) -> None:
         line = json.dumps(record.to_dict(), allow_nan=False, sort_keys=False) + "\n"
