@@ -169,11 +169,15 @@ def window_starts(data: TensorDictBase, steps: int) -> Tensor:
     return first[links[first + steps - 1] - links[first] == steps - 1]
 
 
-def transition_windows(data: TensorDictBase, steps: int) -> TensorDictBase:
-    """Every window of `steps` consecutive transitions (`window_starts`). -> (M, steps)."""
+def transition_windows(
+    data: TensorDictBase, steps: int, starts: Tensor | None = None
+) -> TensorDictBase:
+    """Every window of `steps` consecutive transitions (at `starts`, default
+    `window_starts`). -> (M, steps)."""
     if steps == 1:
         return data.unsqueeze(-1)
-    starts = window_starts(data, steps)
+    if starts is None:
+        starts = window_starts(data, steps)
     return data[starts.unsqueeze(-1) + torch.arange(steps, device=starts.device)]
 
 
@@ -291,7 +295,7 @@ def _windows(model: WorldModel, data: TensorDictBase, steps: int) -> tuple[Tenso
             f"fit rollout_steps={steps}: the {data.shape[0]} transitions hold no run of "
             f"{steps} consecutive ones (each one's next state the following one's state)"
         )
-    return data[starts.unsqueeze(-1) + torch.arange(steps, device=starts.device)], starts
+    return transition_windows(data, steps, starts), starts
 
 
 def fit_model(
