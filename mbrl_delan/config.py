@@ -39,11 +39,6 @@ def _choice(path: str, value: Any, choices: tuple[str, ...]) -> None:
         raise ConfigError(f"{path}={value!r} is not valid; choose one of: {', '.join(choices)}")
 
 
-def _at_least(path: str, value: Any, low: float) -> None:
-    if not isinstance(value, int | float) or isinstance(value, bool) or value < low:
-        raise ConfigError(f"{path}={value!r} is not valid; it must be a number >= {low}")
-
-
 def check_whole(path: str, value: Any, low: int, optional: bool = False) -> None:
     """A whole number >= low (or null when `optional`), else a `ConfigError` naming it."""
     if optional and value is None:
@@ -118,7 +113,7 @@ def validate_train_config(cfg: DictConfig) -> None:
         "fit.max_epochs",
         "fit.rollout_steps",
     ):
-        _at_least(path, _get(cfg, path), 1)
+        check_number(path, _get(cfg, path), 1)
     _check_rollout_steps(cfg)
     _check_buffer(cfg)
     build_fit_config(cfg)
@@ -132,11 +127,11 @@ def validate_train_config(cfg: DictConfig) -> None:
         "budget.final_eval_episodes",
         "budget.oracle_episodes",
     ):
-        _at_least(path, _get(cfg, path), 0)
+        check_number(path, _get(cfg, path), 0)
     if cfg.budget.random_episodes == 0:
         raise ConfigError("budget.random_episodes=0 is not valid: the first fit needs data (>= 1)")
     if cfg.model.name == "delan":
-        _at_least("model.velocity_margin", cfg.model.velocity_margin, 1.0)
+        check_number("model.velocity_margin", cfg.model.velocity_margin, 1.0)
     if cfg.planner.replan_every > cfg.planner.horizon:
         raise ConfigError(
             f"planner.replan_every={cfg.planner.replan_every} is not valid; it "
