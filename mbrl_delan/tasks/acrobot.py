@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from mbrl_delan.systems.kinematics import planar_chain_points
-from mbrl_delan.systems.system import State
-from mbrl_delan.tasks.base import Task
-from mbrl_delan.tasks.common import control_factor, noisy_rest_state, velocity_factor
+from mbrl_delan.tasks.common import ShapedTask
 
 # acrobot.xml: uniform links, COM at mid-link
 ACROBOT_LINK_LENGTHS = (1.0, 1.0)  # m
@@ -19,7 +18,8 @@ ACROBOT_GEAR = 5.0  # N m per unit control, elbow only
 ACROBOT_DAMPING = (0.05, 0.05)  # N m s / rad
 
 
-class AcrobotSwingup(Task):
+@dataclass(kw_only=True, eq=False)
+class AcrobotSwingup(ShapedTask):
     """Swing both links up (the tip as high as it goes) and hold them there.
 
     reward = h_elbow * h_tip * control_factor * velocity_factor, with h = (z + L) / (2 L) the
@@ -29,23 +29,17 @@ class AcrobotSwingup(Task):
     that traps sampling planners).
     """
 
-    def __init__(
-        self,
-        link_lengths: Sequence[float] = ACROBOT_LINK_LENGTHS,
-        ctrl_weight: float = 0.1,
-        vel_weight: float = 0.005,
-        episode_len: int = 200,
-        q_noise: float = 0.05,
-        qd_noise: float = 0.05,
-        name: str = "acrobot",
-    ) -> None:
-        self.name = name
-        self.link_lengths = tuple(float(x) for x in link_lengths)
-        self.ctrl_weight = ctrl_weight
-        self.vel_weight = vel_weight
-        self.episode_len = episode_len
-        self.q_noise = q_noise
-        self.qd_noise = qd_noise
+    link_lengths: Sequence[float] = ACROBOT_LINK_LENGTHS  # m, a tuple once built
+    vel_weight: float = 0.005
+    episode_len: int = 200
+    name: str = "acrobot"
+
+    def __post_init__(self) -> None:
+        self.link_lengths = tuple(float(x) for x in self.link_lengths)
+
+    @property
+    def nq(self) -> int:
+        return len(self.link_lengths)
 
     def tip_positions(self, q: Tensor) -> Tensor:
         """(..., 2) -> (..., 2, 2): (x, z) of the elbow and of the tip."""
@@ -61,8 +55,4 @@ class AcrobotSwingup(Task):
 
     def reward(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
         """(..., 2), (..., 2), (..., 1) -> (...) in [0, 1]."""
-        shaping = control_factor(action, self.ctrl_weight) * velocity_factor(qd, self.vel_weight)
-        return self.heights(q).prod(dim=-1) * shaping
-
-    def initial_state(self, batch_shape: tuple[int, ...], generator: torch.Generator) -> State:
-        return noisy_rest_state(2, tuple(batch_shape), generator, self.q_noise, self.qd_noise)
+        return self.heights(q).prod(dim=-1) * self.shaping(qd, action)

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from mbrl_delan.systems.kinematics import planar_chain_points
-from mbrl_delan.systems.system import State
-from mbrl_delan.tasks.base import Task
-from mbrl_delan.tasks.common import control_factor, noisy_rest_state, velocity_factor
+from mbrl_delan.tasks.common import ShapedTask
 
 GRAVITY = 9.81  # m/s^2, MuJoCo's default
 
@@ -27,7 +26,8 @@ ARM3_GEARS = (25.0, 12.0, 4.0)  # N m per unit control
 ARM3_DAMPING = (0.1, 0.1, 0.05)  # N m s / rad
 
 
-class ArmReach(Task):
+@dataclass(kw_only=True, eq=False)
+class ArmReach(ShapedTask):
     """Bring the arm's end effector to a fixed target (x, z) and hold it there.
 
     reward = 1 / (1 + (d / distance_scale)^2) * control_factor * velocity_factor, with d the
@@ -35,30 +35,23 @@ class ArmReach(Task):
     and with a gradient everywhere in the workspace.
     """
 
-    def __init__(
-        self,
-        link_lengths: Sequence[float] = ARM2_LINK_LENGTHS,
-        target: tuple[float, float] = (0.6, 0.4),
-        distance_scale: float = 0.15,
-        ctrl_weight: float = 0.05,
-        vel_weight: float = 0.01,
-        episode_len: int = 80,
-        q_noise: float = 0.05,
-        qd_noise: float = 0.05,
-        name: str = "arm_reach",
-    ) -> None:
-        reach = sum(link_lengths)
-        if (target[0] ** 2 + target[1] ** 2) ** 0.5 > reach:
-            raise ValueError(f"target {target} is out of reach (total link length {reach})")
-        self.name = name
-        self.link_lengths = tuple(float(x) for x in link_lengths)
-        self.target = (float(target[0]), float(target[1]))
-        self.distance_scale = distance_scale
-        self.ctrl_weight = ctrl_weight
-        self.vel_weight = vel_weight
-        self.episode_len = episode_len
-        self.q_noise = q_noise
-        self.qd_noise = qd_noise
+    link_lengths: Sequence[float] = ARM2_LINK_LENGTHS  # m, a tuple once built
+    target: tuple[float, float] = (0.6, 0.4)  # (x, z) in m
+    distance_scale: float = 0.15  # m
+    ctrl_weight: float = 0.05
+    episode_len: int = 80
+    name: str = "arm_reach"
+
+    def __post_init__(self) -> None:
+        reach = sum(self.link_lengths)
+        if (self.target[0] ** 2 + self.target[1] ** 2) ** 0.5 > reach:
+            raise ValueError(f"target {self.target} is out of reach (total link length {reach})")
+        self.link_lengths = tuple(float(x) for x in self.link_lengths)
+        self.target = (float(self.target[0]), float(self.target[1]))
+
+    @property
+    def nq(self) -> int:
+        return len(self.link_lengths)
 
     def tip_positions(self, q: Tensor) -> Tensor:
         """(..., n) -> (..., n, 2): (x, z) of every link tip."""
@@ -76,9 +69,4 @@ class ArmReach(Task):
         tip = self.tip_positions(q)[..., -1, :]
         d2 = (tip[..., 0] - self.target[0]).square() + (tip[..., 1] - self.target[1]).square()
         near = 1.0 / (1.0 + d2 / self.distance_scale**2)
-        shaping = control_factor(action, self.ctrl_weight) * velocity_factor(qd, self.vel_weight)
-        return near * shaping
-
-    def initial_state(self, batch_shape: tuple[int, ...], generator: torch.Generator) -> State:
-        n = len(self.link_lengths)
-        return noisy_rest_state(n, tuple(batch_shape), generator, self.q_noise, self.qd_noise)
+        return near * self.shaping(qd, action)

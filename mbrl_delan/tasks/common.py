@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import abc
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
 from mbrl_delan.systems.system import State
+from mbrl_delan.tasks.base import Task
 
 
 class PlacedConstants:
@@ -54,3 +58,30 @@ def noisy_rest_state(
     q = q_noise * torch.randn(shape, **kwargs)
     qd = qd_noise * torch.randn(shape, **kwargs)
     return State(q=q, qd=qd)
+
+
+@dataclass(kw_only=True, eq=False)
+class ShapedTask(Task):
+    """A task whose reward is a goal term times `shaping`, started near rest at q = 0.
+
+    Subclasses declare their own fields and defaults (a dataclass each, keyword-only
+    arguments) and the number of coordinates `nq`.
+    """
+
+    ctrl_weight: float = 0.1  # of control_factor
+    vel_weight: float = 0.01  # of velocity_factor
+    episode_len: int = 100  # control steps per episode
+    q_noise: float = 0.05  # std of the start's q about 0 (rad or m)
+    qd_noise: float = 0.05  # std of the start's qd about 0
+
+    @property
+    @abc.abstractmethod
+    def nq(self) -> int:
+        """Number of position coordinates of the system."""
+
+    def shaping(self, qd: Tensor, action: Tensor) -> Tensor:
+        """control_factor(action) * velocity_factor(qd). (..., nv), (..., nu) -> (...)."""
+        return control_factor(action, self.ctrl_weight) * velocity_factor(qd, self.vel_weight)
+
+    def initial_state(self, batch_shape: tuple[int, ...], generator: torch.Generator) -> State:
+        return noisy_rest_state(self.nq, tuple(batch_shape), generator, self.q_noise, self.qd_noise)

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
 from mbrl_delan.systems.kinematics import planar_chain_points
-from mbrl_delan.systems.system import State
-from mbrl_delan.tasks.base import Task
-from mbrl_delan.tasks.common import control_factor, noisy_rest_state, velocity_factor
+from mbrl_delan.tasks.common import ShapedTask
 
 # pendulum.xml: a bob on a massless rod
 PENDULUM_LENGTH = 1.0  # m, pivot to bob (COM)
@@ -23,30 +23,20 @@ def upright(angle: Tensor) -> Tensor:
     return 0.5 * (1.0 - torch.cos(angle))
 
 
-class PendulumSwingup(Task):
+@dataclass(kw_only=True, eq=False)
+class PendulumSwingup(ShapedTask):
     """Swing the pendulum up from hanging down and balance it.
 
     reward = upright(q) * control_factor(a) * velocity_factor(qd), in [0, 1], 1 only upright,
     at rest and with zero torque.
     """
 
-    def __init__(
-        self,
-        length: float = PENDULUM_LENGTH,
-        ctrl_weight: float = 0.1,
-        vel_weight: float = 0.01,
-        episode_len: int = 100,
-        q_noise: float = 0.05,
-        qd_noise: float = 0.05,
-        name: str = "pendulum",
-    ) -> None:
-        self.name = name
-        self.length = float(length)
-        self.ctrl_weight = ctrl_weight
-        self.vel_weight = vel_weight
-        self.episode_len = episode_len
-        self.q_noise = q_noise
-        self.qd_noise = qd_noise
+    length: float = PENDULUM_LENGTH  # m, pivot to bob
+    name: str = "pendulum"
+    nq = 1
+
+    def __post_init__(self) -> None:
+        self.length = float(self.length)
 
     def tip_positions(self, q: Tensor) -> Tensor:
         """(..., 1) -> (..., 1, 2): (x, z) of the bob."""
@@ -54,8 +44,4 @@ class PendulumSwingup(Task):
 
     def reward(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
         """(..., 1), (..., 1), (..., 1) -> (...) in [0, 1]."""
-        up = upright(q[..., 0])
-        return up * control_factor(action, self.ctrl_weight) * velocity_factor(qd, self.vel_weight)
-
-    def initial_state(self, batch_shape: tuple[int, ...], generator: torch.Generator) -> State:
-        return noisy_rest_state(1, tuple(batch_shape), generator, self.q_noise, self.qd_noise)
+        return upright(q[..., 0]) * self.shaping(qd, action)
