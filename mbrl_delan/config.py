@@ -7,7 +7,9 @@ and rejects a bad value at start with a message that names it and lists what is 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import fields
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -32,6 +34,19 @@ DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 class ConfigError(ValueError):
     """A config value is invalid; the message names it and the valid choices."""
+
+
+def refuse_used_run_dir(run_dir: Path, run_files: Sequence[str], instead: str) -> None:
+    """A new run must not start in a folder that holds another run's `run_files` (they would
+    be overwritten). Raises ConfigError naming the folder, the files found and `instead`
+    (what to do), before the run writes anything. (Hydra itself has by then rewritten its
+    record of the launch in ``.hydra/`` and opened the log, which gets the error.)"""
+    found = [name for name in run_files if (run_dir / name).exists()]
+    if found:
+        raise ConfigError(
+            f"{run_dir} already holds a run ({', '.join(found)}); {instead} "
+            "(those files were left as they were)"
+        )
 
 
 def _choice(path: str, value: Any, choices: tuple[str, ...]) -> None:

@@ -34,7 +34,14 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 
 from mbrl_delan import keys
-from mbrl_delan.config import DTYPES, ConfigError, check_device, check_number, check_whole
+from mbrl_delan.config import (
+    DTYPES,
+    ConfigError,
+    check_device,
+    check_number,
+    check_whole,
+    refuse_used_run_dir,
+)
 from mbrl_delan.data.buffer import NonFiniteDataError, check_finite
 from mbrl_delan.data.mocap import (
     GAINS,
@@ -71,7 +78,7 @@ from mbrl_delan.training.inverse_fit import (
     check_mass_matrix,
     fit_inverse_model,
 )
-from mbrl_delan.training.recorder import METRICS_FILE, Recorder, read_metrics
+from mbrl_delan.training.recorder import METRICS_FILE, SUMMARY_FILE, Recorder, read_metrics
 
 log = logging.getLogger("mbrl_delan.fit")
 
@@ -80,6 +87,8 @@ LR_SCHEDULES = ("constant", "cosine")
 RUN_CONFIG = "config.yaml"
 PROVENANCE_FILE = "dataset_provenance.json"
 MODEL_FILE = "model.pt"
+# what a fit writes into its run dir; a new fit refuses a folder holding any of them
+RUN_FILES = (RUN_CONFIG, PROVENANCE_FILE, MODEL_FILE, METRICS_FILE, SUMMARY_FILE)
 SPLITS = tuple(SPLIT_NAMES.values())  # ("train", "val_time", "val_clip")
 TAU_DEFINITION = (
     "all nv generalized forces (humanoid_CMU: 62 = 6 root residual [world-frame force, "
@@ -433,6 +442,7 @@ def _log_summary(run_dir: Path, s: dict[str, Any]) -> None:
 def main(cfg: DictConfig) -> float | None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
+        refuse_used_run_dir(run_dir, RUN_FILES, "start the new fit in another hydra.run.dir")
         summary = run(cfg, run_dir)
     except ConfigError as err:
         log.error("config error: %s", err)

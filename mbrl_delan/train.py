@@ -27,6 +27,7 @@ from mbrl_delan.config import (
     build_model,
     build_planner,
     check_device,
+    refuse_used_run_dir,
     validate_train_config,
 )
 from mbrl_delan.data.buffer import (
@@ -43,7 +44,7 @@ from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
-from mbrl_delan.sweep import exit_or_raise, marks_crash, with_sweep_group
+from mbrl_delan.sweep import CRASH_FILE, RUN_CONFIG, exit_or_raise, marks_crash, with_sweep_group
 from mbrl_delan.systems.system import System
 from mbrl_delan.training.checkpoint import (
     CheckpointError,
@@ -55,7 +56,7 @@ from mbrl_delan.training.checkpoint import (
 from mbrl_delan.training.fit import TrainingDivergedError
 from mbrl_delan.training.loop import MBRLLoop
 from mbrl_delan.training.plots import plot_run
-from mbrl_delan.training.recorder import METRICS_FILE, Recorder, read_metrics
+from mbrl_delan.training.recorder import METRICS_FILE, SUMMARY_FILE, Recorder, read_metrics
 from mbrl_delan.training.video import (
     RENDER_ERRORS,
     VideoBackendError,
@@ -68,7 +69,8 @@ from mbrl_delan.training.video import (
 log = logging.getLogger("mbrl_delan.train")
 
 CHECKPOINT = "checkpoint.pt"
-RUN_CONFIG = "config.yaml"
+# files that mark a folder as holding a run (finished, stopped or crashed)
+RUN_FILES = (RUN_CONFIG, CHECKPOINT, METRICS_FILE, SUMMARY_FILE, CRASH_FILE)
 
 OmegaConf.register_new_resolver(
     "run_dir_or", lambda resume, default: resume or default, replace=True
@@ -293,6 +295,16 @@ def _yaml(value: Any) -> str:
     return str(value).lower() if isinstance(value, bool) else str(value)
 
 
+def check_new_run_dir(cfg: DictConfig) -> None:
+    """A new run (no `resume=`) must not start in a folder that holds another run: its
+    config, checkpoint and metrics would be overwritten. Raises ConfigError naming them."""
+    if cfg.get("resume") is not None or not HydraConfig.initialized():
+        return
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    instead = f"continue it with resume={run_dir}, or start a new one in another hydra.run.dir"
+    refuse_used_run_dir(run_dir, RUN_FILES, instead)
+
+
 def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | None]:
     """The config and run dir to use, and the checkpoint when resuming."""
     if cfg.resume is None:
@@ -459,6 +471,7 @@ def _print_summary(run_dir: Path, s: dict[str, Any]) -> None:
 @hydra.main(version_base="1.3", config_path="../configs", config_name="config")
 def main(cfg: DictConfig) -> float | None:
     try:
+        check_new_run_dir(cfg)  # before `train`: a refusal leaves no crash.json behind
         summary = train(cfg)
     except ConfigError as err:
         log.error("config error: %s", err)

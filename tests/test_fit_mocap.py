@@ -10,6 +10,7 @@ import json
 import math
 import os
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -427,6 +428,30 @@ def test_bad_config_value_exits_2_naming_the_key(clip_folder, tmp_path: Path) ->
     assert "model.hidden=0" in out.stdout + out.stderr
     assert "Traceback" not in out.stdout + out.stderr
     assert not (tmp_path / "bad" / "metrics.jsonl").exists()
+
+
+def test_new_fit_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was(
+    fitted, clip_folder, tmp_path: Path
+) -> None:
+    run_dir = tmp_path / "used"
+    shutil.copytree(fitted["mlp"], run_dir)
+    own = [p for p in run_dir.rglob("*") if p.is_file() and ".hydra" not in p.parts]
+    before = {p: p.read_bytes() for p in own if p.suffix != ".log"}
+    cmd = [
+        sys.executable,
+        "-m",
+        "mbrl_delan.fit",
+        *small_overrides(clip_folder),
+        "model=mlp",
+        f"hydra.run.dir={run_dir}",
+    ]
+    env = {**os.environ, "WANDB_MODE": "disabled"}
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
+    text = out.stdout + out.stderr
+    assert out.returncode == 2, text
+    assert f"{run_dir} already holds a run (config.yaml" in text and "Traceback" not in text
+    assert {p: p.read_bytes() for p in before} == before
+    assert run_dir / "model.pt" in before
 
 
 @pytest.mark.parametrize(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -158,6 +159,32 @@ def test_bad_config_value_fails_at_start_naming_it(
     assert expected in out.stdout + out.stderr
     assert "Traceback" not in out.stdout + out.stderr
     assert not (tmp_path / "bad" / "checkpoint.pt").exists()
+
+
+def run_files(run_dir: Path) -> dict[str, bytes]:
+    """The run's own files (not Hydra's `.hydra/` record nor its log) by relative path."""
+    return {
+        str(p.relative_to(run_dir)): p.read_bytes()
+        for p in run_dir.rglob("*")
+        if p.is_file() and ".hydra" not in p.parts and p.suffix != ".log"
+    }
+
+
+def test_new_run_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was(
+    finished_run: Path, tmp_path: Path
+) -> None:
+    """Without `resume=`, a run in a folder holding another would overwrite its config,
+    checkpoint and metrics: it is refused before it writes anything."""
+    run_dir = tmp_path / "used"
+    shutil.copytree(finished_run, run_dir)
+    before = run_files(run_dir)
+    out = train(run_dir, "budget.iterations=1")
+    text = out.stdout + out.stderr
+    assert out.returncode == 2, text
+    assert "already holds a run (config.yaml, checkpoint.pt, metrics.jsonl" in text
+    assert f"resume={run_dir}" in text and "Traceback" not in text
+    assert run_files(run_dir) == before  # no crash.json either
+    assert "metrics.jsonl" in before and "checkpoint.pt" in before
 
 
 @pytest.mark.parametrize(
