@@ -412,18 +412,16 @@ def test_evaluation_keeps_no_autograd_graph(clip_folder) -> None:
 # ---------------------------------------------------------------- errors
 
 
-def test_bad_config_value_exits_2_naming_the_key(clip_folder, tmp_path: Path) -> None:
-    cmd = [
-        sys.executable,
-        "-m",
-        "mbrl_delan.fit",
-        *small_overrides(clip_folder),
-        "model=mlp",
-        "model.hidden=0",
-        f"hydra.run.dir={tmp_path / 'bad'}",
-    ]
+def fit_cli(clip_folder: Path, run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
+    """`python -m mbrl_delan.fit` on the small setting with an MLP, in `run_dir`."""
+    cmd = [sys.executable, "-m", "mbrl_delan.fit", *small_overrides(clip_folder), "model=mlp"]
+    cmd += [*overrides, f"hydra.run.dir={run_dir}"]
     env = {**os.environ, "WANDB_MODE": "disabled"}
-    out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
+    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
+
+
+def test_bad_config_value_exits_2_naming_the_key(clip_folder, tmp_path: Path) -> None:
+    out = fit_cli(clip_folder, tmp_path / "bad", "model.hidden=0")
     assert out.returncode == 2, out.stdout + out.stderr
     assert "model.hidden=0" in out.stdout + out.stderr
     assert "Traceback" not in out.stdout + out.stderr
@@ -437,16 +435,7 @@ def test_new_fit_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was(
     shutil.copytree(fitted["mlp"], run_dir)
     own = [p for p in run_dir.rglob("*") if p.is_file() and ".hydra" not in p.parts]
     before = {p: p.read_bytes() for p in own if p.suffix != ".log"}
-    cmd = [
-        sys.executable,
-        "-m",
-        "mbrl_delan.fit",
-        *small_overrides(clip_folder),
-        "model=mlp",
-        f"hydra.run.dir={run_dir}",
-    ]
-    env = {**os.environ, "WANDB_MODE": "disabled"}
-    out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
+    out = fit_cli(clip_folder, run_dir)
     text = out.stdout + out.stderr
     assert out.returncode == 2, text
     assert f"{run_dir} already holds a run (config.yaml" in text and "Traceback" not in text
