@@ -78,13 +78,18 @@ from mbrl_delan.training.inverse_fit import (
     check_mass_matrix,
     fit_inverse_model,
 )
-from mbrl_delan.training.recorder import METRICS_FILE, SUMMARY_FILE, Recorder, read_metrics
+from mbrl_delan.training.recorder import (
+    METRICS_FILE,
+    RUN_CONFIG,
+    SUMMARY_FILE,
+    Recorder,
+    read_metrics,
+)
 
 log = logging.getLogger("mbrl_delan.fit")
 
 DATA_NAMES = ("cmu_mocap",)
 LR_SCHEDULES = ("constant", "cosine")
-RUN_CONFIG = "config.yaml"
 PROVENANCE_FILE = "dataset_provenance.json"
 MODEL_FILE = "model.pt"
 # what a fit writes into its run dir; a new fit refuses a folder holding any of them

@@ -35,12 +35,11 @@ from omegaconf import OmegaConf
 from scipy import stats
 
 from mbrl_delan.sweep import CRASH_FILE, last_iteration, read_crash
-from mbrl_delan.training.recorder import METRICS_FILE, read_metrics
+from mbrl_delan.training.recorder import METRICS_FILE, RUN_CONFIG, read_metrics
 
 log = logging.getLogger(__name__)
 
 SUMMARY = "summary.json"
-RUN_CONFIG = "config.yaml"
 RUN_FILES = (RUN_CONFIG, SUMMARY, CRASH_FILE)
 GROUP_KEYS = ("env", "model", "planner")
 REQUIRED_KEYS = (*GROUP_KEYS, "seed")

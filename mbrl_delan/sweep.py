@@ -25,12 +25,11 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, open_dict
 
 from mbrl_delan.training.checkpoint import atomic_write
-from mbrl_delan.training.recorder import ITERATION, METRICS_FILE, read_metrics
+from mbrl_delan.training.recorder import ITERATION, METRICS_FILE, RUN_CONFIG, read_metrics
 
 log = logging.getLogger(__name__)
 
 CRASH_FILE = "crash.json"
-RUN_CONFIG = "config.yaml"
 TRACEBACK_CHARS = 4000  # the tail of the traceback kept in crash.json
 
 T = TypeVar("T")

@@ -44,7 +44,7 @@ from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
-from mbrl_delan.sweep import CRASH_FILE, RUN_CONFIG, exit_or_raise, marks_crash, with_sweep_group
+from mbrl_delan.sweep import CRASH_FILE, exit_or_raise, marks_crash, with_sweep_group
 from mbrl_delan.systems.system import System
 from mbrl_delan.training.checkpoint import (
     CheckpointError,
@@ -56,7 +56,13 @@ from mbrl_delan.training.checkpoint import (
 from mbrl_delan.training.fit import TrainingDivergedError
 from mbrl_delan.training.loop import MBRLLoop
 from mbrl_delan.training.plots import plot_run
-from mbrl_delan.training.recorder import METRICS_FILE, SUMMARY_FILE, Recorder, read_metrics
+from mbrl_delan.training.recorder import (
+    METRICS_FILE,
+    RUN_CONFIG,
+    SUMMARY_FILE,
+    Recorder,
+    read_metrics,
+)
 from mbrl_delan.training.video import (
     RENDER_ERRORS,
     VideoBackendError,

@@ -19,6 +19,7 @@ from mbrl_delan.training.checkpoint import atomic_write
 
 log = logging.getLogger(__name__)
 
+RUN_CONFIG = "config.yaml"  # the run's resolved config, written by the entry point
 METRICS_FILE = "metrics.jsonl"
 SUMMARY_FILE = "summary.json"
 WANDB_ID_FILE = "wandb_id.txt"
