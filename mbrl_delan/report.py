@@ -90,12 +90,14 @@ def is_run_dir(path: Path) -> bool:
     """Whether ``path`` is a training run dir, finished or not.
 
     A dir Hydra made (``.hydra/config.yaml``) is one when that config is a training config (a
-    run killed before it wrote anything is still found); any other dir is one when it holds
-    ``config.yaml``, ``summary.json`` or ``crash.json``.
+    run killed before it wrote anything is still found), or when the run's own ``config.yaml``
+    is (Hydra rewrites its record at every launch in the dir, a refused one of another program
+    too); any other dir is one when it holds ``config.yaml``, ``summary.json`` or ``crash.json``.
     """
     hydra_cfg = path / ".hydra" / RUN_CONFIG
     if hydra_cfg.is_file():
-        return _is_train_config(hydra_cfg)
+        own_cfg = path / RUN_CONFIG
+        return _is_train_config(hydra_cfg) or (own_cfg.is_file() and _is_train_config(own_cfg))
     return any((path / name).is_file() for name in RUN_FILES)
 
 

@@ -83,6 +83,21 @@ def test_incomplete_runs_are_listed(tmp_path: Path, caplog) -> None:
     assert "no summary.json" in (tmp_path / "report.md").read_text()
 
 
+def test_a_run_whose_hydra_record_another_program_rewrote_is_still_found(tmp_path: Path) -> None:
+    """A refused `fit` launch in a training run's dir rewrites `.hydra/config.yaml`: the run's
+    own config still marks the dir as a training run, and a fit dir stays out."""
+    run = make_run(tmp_path, "train_run", summary(0, 40.0, 40.0))
+    (run / "config.yaml").write_text("planner:\n  name: mppi\nbudget:\n  iterations: 6\n")
+    (run / ".hydra").mkdir()
+    (run / ".hydra" / "config.yaml").write_text("data:\n  name: cmu_mocap\n")
+    fit = make_run(tmp_path, "fit_run", None)
+    (fit / "config.yaml").write_text("data:\n  name: cmu_mocap\n")
+    (fit / ".hydra").mkdir()
+    (fit / ".hydra" / "config.yaml").write_text("data:\n  name: cmu_mocap\n")
+    runs, incomplete = find_runs([tmp_path])
+    assert [r["run_dir"] for r in runs] == [str(run)] and incomplete == []
+
+
 def test_missing_folder_is_an_error(tmp_path: Path) -> None:
     assert main([str(tmp_path / "nope")]) == 2
 
