@@ -60,6 +60,15 @@ def _optional_positive_int(name: str, value: Any) -> int | None:
     return value
 
 
+def _optional_seed(name: str, value: Any) -> int | None:
+    """None (the suite's default) or an integer >= 0."""
+    if value is None:
+        return None
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise ConfigError(f"{name}={value!r} is not valid; it must be null or an integer >= 0")
+    return value
+
+
 def _optional_positive_ints(name: str, values: Any) -> tuple[int, ...] | None:
     """None (the suite's default) or a non-empty list of integers >= 1."""
     return None if values is None else _positive_ints(name, values)
@@ -139,6 +148,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
             "oracle_tasks", values["oracle_tasks"], HUMANOID_ORACLE_TASKS, allow_empty=True
         ),
         oracle_steps=_optional_positive_int("oracle_steps", values["oracle_steps"]),
+        seed=_optional_seed("seed", values["seed"]),
     )
 
 

@@ -40,7 +40,7 @@ def humanoid():
 def test_quick_suite_writes_every_model_and_horizon(tmp_path: Path) -> None:
     out = tmp_path / "humanoid.jsonl"
     cmd = [sys.executable, "-m", "mbrl_delan.bench", "suite=humanoid", "quick=true", "threads=1"]
-    cmd += [f"out={out}", f"hydra.run.dir={tmp_path / 'run'}"]
+    cmd += [f"out={out}", f"hydra.run.dir={tmp_path / 'run'}", "seed=2"]
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
     records = [json.loads(line) for line in out.read_text().splitlines()]
@@ -49,6 +49,7 @@ def test_quick_suite_writes_every_model_and_horizon(tmp_path: Path) -> None:
     assert sorted({r["horizon"] for r in errors}) == [1, 5]
     assert all(r["value"] is not None and math.isfinite(r["value"]) for r in errors)
     assert sum(r["metric"] == "fit_s" for r in records) == 3
+    assert {r["seed"] for r in records} == {2}  # the data's, the fits' and the oracle's
     # the DeLaN models fit 2-step rollouts (the quick K), the MLP ensemble single transitions
     steps = {r["case"]: r["rollout_steps"] for r in records if "rollout_steps" in r}
     assert steps == {"delan-n120": 2, "delan_ensemble-n120": 2, "ensemble-n120": 1}
@@ -87,6 +88,10 @@ def test_episodes_are_contiguous_mujoco_transitions(humanoid) -> None:
     for ep in episodes:  # each step starts where the last one ended
         torch.testing.assert_close(ep[keys.Q][1:], ep[keys.NEXT_Q][:-1])
         torch.testing.assert_close(ep[keys.QD][1:], ep[keys.NEXT_QD][:-1])
+    again = collect_episodes(humanoid.system, humanoid.task, 50, cfg, seed=3)
+    other = collect_episodes(humanoid.system, humanoid.task, 50, cfg, seed=4)
+    torch.testing.assert_close(episodes[0][keys.ACTION], again[0][keys.ACTION])
+    assert not torch.allclose(episodes[0][keys.ACTION], other[0][keys.ACTION])  # the seed's data
 
 
 def test_rollout_error_skips_episodes_shorter_than_the_horizon(humanoid) -> None:
@@ -196,6 +201,9 @@ def test_oracle_options() -> None:
         options("oracle_tasks=[cartpole]")
     with pytest.raises(ConfigError, match="oracle_steps"):
         options("oracle_steps=0")
+    assert default.seed == 0 and suite_config(options("seed=3")).seed == 3
+    with pytest.raises(ConfigError, match="seed"):
+        options("seed=-1")
     with pytest.raises(ConfigError, match="models"):
         options("models=[]", suite="planner")  # only suite humanoid runs without models
 

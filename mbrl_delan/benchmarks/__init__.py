@@ -138,6 +138,7 @@ class SuiteOptions:
     rollout_steps: int | None = None  # K of the K-step rollout loss of models that take it
     oracle_tasks: tuple[str, ...] | None = None  # tasks of the oracle's episodes (() for none)
     oracle_steps: int | None = None  # control steps of each oracle episode at most
+    seed: int | None = None  # data, fits and oracle starts (test episodes: seed + 1000)
 
 
 def synchronizer(device: torch.device) -> Callable[[], None]:

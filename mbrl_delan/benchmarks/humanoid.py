@@ -351,7 +351,7 @@ def run_humanoid(cfg: HumanoidBenchConfig, opts: SuiteOptions) -> Iterator[Bench
     for n in cfg.sizes:
         train = torch.cat(collect_episodes(system, task, n, cfg, cfg.seed))
         fields = dict(
-            env=cfg.env, transitions=n, test_transitions=cfg.test_transitions,
+            env=cfg.env, transitions=n, test_transitions=cfg.test_transitions, seed=cfg.seed,
             data_policy=f"pd_hold kp={cfg.kp} kd={cfg.kd} noise={cfg.noise}", **host,
         )  # fmt: skip
         for name in cfg.models:
@@ -385,6 +385,8 @@ def suite_config(opts: SuiteOptions) -> HumanoidBenchConfig:
         cfg = replace(cfg, oracle_tasks=opts.oracle_tasks)
     if opts.oracle_steps is not None:
         cfg = replace(cfg, oracle_steps=opts.oracle_steps)
+    if opts.seed is not None:
+        cfg = replace(cfg, seed=opts.seed)
     return cfg
 
 
