@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 
 from mbrl_delan import keys
 from mbrl_delan.bench import build_options
-from mbrl_delan.benchmarks.figures import error_curves
+from mbrl_delan.benchmarks.figures import describe_curves, error_curves
 from mbrl_delan.benchmarks.figures import main as figures_main
 from mbrl_delan.benchmarks.humanoid import (
     MODEL_SETTINGS,
@@ -220,11 +220,15 @@ def test_error_vs_horizon_figure(tmp_path: Path) -> None:
     ]  # fmt: skip
     curves = error_curves(records)
     assert curves == {
-        "delan-n100 (K=5)": [(1, 0.2), (10, 0.5)],  # sorted by horizon
-        "ensemble-n100": [(1, 0.1)],  # the skipped figure (None) left out
+        "delan-n100 (K=5)": [(1, [0.2]), (10, [0.5])],  # sorted by horizon
+        "ensemble-n100": [(1, [0.1])],  # the skipped figure (None) left out
     }
+    other_seed = {**records[1], "value": 0.4, "seed": 1}  # delan at h 1 again
+    two = error_curves([*records, other_seed])["delan-n100 (K=5)"]
+    assert two == [(1, [0.2, 0.4]), (10, [0.5])]
+    assert describe_curves({"d": two})[0] == "d h=1: mean 0.3 (min 0.2, max 0.4, n 2)"
     data = tmp_path / "h.jsonl"
-    data.write_text("\n".join(json.dumps(r) for r in records))
+    data.write_text("\n".join(json.dumps(r) for r in [*records, other_seed]))  # with a band
     out = tmp_path / "fig" / "error.png"
     assert figures_main([str(data), "--out", str(out)]) == 0
     assert out.read_bytes()[:4] == b"\x89PNG"

@@ -3,8 +3,10 @@ error-vs-horizon figure.
 
 Reads the JSON Lines records of `python -m mbrl_delan.bench suite=humanoid out=FILE` and draws
 `rollout_error` against its `horizon`, one line per case (`{model}-n{transitions}`, with the
-K of its rollout loss), on a log scale. Exit status 2 when a file is missing or malformed or
-holds no `rollout_error` record.
+K of its rollout loss), on a log scale. Where a case has several records at a horizon (runs
+with other `seed=`s), the line is their mean and a band spans their smallest to largest; the
+log lists each point as mean, min, max and count. Exit status 2 when a file is missing or
+malformed or holds no `rollout_error` record.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import statistics
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -26,10 +29,11 @@ log = logging.getLogger(__name__)
 ROLLOUT_ERROR = "rollout_error"
 
 
-def error_curves(records: list[dict[str, Any]]) -> dict[str, list[tuple[int, float]]]:
-    """Case label -> [(horizon, rollout_error)] sorted by horizon (records without a value
-    left out). The label is the case, with `K=` its rollout loss's steps when recorded."""
-    curves: dict[str, list[tuple[int, float]]] = defaultdict(list)
+def error_curves(records: list[dict[str, Any]]) -> dict[str, list[tuple[int, list[float]]]]:
+    """Case label -> [(horizon, its rollout_error values)] sorted by horizon (records without a
+    value left out). The label is the case, with `K=` its rollout loss's steps when recorded;
+    a horizon holds one value per record (one per seed run)."""
+    curves: dict[str, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
     for r in records:
         if r.get("metric") != ROLLOUT_ERROR or r.get("value") is None:
             continue
@@ -37,16 +41,35 @@ def error_curves(records: list[dict[str, Any]]) -> dict[str, list[tuple[int, flo
             raise ValueError(f"a {ROLLOUT_ERROR} record without its case or horizon: {r}")
         steps = r.get("rollout_steps")
         label = r["case"] if steps is None else f"{r['case']} (K={steps})"
-        curves[label].append((int(r["horizon"]), float(r["value"])))
-    return {label: sorted(points) for label, points in sorted(curves.items())}
+        curves[label][int(r["horizon"])].append(float(r["value"]))
+    return {label: sorted(by_h.items()) for label, by_h in sorted(curves.items())}
 
 
-def plot_error_curves(curves: dict[str, list[tuple[int, float]]], path: Path, title: str) -> Path:
-    """Draw the curves (log y) into the PNG at `path`."""
+def describe_curves(curves: dict[str, list[tuple[int, list[float]]]]) -> list[str]:
+    """One line per case and horizon: `case h=H mean M (min A, max B, n N)`."""
+    return [
+        f"{label} h={h}: mean {statistics.fmean(v):.4g} (min {min(v):.4g}, max {max(v):.4g}, "
+        f"n {len(v)})"
+        for label, points in curves.items()
+        for h, v in points
+    ]
+
+
+def plot_error_curves(
+    curves: dict[str, list[tuple[int, list[float]]]], path: Path, title: str
+) -> Path:
+    """Draw the curves (log y) into the PNG at `path`: the mean, and the min-max band where a
+    horizon has several values."""
     fig = Figure(figsize=(6.0, 4.0))
     ax = fig.add_subplot()
     for label, points in curves.items():
-        ax.plot([h for h, _ in points], [v for _, v in points], marker="o", label=label)
+        h = [p[0] for p in points]
+        runs = max(len(v) for _, v in points)
+        name = label if runs == 1 else f"{label}, mean of {runs}"
+        (line,) = ax.plot(h, [statistics.fmean(v) for _, v in points], marker="o", label=name)
+        if runs > 1:
+            lo, hi = [min(v) for _, v in points], [max(v) for _, v in points]
+            ax.fill_between(h, lo, hi, color=line.get_color(), alpha=0.2, linewidth=0)
     ax.set_yscale("log")
     ax.set_xlabel("horizon (control steps, open loop)")
     ax.set_ylabel("rollout_error (normalised RMS)")
@@ -82,6 +105,8 @@ def main(argv: list[str] | None = None) -> int:
     if not curves:
         log.error("no %s records in %s", ROLLOUT_ERROR, ", ".join(map(str, args.files)))
         return 2
+    for line in describe_curves(curves):
+        log.info("%s", line)
     log.info("figure: %s", plot_error_curves(curves, args.out, args.title))
     return 0
 
