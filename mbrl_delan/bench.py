@@ -51,22 +51,20 @@ def _positive_ints(name: str, values: Any) -> tuple[int, ...]:
     return tuple(items)
 
 
+def _optional_int(name: str, value: Any, minimum: int) -> int | None:
+    """None (the suite's default) or an integer >= minimum."""
+    if value is None:
+        return None
+    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+        raise ConfigError(
+            f"{name}={value!r} is not valid; it must be null or an integer >= {minimum}"
+        )
+    return value
+
+
 def _optional_positive_int(name: str, value: Any) -> int | None:
     """None (the suite's default) or an integer >= 1."""
-    if value is None:
-        return None
-    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-        raise ConfigError(f"{name}={value!r} is not valid; it must be null or an integer >= 1")
-    return value
-
-
-def _optional_seed(name: str, value: Any) -> int | None:
-    """None (the suite's default) or an integer >= 0."""
-    if value is None:
-        return None
-    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-        raise ConfigError(f"{name}={value!r} is not valid; it must be null or an integer >= 0")
-    return value
+    return _optional_int(name, value, 1)
 
 
 def _optional_positive_ints(name: str, values: Any) -> tuple[int, ...] | None:
@@ -148,7 +146,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
             "oracle_tasks", values["oracle_tasks"], HUMANOID_ORACLE_TASKS, allow_empty=True
         ),
         oracle_steps=_optional_positive_int("oracle_steps", values["oracle_steps"]),
-        seed=_optional_seed("seed", values["seed"]),
+        seed=_optional_int("seed", values["seed"], 0),
     )
 
 
