@@ -19,6 +19,8 @@ from omegaconf import DictConfig, OmegaConf
 from mbrl_delan.benchmarks import (
     HUMANOID_MODELS,
     HUMANOID_ORACLE_TASKS,
+    ILQR_TASKS,
+    ORACLE_PLANNERS,
     PLANNER_MODELS,
     SUITE_NAMES,
     SuiteOptions,
@@ -87,6 +89,24 @@ def _optional_choices(
     return tuple(items)
 
 
+def _oracle_planner(value: Any, tasks: Any) -> str | None:
+    """None (MPPI) or one of ORACLE_PLANNERS; iLQR only on tracking tasks (their residuals)."""
+    if value is None:
+        return None
+    if value not in ORACLE_PLANNERS:
+        raise ConfigError(
+            f"oracle_planner={value!r} is not valid; use null or one of: "
+            + ", ".join(ORACLE_PLANNERS)
+        )
+    others = [t for t in (HUMANOID_ORACLE_TASKS if tasks is None else tasks) if t not in ILQR_TASKS]
+    if value == "ilqr" and others:
+        raise ConfigError(
+            f"oracle_planner=ilqr needs a tracking task's residuals: set oracle_tasks to a list of "
+            f"{', '.join(ILQR_TASKS)} (it holds {', '.join(others)})"
+        )
+    return str(value)
+
+
 def _positive(name: str, value: Any) -> float:
     if not isinstance(value, int | float) or isinstance(value, bool) or value <= 0:
         raise ConfigError(f"{name}={value!r} is not valid; it must be a number > 0")
@@ -146,6 +166,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
             "oracle_tasks", values["oracle_tasks"], HUMANOID_ORACLE_TASKS, allow_empty=True
         ),
         oracle_steps=_optional_positive_int("oracle_steps", values["oracle_steps"]),
+        oracle_planner=_oracle_planner(values["oracle_planner"], values["oracle_tasks"]),
         seed=_optional_int("seed", values["seed"], 0),
     )
 

@@ -201,6 +201,13 @@ def test_oracle_options() -> None:
         options("oracle_tasks=[cartpole]")
     with pytest.raises(ConfigError, match="oracle_steps"):
         options("oracle_steps=0")
+    assert default.oracle_method == "mppi"
+    ilqr = suite_config(options("oracle_tasks=[cmu_track]", "oracle_planner=ilqr"))
+    assert ilqr.oracle_method == "ilqr" and ilqr.oracle_tasks == ("cmu_track",)
+    with pytest.raises(ConfigError, match="oracle_planner=ilqr needs .* humanoid_stand"):
+        options("oracle_planner=ilqr")  # all three tasks; standing has no residuals
+    with pytest.raises(ConfigError, match="oracle_planner"):
+        options("oracle_planner=lqr")
     assert default.seed == 0 and suite_config(options("seed=3")).seed == 3
     with pytest.raises(ConfigError, match="seed"):
         options("seed=-1")

@@ -66,9 +66,11 @@ from mbrl_delan.config import build_model
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.base import WorldModel
+from mbrl_delan.planners.ilqr import ILQRPolicy, ILQRSettings, MujocoILQR
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.planners.tracking_residual import TrackingResidual
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.training.fit import FitConfig, fit_model
@@ -133,6 +135,12 @@ class HumanoidBenchConfig:
     oracle_planner: Setting = Setting(num_samples=256, horizon=15, iterations=2)
     oracle_temperature: float = 0.05
     oracle_noise_std: float = 0.3
+    # oracle_method "ilqr": iLQR on MuJoCo's derivatives (tracking tasks: their residuals, the
+    # task's w k plus body points in the world frame; planners/tracking_residual.py)
+    oracle_method: str = "mppi"
+    oracle_ilqr: ILQRSettings = ILQRSettings(horizon=10, iterations=2)
+    oracle_point_weight: float = 30.0  # per m^2, each of the 16 body points
+    oracle_root_weight: float = 0.0  # the pelvis is one of the body points
 
     @classmethod
     def quick(cls) -> HumanoidBenchConfig:
@@ -292,7 +300,6 @@ def oracle_episode(
     real env for at most `steps` control steps (None: the task's episode length), from the
     task's initial state of `seed`."""
     parts = make_env_parts(task_name, None, steps)
-    env = make_real_env(task_name, seed=seed, episode_len=steps)
     system = parts.system
     planner = MPPIPlanner(
         horizon=setting.horizon,
@@ -307,29 +314,53 @@ def oracle_episode(
     threads = torch.get_num_threads()  # the suite's `threads`: MuJoCo rollout threads too
     with mujoco_objective_factory(parts.system, parts.task, nthread=threads) as factory:
         policy = PlannerPolicy(planner, factory, seed=seed, action_dtype=torch.float32)
-        start = time.perf_counter()
-        rollout = run_episode(env, policy, seed, parts.task.episode_len)
-        seconds = time.perf_counter() - start
+        return _timed_episode(task_name, parts.task.episode_len, seed, policy)
+
+
+def ilqr_oracle_episode(
+    task_name: str,
+    steps: int | None,
+    settings: ILQRSettings,
+    seed: int,
+    point_weight: float,
+    root_weight: float | None,
+) -> OracleEpisode:
+    """Receding-horizon iLQR (`settings`) on MuJoCo's dynamics and derivatives, with the
+    tracking task's residuals (`TrackingResidual`), like `oracle_episode`."""
+    parts = make_env_parts(task_name, None, steps)
+    system, model = parts.system, parts.system.mj_model()
+    cost = TrackingResidual(model, parts.task, point_weight=point_weight, root_weight=root_weight)
+    planner = MujocoILQR(
+        model, system.frame_skip, system.ctrl_low.numpy(), system.ctrl_high.numpy(), cost,
+        settings, nthread=torch.get_num_threads(),
+    )  # fmt: skip
+    try:
+        return _timed_episode(task_name, parts.task.episode_len, seed, ILQRPolicy(planner))
+    finally:
+        planner.close()
+
+
+def _timed_episode(
+    task_name: str, episode_len: int, seed: int, policy: PlannerPolicy | ILQRPolicy
+) -> OracleEpisode:
+    """One episode of `policy` on the real env of `episode_len` control steps, timed."""
+    env = make_real_env(task_name, seed=seed, episode_len=episode_len)
+    start = time.perf_counter()
+    rollout = run_episode(env, policy, seed, episode_len)
+    seconds = time.perf_counter() - start
     env.close()
     fell = bool(rollout[keys.NEXT_TERMINATED].any())
-    return OracleEpisode(
-        episode_return(rollout), rollout.shape[0], parts.task.episode_len, fell, seconds
-    )
+    return OracleEpisode(episode_return(rollout), rollout.shape[0], episode_len, fell, seconds)
 
 
 def oracle_records(cfg: HumanoidBenchConfig, host: dict[str, Any]) -> Iterator[BenchRecord]:
     """`oracle_return` and `oracle_step_s` of one oracle episode per task."""
-    setting = cfg.oracle_planner
     for name in cfg.oracle_tasks:
-        log.info("humanoid suite: oracle MPPI episode on %s (%s)", name, setting.tag())
-        ep = oracle_episode(
-            name, cfg.oracle_steps, setting, cfg.seed, cfg.oracle_temperature, cfg.oracle_noise_std
-        )
+        log.info("humanoid suite: oracle %s episode on %s", cfg.oracle_method, name)
+        ep, settings = _oracle_run(cfg, name)
         fields = dict(
             env=name, steps=ep.steps, episode_len=ep.episode_len, fell=ep.fell,
-            mean_reward=ep.ret / ep.steps, planner="mppi", num_samples=setting.num_samples,
-            horizon=setting.horizon, iterations=setting.iterations,
-            temperature=cfg.oracle_temperature, noise_std=cfg.oracle_noise_std, seed=cfg.seed,
+            mean_reward=ep.ret / ep.steps, planner=cfg.oracle_method, **settings, seed=cfg.seed,
             **host,
         )  # fmt: skip
         log.info("oracle-%s: return %.2f over %d steps%s", name, ep.ret, ep.steps,
@@ -338,6 +369,27 @@ def oracle_records(cfg: HumanoidBenchConfig, host: dict[str, Any]) -> Iterator[B
         yield BenchRecord(SUITE, case, "oracle_return", ep.ret, "return", "cpu", fields)
         step_s = ep.seconds / ep.steps
         yield BenchRecord(SUITE, case, "oracle_step_s", step_s, "s", "cpu", fields)
+
+
+def _oracle_run(cfg: HumanoidBenchConfig, name: str) -> tuple[OracleEpisode, dict[str, Any]]:
+    """The oracle's episode on task `name` and its planner settings (record fields)."""
+    if cfg.oracle_method == "ilqr":
+        s = cfg.oracle_ilqr
+        ep = ilqr_oracle_episode(
+            name, cfg.oracle_steps, s, cfg.seed, cfg.oracle_point_weight, cfg.oracle_root_weight
+        )
+        return ep, dict(
+            horizon=s.horizon, iterations=s.iterations, control_weight=s.control_weight,
+            point_weight=cfg.oracle_point_weight, root_weight=cfg.oracle_root_weight,
+        )  # fmt: skip
+    s = cfg.oracle_planner
+    ep = oracle_episode(
+        name, cfg.oracle_steps, s, cfg.seed, cfg.oracle_temperature, cfg.oracle_noise_std
+    )
+    return ep, dict(
+        num_samples=s.num_samples, horizon=s.horizon, iterations=s.iterations,
+        temperature=cfg.oracle_temperature, noise_std=cfg.oracle_noise_std,
+    )  # fmt: skip
 
 
 def run_humanoid(cfg: HumanoidBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord]:
@@ -385,6 +437,8 @@ def suite_config(opts: SuiteOptions) -> HumanoidBenchConfig:
         cfg = replace(cfg, oracle_tasks=opts.oracle_tasks)
     if opts.oracle_steps is not None:
         cfg = replace(cfg, oracle_steps=opts.oracle_steps)
+    if opts.oracle_planner is not None:
+        cfg = replace(cfg, oracle_method=opts.oracle_planner)
     if opts.seed is not None:
         cfg = replace(cfg, seed=opts.seed)
     return cfg

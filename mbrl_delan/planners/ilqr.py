@@ -1,0 +1,329 @@
+"""iLQR on MuJoCo's own dynamics: a gradient-based oracle planner.
+
+The sampling planners see only returns; this one uses the derivatives of the simulator, for
+tasks whose cost is a weighted sum of squared residuals (`ResidualCost`):
+
+    J(U) = sum_{t=1..H} 1/2 e(x_t, s + t - 1)^T W e(x_t, s + t - 1) + sum_{t=0..H-1} 1/2 c |u_t|^2
+
+x_t = (q_t, qd_t) the state reached by the first t controls from x_0, s the episode step of
+u_0 and c the control weight. Each iteration (Gauss-Newton iLQR):
+
+1. the control-step Jacobians A_t = dx_{t+1}/dx_t (2nv, 2nv) and B_t = dx_{t+1}/du_t (2nv, nu)
+   by forward differences, in MuJoCo's tangent space (positions perturbed with
+   `mj_integratePos`, compared with `mj_differentiatePos`), all H (1 + 2nv + nu) perturbed
+   control steps in one multi-threaded `mujoco.rollout` call;
+2. a backward Riccati pass with the cost's Gauss-Newton Hessian J_e^T W J_e and
+   Levenberg-Marquardt regularisation mu I on Q_uu, giving feed-forward terms k_t and gains K_t;
+3. a forward pass u_t = clip(u_t + alpha k_t + K_t (x_t (-) xbar_t)) on MuJoCo, for alpha in
+   `line_search` until the cost falls; mu shrinks after an accepted step and grows when none is.
+
+The plan is warm-started from the previous one shifted by a step, as the sampling planners are.
+Everything runs in float64 numpy on the CPU (MuJoCo's side of the oracle).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import mujoco
+import numpy as np
+import torch
+from mujoco import rollout as mj_rollout
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+
+from mbrl_delan import keys
+from mbrl_delan.planners.oracle import FULLPHYSICS, QPOS, QVEL, _state_offset
+from mbrl_delan.planners.policy import PlannerPolicy
+
+
+class ResidualCost(Protocol):
+    """A state cost 1/2 e^T diag(weights) e with residuals e of the state and episode step."""
+
+    weights: np.ndarray  # (R,) >= 0
+
+    def residual(self, q: np.ndarray, qd: np.ndarray, step: int) -> np.ndarray:
+        """e (R,) of the state (q (nq,), qd (nv,)) reached by the action of `step`."""
+        ...
+
+    def jacobian(self, q: np.ndarray, qd: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """e (R,) and de/dx (R, 2 nv), x in the tangent space (dq, dqd)."""
+        ...
+
+
+@dataclass(frozen=True)
+class ILQRSettings:
+    """Sizes and constants of the iLQR planner."""
+
+    horizon: int = 10  # control steps planned
+    iterations: int = 2  # iLQR iterations per control step
+    control_weight: float = 1e-3  # c in 1/2 c |u|^2 per step
+    regularization: float = 1e-3  # mu at the start of each plan
+    fd_eps: float = 1e-6  # forward-difference step (tangent space and controls)
+    line_search: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.03)
+
+    def __post_init__(self) -> None:
+        if self.horizon < 1 or self.iterations < 1:
+            raise ValueError(
+                f"iLQR horizon and iterations must be >= 1, got {self.horizon}, {self.iterations}"
+            )
+        positive = (self.regularization, self.fd_eps, *self.line_search)
+        if self.control_weight < 0 or not all(np.isfinite(positive)) or min(positive) <= 0:
+            raise ValueError(
+                "iLQR control_weight must be >= 0 and regularization, fd_eps and the "
+                f"line-search steps > 0, got {self}"
+            )
+
+
+@dataclass
+class ILQRResult:
+    """What one call of `plan` found."""
+
+    actions: np.ndarray  # (H, nu) the plan, within the control range
+    cost: float  # its cost J(U)
+    initial_cost: float  # J of the warm start
+    accepted: int  # iterations whose line search lowered the cost
+
+
+class MujocoILQR:
+    """iLQR over a MuJoCo model, each control held for `frame_skip` physics steps.
+
+    Args:
+        model: the MuJoCo model (its own timestep and integrator).
+        frame_skip: physics steps per control step.
+        ctrl_low, ctrl_high: the control range (nu,).
+        cost: the state cost (`ResidualCost`).
+        settings: horizon, iterations and constants.
+        nthread: MuJoCo rollout threads for the derivatives.
+    """
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        frame_skip: int,
+        ctrl_low: np.ndarray,
+        ctrl_high: np.ndarray,
+        cost: ResidualCost,
+        settings: ILQRSettings = ILQRSettings(),
+        nthread: int = 1,
+    ) -> None:
+        if frame_skip < 1 or nthread < 1:
+            raise ValueError(f"frame_skip and nthread must be >= 1, got {frame_skip}, {nthread}")
+        self.model, self.frame_skip, self.cost, self.settings = model, frame_skip, cost, settings
+        self.low, self.high = np.asarray(ctrl_low, float), np.asarray(ctrl_high, float)
+        self.nq, self.nv, self.nu = model.nq, model.nv, model.nu
+        self.nstate = mujoco.mj_stateSize(model, FULLPHYSICS)
+        self.qpos_at, self.qvel_at = _state_offset(model, QPOS), _state_offset(model, QVEL)
+        self.data = mujoco.MjData(model)
+        self._datas = [mujoco.MjData(model) for _ in range(nthread)]
+        self._pool = mj_rollout.Rollout(nthread=nthread if nthread > 1 else 0)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
+
+    def __del__(self) -> None:
+        self.close()
+
+    # ------------------------------------------------------------ states
+    def full_state(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """FULLPHYSICS state (nstate,) at time 0 with qpos = q, qvel = qd."""
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[:], self.data.qvel[:] = q, qd
+        state = np.empty(self.nstate)
+        mujoco.mj_getState(self.model, self.data, state, FULLPHYSICS)
+        return state
+
+    def qv(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(q (..., nq), qd (..., nv)) of FULLPHYSICS states (..., nstate)."""
+        q = state[..., self.qpos_at : self.qpos_at + self.nq]
+        return q, state[..., self.qvel_at : self.qvel_at + self.nv]
+
+    def tangent(self, state: np.ndarray, ref: np.ndarray) -> np.ndarray:
+        """state (-) ref in the tangent space: (dq, dqd) (2 nv,)."""
+        (q, qd), (q0, qd0) = self.qv(state), self.qv(ref)
+        dq = np.empty(self.nv)
+        mujoco.mj_differentiatePos(self.model, dq, 1.0, q0, q)
+        return np.concatenate([dq, qd - qd0])
+
+    def _rollout(self, states: np.ndarray, ctrl: np.ndarray) -> np.ndarray:
+        """Hold ctrl (N, T, nu) for frame_skip steps each from states (N, nstate).
+        -> the states after each control step (N, T, nstate)."""
+        if self._pool is None:
+            raise RuntimeError("MujocoILQR was closed")
+        skip = self.frame_skip
+        control = np.ascontiguousarray(np.repeat(ctrl, skip, axis=1))
+        out = np.empty((control.shape[0], control.shape[1], self.nstate))
+        init = np.ascontiguousarray(states)
+        self._pool.rollout(self.model, self._datas, init, control, state=out)
+        return out[:, skip - 1 :: skip]
+
+    # ------------------------------------------------------------ cost
+    def total_cost(self, states: np.ndarray, actions: np.ndarray, step: int) -> float:
+        """J of states (H + 1, nstate) x_0..x_H and actions (H, nu) from episode step `step`."""
+        w = self.cost.weights
+        total = 0.5 * self.settings.control_weight * float(np.sum(actions * actions))
+        for t in range(1, states.shape[0]):
+            e = self.cost.residual(*self.qv(states[t]), step + t - 1)
+            total += 0.5 * float(np.sum(w * e * e))
+        return total
+
+    # ------------------------------------------------------------ derivatives
+    def derivatives(self, states: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Forward-difference A (H, 2nv, 2nv), B (H, 2nv, nu) of the control-step map along
+        states (H + 1, nstate) and actions (H, nu) (within the control range)."""
+        horizon, nv, nu, eps = actions.shape[0], self.nv, self.nu, self.settings.fd_eps
+        n = 1 + 2 * nv + nu
+        init = np.repeat(states[:horizon, None], n, axis=1)  # (H, n, nstate)
+        ctrl = np.repeat(actions[:, None], n, axis=1)  # (H, n, nu)
+        sign = np.where(actions + eps > self.high, -1.0, 1.0)  # stay inside the range
+        for t in range(horizon):
+            q = self.qv(states[t])[0]
+            for i in range(nv):
+                dq = np.zeros(nv)
+                dq[i] = eps
+                qpos = init[t, 1 + i, self.qpos_at : self.qpos_at + self.nq]
+                qpos[:] = q
+                mujoco.mj_integratePos(self.model, qpos, dq, 1.0)
+                init[t, 1 + nv + i, self.qvel_at + i] += eps
+            ctrl[t, 1 + 2 * nv + np.arange(nu), np.arange(nu)] += sign[t] * eps
+        end = self._rollout(init.reshape(horizon * n, -1), ctrl.reshape(horizon * n, 1, nu))
+        end = end[:, 0].reshape(horizon, n, self.nstate)
+        A, B = np.empty((horizon, 2 * nv, 2 * nv)), np.empty((horizon, 2 * nv, nu))
+        for t in range(horizon):
+            cols = np.stack([self.tangent(end[t, c], end[t, 0]) for c in range(1, n)], axis=1)
+            A[t] = cols[:, : 2 * nv] / eps
+            B[t] = cols[:, 2 * nv :] * (sign[t] / eps)
+        return A, B
+
+    # ------------------------------------------------------------ iLQR
+    def _backward(
+        self, states: np.ndarray, actions: np.ndarray, A: np.ndarray, B: np.ndarray, step: int,
+        mu: float,
+    ) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
+        """Feed-forward k (H, nu) and gains K (H, nu, 2nv); None if Q_uu is not positive."""
+        horizon, w, c = actions.shape[0], self.cost.weights, self.settings.control_weight
+        e, J = self.cost.jacobian(*self.qv(states[horizon]), step + horizon - 1)
+        vx, vxx = J.T @ (w * e), J.T @ (w[:, None] * J)
+        k, K = np.empty((horizon, self.nu)), np.empty((horizon, self.nu, 2 * self.nv))
+        eye = np.eye(self.nu)
+        for t in range(horizon - 1, -1, -1):
+            qx, qxx = A[t].T @ vx, A[t].T @ vxx @ A[t]
+            if t > 0:  # x_0 is given: no cost on it
+                e, J = self.cost.jacobian(*self.qv(states[t]), step + t - 1)
+                qx, qxx = qx + J.T @ (w * e), qxx + J.T @ (w[:, None] * J)
+            qu = c * actions[t] + B[t].T @ vx
+            quu = (c + mu) * eye + B[t].T @ vxx @ B[t]
+            qux = B[t].T @ vxx @ A[t]
+            try:
+                chol = np.linalg.cholesky(quu)
+            except np.linalg.LinAlgError:
+                return None
+            gains = -_cho_solve(chol, np.concatenate([qu[:, None], qux], axis=1))
+            k[t], K[t] = gains[:, 0], gains[:, 1:]
+            vx = qx + K[t].T @ quu @ k[t] + K[t].T @ qu + qux.T @ k[t]
+            vxx = qxx + K[t].T @ quu @ K[t] + K[t].T @ qux + qux.T @ K[t]
+            vxx = 0.5 * (vxx + vxx.T)
+        return k, K
+
+    def _forward(
+        self, states: np.ndarray, actions: np.ndarray, k: np.ndarray, K: np.ndarray, alpha: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Closed-loop rollout of the updated policy. -> states (H + 1, nstate), actions (H, nu)"""
+        model, data = self.model, self.data
+        new_states, new_actions = np.empty_like(states), np.empty_like(actions)
+        new_states[0] = states[0]
+        for t in range(actions.shape[0]):
+            dx = self.tangent(new_states[t], states[t])
+            new_actions[t] = np.clip(actions[t] + alpha * k[t] + K[t] @ dx, self.low, self.high)
+            mujoco.mj_setState(model, data, new_states[t], FULLPHYSICS)
+            data.ctrl[:] = new_actions[t]
+            mujoco.mj_step(model, data, nstep=self.frame_skip)
+            mujoco.mj_getState(model, data, new_states[t + 1], FULLPHYSICS)
+        return new_states, new_actions
+
+    def plan(self, state: np.ndarray, actions: np.ndarray, step: int = 0) -> ILQRResult:
+        """Improve actions (H, nu) from FULLPHYSICS `state` (nstate,) at episode `step`."""
+        s = self.settings
+        actions = np.clip(np.asarray(actions, float), self.low, self.high)
+        states = np.concatenate([state[None], self._rollout(state[None], actions[None])[0]])
+        cost = initial = self.total_cost(states, actions, step)
+        mu, accepted = s.regularization, 0
+        for _ in range(s.iterations):
+            A, B = self.derivatives(states, actions)
+            gains = self._backward(states, actions, A, B, step, mu)
+            while gains is None:
+                mu *= 10.0
+                gains = self._backward(states, actions, A, B, step, mu)
+            for alpha in s.line_search:
+                trial_states, trial_actions = self._forward(states, actions, *gains, alpha)
+                trial = self.total_cost(trial_states, trial_actions, step)
+                if trial < cost:
+                    states, actions, cost = trial_states, trial_actions, trial
+                    accepted += 1
+                    mu = max(mu / 3.0, 1e-8)
+                    break
+            else:
+                mu *= 10.0
+        return ILQRResult(actions=actions, cost=cost, initial_cost=initial, accepted=accepted)
+
+
+def _cho_solve(chol: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve (L L^T) x = rhs for a lower Cholesky factor L."""
+    return np.linalg.solve(chol.T, np.linalg.solve(chol, rhs))
+
+
+class ILQRPolicy(TensorDictModuleBase):
+    """Receding-horizon iLQR as a TorchRL policy: q, qd in, action out, one plan per step.
+
+    The plan is warm-started from the previous one shifted by one step (the last action
+    repeated); zeros at the start of an episode. Call `reset()` at an episode's start (also
+    done when the input carries `is_init` or `step_count` 0).
+    """
+
+    def __init__(self, planner: MujocoILQR, action_dtype: torch.dtype = torch.float32) -> None:
+        super().__init__()
+        self.in_keys, self.out_keys = [keys.Q, keys.QD], [keys.ACTION]
+        self.planner, self.action_dtype = planner, action_dtype
+        self.last_result: ILQRResult | None = None
+        self._plan: np.ndarray | None = None  # (H, nu)
+        self._episode_step = 0
+
+    def reset(self) -> None:
+        self._plan, self._episode_step, self.last_result = None, 0, None
+
+    def act(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """The action (nu,) for state (q (nq,), qd (nv,))."""
+        p = self.planner
+        if self._plan is None:
+            warm = np.zeros((p.settings.horizon, p.nu))
+        else:
+            warm = np.concatenate([self._plan[1:], self._plan[-1:]])
+        self.last_result = p.plan(p.full_state(q, qd), warm, self._episode_step)
+        self._plan = self.last_result.actions
+        self._episode_step += 1
+        return self._plan[0]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        q, qd = tensordict.get(keys.Q), tensordict.get(keys.QD)
+        if q.ndim != 1 or qd.ndim != 1:
+            raise ValueError(
+                f"ILQRPolicy needs unbatched q (nq,) and qd (nv,), got {tuple(q.shape)} "
+                f"and {tuple(qd.shape)}"
+            )
+        if PlannerPolicy._episode_starts(tensordict):
+            self.reset()
+        as_np = lambda x: x.detach().to("cpu", torch.float64).numpy()  # noqa: E731
+        action = torch.from_numpy(self.act(as_np(q), as_np(qd)).copy())
+        device = tensordict.device if tensordict.device is not None else q.device
+        tensordict.set(keys.ACTION, action.to(device=device, dtype=self.action_dtype))
+        return tensordict
+
+    def get_extra_state(self) -> dict[str, Any]:
+        return {"plan": None if self._plan is None else self._plan.copy(),
+                "episode_step": self._episode_step}  # fmt: skip
+
+    def set_extra_state(self, state: dict[str, Any]) -> None:
+        self._plan, self._episode_step = state["plan"], int(state["episode_step"])

@@ -1,0 +1,115 @@
+"""Residuals of a motion-tracking task for the iLQR oracle (`MujocoILQR`).
+
+`MotionTracking`'s reward sums w exp(-k |e|^2) over four terms; near the reference,
+1 - reward ~ sum w k |e|^2, so its residuals weighted w k are the reward's own quadratic
+cost (halved). Exponentials saturate far from the reference, where a squared cost keeps
+pulling; iLQR uses the squared form:
+
+- pose: q (-) q_ref over the rotational DoFs (root rotation vector, hinges), weight w k;
+- velocity: qd - qd_ref over the same DoFs, weight w k;
+- end effectors: world positions relative to the root minus the reference's, weight w k;
+- root: the root position minus the reference's, weight w k (`root_weight` overrides);
+- body points: world positions of `point_bodies` minus the reference's, weight
+  `point_weight` per m^2 (0: off). They hold the whole body, pelvis included, in place.
+
+Jacobians (tangent space): the pose and velocity rows are the identity on their DoFs (exact
+for hinges; the Gauss-Newton approximation of the root rotation's), the point rows come from
+`mj_jacBody`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import mujoco
+import numpy as np
+
+from mbrl_delan.tasks.tracking import MotionTracking
+
+# pelvis, head, toes, feet, shins, hands, forearms, upper arms, thighs (CMU humanoid)
+CMU_BODY_POINTS = (
+    "root", "head", "ltoes", "rtoes", "lfoot", "rfoot", "ltibia", "rtibia", "lhand", "rhand",
+    "lradius", "rradius", "lhumerus", "rhumerus", "lfemur", "rfemur",
+)  # fmt: skip
+
+
+class TrackingResidual:
+    """`ResidualCost` of a `MotionTracking` task on its MuJoCo model.
+
+    Args:
+        model: the task's MuJoCo model (free root first).
+        task: the tracking task (reference, end effectors, weights and scales).
+        point_bodies: bodies scored by their world position.
+        point_weight: weight of each body point's squared error (per m^2); 0 turns them off.
+        root_weight: weight of the root term (None: the task's w k).
+    """
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        task: MotionTracking,
+        point_bodies: Sequence[str] = CMU_BODY_POINTS,
+        point_weight: float = 0.0,
+        root_weight: float | None = None,
+    ) -> None:
+        if point_weight < 0 or (root_weight is not None and root_weight < 0):
+            raise ValueError(
+                f"point_weight and root_weight must be >= 0, got {point_weight}, {root_weight}"
+            )
+        self.model, self.data = model, mujoco.MjData(model)
+        self.ref_q, self.ref_qd = task.ref_q.numpy(), task.ref_qd.numpy()  # (T+1, nq), (T+1, nv)
+        self.last = self.ref_q.shape[0] - 1
+        self.root_body = task.root_body
+        self.ee_bodies = task.bodies.tolist()
+        ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) for n in point_bodies]
+        missing = [n for n, i in zip(point_bodies, ids, strict=True) if i < 0]
+        if missing:
+            raise ValueError(f"body points not in the model: {', '.join(missing)}")
+        self.points = ids if point_weight > 0 else []
+        self.ref_points = [self._points(q) for q in self.ref_q]
+        w, k, nv = task.weights, task.scales, model.nv
+        root = w.root * k.root if root_weight is None else root_weight
+        self.weights = np.concatenate([
+            np.full(nv - 3, w.pose * k.pose), np.full(nv - 3, w.velocity * k.velocity),
+            np.full(3 * len(self.ee_bodies), w.end_effector * k.end_effector), np.full(3, root),
+            np.full(3 * len(self.points), point_weight),
+        ])  # fmt: skip
+
+    def _points(self, q: np.ndarray) -> np.ndarray:
+        """Root, end effectors relative to it, body points: (1 + E + P, 3) world positions."""
+        self.data.qpos[:] = q
+        mujoco.mj_kinematics(self.model, self.data)
+        xpos = self.data.xpos
+        root = xpos[self.root_body]
+        return np.concatenate([root[None], xpos[self.ee_bodies] - root, xpos[self.points]])
+
+    def residual(self, q: np.ndarray, qd: np.ndarray, step: int) -> np.ndarray:
+        """e (R,): pose, velocity, end effectors, root, body points against ref min(step+1, T)."""
+        j = min(step + 1, self.last)
+        pose = np.empty(self.model.nv)
+        mujoco.mj_differentiatePos(self.model, pose, 1.0, self.ref_q[j], q)
+        points = self._points(q) - self.ref_points[j]
+        ee, rest = points[1 : 1 + len(self.ee_bodies)], points[1 + len(self.ee_bodies) :]
+        return np.concatenate(
+            [pose[3:], (qd - self.ref_qd[j])[3:], ee.ravel(), points[0], rest.ravel()]
+        )
+
+    def jacobian(self, q: np.ndarray, qd: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """e (R,) and de/d(dq, dqd) (R, 2 nv)."""
+        e = self.residual(q, qd, step)  # leaves the kinematics of q in self.data
+        m, d, nv = self.model, self.data, self.model.nv
+        mujoco.mj_comPos(m, d)
+        J = np.zeros((e.size, 2 * nv))
+        J[: nv - 3, 3:nv] = np.eye(nv - 3)
+        J[nv - 3 : 2 * nv - 6, nv + 3 :] = np.eye(nv - 3)
+
+        def body_jac(body: int) -> np.ndarray:
+            jac = np.zeros((3, nv))
+            mujoco.mj_jacBody(m, d, jac, None, body)
+            return jac
+
+        root = body_jac(self.root_body)
+        rows = [body_jac(b) - root for b in self.ee_bodies] + [root]
+        rows += [body_jac(b) for b in self.points]
+        J[2 * nv - 6 :, :nv] = np.concatenate(rows)
+        return e, J
