@@ -29,6 +29,7 @@ from mbrl_delan.training.fit import FitConfig
 
 MODEL_NAMES = ("delan", "ensemble", "delan_ensemble")
 PLANNER_NAMES = ("cem", "icem", "mppi")
+ORACLE_PLANNERS = ("same", "ilqr")  # budget.oracle_planner
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
@@ -143,6 +144,12 @@ def validate_train_config(cfg: DictConfig) -> None:
         "budget.oracle_episodes",
     ):
         check_number(path, _get(cfg, path), 0)
+    oracle_planner = cfg.budget.get("oracle_planner", "same")
+    if oracle_planner not in ORACLE_PLANNERS:
+        raise ConfigError(
+            f"budget.oracle_planner={oracle_planner!r} is not valid; use one of: "
+            + ", ".join(ORACLE_PLANNERS)
+        )
     if cfg.budget.random_episodes == 0:
         raise ConfigError("budget.random_episodes=0 is not valid: the first fit needs data (>= 1)")
     if cfg.model.name == "delan":

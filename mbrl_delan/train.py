@@ -42,10 +42,14 @@ from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import EnvParts, make_env_parts
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.planners.base import SamplingPlanner
-from mbrl_delan.planners.oracle import mujoco_objective_factory
+from mbrl_delan.planners.ilqr import ILQRPolicy
+from mbrl_delan.planners.oracle import available_cpus, mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.planners.tracking_residual import tracking_ilqr_policy
 from mbrl_delan.sweep import CRASH_FILE, exit_or_raise, marks_crash, with_sweep_group
 from mbrl_delan.systems.system import System
+from mbrl_delan.tasks.base import Task
+from mbrl_delan.tasks.tracking import MotionTracking
 from mbrl_delan.training.checkpoint import (
     CheckpointError,
     load_checkpoint,
@@ -119,8 +123,25 @@ def _planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPla
         raise ConfigError(f"planner={cfg.planner.name}: {err}") from err
 
 
-def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]:
-    """The MBRL loop and the oracle policy (same planner over MuJoCo's true dynamics)."""
+def _oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy | ILQRPolicy:
+    """The oracle policy of `budget.oracle_planner`: `same` or `ilqr` (tracking tasks)."""
+    if cfg.budget.get("oracle_planner", "same") == "ilqr":
+        if not isinstance(task, MotionTracking):
+            raise ConfigError(
+                f"budget.oracle_planner=ilqr needs a motion-tracking env (cmu_track), got "
+                f"env={cfg.env.name}"
+            )
+        return tracking_ilqr_policy(system, task, nthread=min(available_cpus(), 8))
+    oracle_factory = mujoco_objective_factory(system, task, discount=cfg.planner.discount)
+    return _policy(
+        cfg.planner, _planner(cfg, system, torch.float64), oracle_factory, cfg.seed,
+        torch.device("cpu"),
+    )  # fmt: skip
+
+
+def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy | ILQRPolicy]:
+    """The MBRL loop and the oracle policy (the same planner over MuJoCo's true dynamics, or
+    iLQR on MuJoCo's derivatives with `budget.oracle_planner=ilqr`)."""
     device, dtype = check_device(cfg.device), DTYPES[cfg.dtype]
     parts = _env_parts(cfg)
     system, task = parts.system, parts.task
@@ -150,14 +171,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         cuda_graph=cfg.model.get("cuda_graph", False),
     )
     policy = _policy(cfg.planner, _planner(cfg, system, dtype), factory, cfg.seed, device)
-    oracle_factory = mujoco_objective_factory(system, task, discount=cfg.planner.discount)
-    oracle = _policy(
-        cfg.planner,
-        _planner(cfg, system, torch.float64),
-        oracle_factory,
-        cfg.seed,
-        torch.device("cpu"),
-    )
+    oracle = _oracle(cfg, system, task)
     buffer = _replay_buffer(cfg, run_dir, env, device)
     fit_cfg = build_fit_config(cfg)
     loop = MBRLLoop(
@@ -382,7 +396,7 @@ def _run(
     cfg: DictConfig,
     run_dir: Path,
     loop: MBRLLoop,
-    oracle: PlannerPolicy,
+    oracle: PlannerPolicy | ILQRPolicy,
     recorder: Recorder,
     extra: dict[str, Any],
 ) -> None:

@@ -6,11 +6,12 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+from tensordict import TensorDict
 
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.planners.ilqr import ILQRPolicy, ILQRSettings, MujocoILQR
-from mbrl_delan.planners.tracking_residual import TrackingResidual
+from mbrl_delan.planners.tracking_residual import TrackingResidual, tracking_ilqr_policy
 from mbrl_delan.training.loop import run_episode
 from tests.test_tracking import RUN_CLIP
 
@@ -173,3 +174,17 @@ def test_ilqr_policy_tracks_better_than_zero_torques_on_the_test_clip(track):
     ilqr_return = float(rollout["next", "reward"].sum())
     assert rollout.shape[0] == steps
     assert ilqr_return > float(zero["next", "reward"].sum()) + 0.05
+
+
+def test_ilqr_policy_names_bad_input():
+    pendulum = make_env_parts("pendulum")
+    with pytest.raises(ValueError, match="needs a motion-tracking task"):
+        tracking_ilqr_policy(pendulum.system, pendulum.task)
+    model = mujoco.MjModel.from_xml_string(POINT_MASS)
+    low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
+    policy = ILQRPolicy(MujocoILQR(model, 1, low, high, Quadratic(np.ones(4))))
+    batched = TensorDict({"q": torch.zeros(3, 2), "qd": torch.zeros(3, 2)}, batch_size=[3])
+    with pytest.raises(ValueError, match="ILQRPolicy needs unbatched q"):
+        policy(batched)
+    with pytest.raises(ValueError, match="horizon and iterations must be >= 1"):
+        ILQRSettings(horizon=0)

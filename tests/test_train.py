@@ -101,6 +101,27 @@ def test_tiny_cmu_track_run_follows_the_clip_in_time(tmp_path: Path) -> None:
     assert 0.0 < summary["oracle_return_mean"] <= 6.0
 
 
+def test_ilqr_oracle_option_builds_the_tracking_ilqr() -> None:
+    """budget.oracle_planner=ilqr on cmu_track: the oracle is iLQR with the clip's residuals
+    (its episodes are tested in test_ilqr.py)."""
+    from mbrl_delan.envs.registry import make_env_parts
+    from mbrl_delan.planners.ilqr import ILQRPolicy
+    from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, TrackingResidual
+    from mbrl_delan.train import _oracle
+
+    configs = str(Path(__file__).resolve().parents[1] / "configs")
+    clip = ["env.task.clip='09_06'", f"env.task.folders=[{DATA}]", "env.task.download=false"]
+    with initialize_config_dir(config_dir=configs, version_base=None):
+        cfg = compose("config", overrides=["env=cmu_track", *clip, "budget.oracle_planner=ilqr"])
+    parts = make_env_parts("cmu_track", task_options={"clip": "09_06", "folders": [str(DATA)],
+                                                      "download": False})  # fmt: skip
+    oracle = _oracle(cfg, parts.system, parts.task)
+    assert isinstance(oracle, ILQRPolicy) and oracle.planner.settings == TRACKING_ILQR
+    assert isinstance(oracle.planner.cost, TrackingResidual)
+    assert oracle.planner.cost.ref_q.shape == tuple(parts.task.ref_q.shape)
+    oracle.planner.close()
+
+
 @pytest.mark.parametrize("memmap", [False, True])
 def test_sigkill_then_resume_continues_identically(
     finished_run: Path, tmp_path: Path, memmap: bool
@@ -149,6 +170,7 @@ def test_sigkill_then_resume_continues_identically(
         ("buffer.device_fraction=0", "buffer.device_fraction=0 is not valid"),
         ("model.yaw_invariant=true", "yaw_invariant needs a model whose first joint is a free"),
         ("fit.val_fraction=2", "val_fraction must be in [0, 1), got 2"),
+        ("budget.oracle_planner=ilqr", "budget.oracle_planner=ilqr needs a motion-tracking env"),
     ],
 )
 def test_bad_config_value_fails_at_start_naming_it(
@@ -200,6 +222,7 @@ def test_new_run_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was(
         ("model.lr=nan", "model.lr=nan is not valid; it must be a number > 0.0"),
         ("model.lr=0", "model.lr=0 is not valid"),
         ("model.weight_decay=-1", "model.weight_decay=-1 is not valid"),
+        ("budget.oracle_planner=lqr", "budget.oracle_planner='lqr' is not valid"),
     ],
 )
 def test_bad_value_is_a_config_error_naming_it(override: str, expected: str) -> None:

@@ -66,11 +66,16 @@ from mbrl_delan.config import build_model
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.base import WorldModel
-from mbrl_delan.planners.ilqr import ILQRPolicy, ILQRSettings, MujocoILQR
+from mbrl_delan.planners.ilqr import ILQRPolicy, ILQRSettings
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
-from mbrl_delan.planners.tracking_residual import TrackingResidual
+from mbrl_delan.planners.tracking_residual import (
+    TRACKING_ILQR,
+    TRACKING_POINT_WEIGHT,
+    TRACKING_ROOT_WEIGHT,
+    tracking_ilqr_policy,
+)
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.training.fit import FitConfig, fit_model
@@ -138,9 +143,9 @@ class HumanoidBenchConfig:
     # oracle_method "ilqr": iLQR on MuJoCo's derivatives (tracking tasks: their residuals, the
     # task's w k plus body points in the world frame; planners/tracking_residual.py)
     oracle_method: str = "mppi"
-    oracle_ilqr: ILQRSettings = ILQRSettings(horizon=10, iterations=2)
-    oracle_point_weight: float = 30.0  # per m^2, each of the 16 body points
-    oracle_root_weight: float = 0.0  # the pelvis is one of the body points
+    oracle_ilqr: ILQRSettings = TRACKING_ILQR
+    oracle_point_weight: float = TRACKING_POINT_WEIGHT  # per m^2, each of the 16 body points
+    oracle_root_weight: float = TRACKING_ROOT_WEIGHT  # the pelvis is one of the body points
 
     @classmethod
     def quick(cls) -> HumanoidBenchConfig:
@@ -328,16 +333,13 @@ def ilqr_oracle_episode(
     """Receding-horizon iLQR (`settings`) on MuJoCo's dynamics and derivatives, with the
     tracking task's residuals (`TrackingResidual`), like `oracle_episode`."""
     parts = make_env_parts(task_name, None, steps)
-    system, model = parts.system, parts.system.mj_model()
-    cost = TrackingResidual(model, parts.task, point_weight=point_weight, root_weight=root_weight)
-    planner = MujocoILQR(
-        model, system.frame_skip, system.ctrl_low.numpy(), system.ctrl_high.numpy(), cost,
-        settings, nthread=torch.get_num_threads(),
-    )  # fmt: skip
+    policy = tracking_ilqr_policy(
+        parts.system, parts.task, torch.get_num_threads(), settings, point_weight, root_weight
+    )
     try:
-        return _timed_episode(task_name, parts.task.episode_len, seed, ILQRPolicy(planner))
+        return _timed_episode(task_name, parts.task.episode_len, seed, policy)
     finally:
-        planner.close()
+        policy.planner.close()
 
 
 def _timed_episode(

@@ -23,6 +23,7 @@ Everything runs in float64 numpy on the CPU (MuJoCo's side of the oracle).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -35,7 +36,9 @@ from tensordict.nn import TensorDictModuleBase
 
 from mbrl_delan import keys
 from mbrl_delan.planners.oracle import FULLPHYSICS, QPOS, QVEL, _state_offset
-from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.planners.policy import episode_starts, read_state
+
+log = logging.getLogger(__name__)
 
 
 class ResidualCost(Protocol):
@@ -301,19 +304,18 @@ class ILQRPolicy(TensorDictModuleBase):
             warm = np.zeros((p.settings.horizon, p.nu))
         else:
             warm = np.concatenate([self._plan[1:], self._plan[-1:]])
-        self.last_result = p.plan(p.full_state(q, qd), warm, self._episode_step)
-        self._plan = self.last_result.actions
+        result = p.plan(p.full_state(q, qd), warm, self._episode_step)
+        log.debug(
+            "iLQR step %d: cost %.4g -> %.4g (%d of %d iterations accepted)", self._episode_step,
+            result.initial_cost, result.cost, result.accepted, p.settings.iterations,
+        )  # fmt: skip
+        self.last_result, self._plan = result, result.actions
         self._episode_step += 1
         return self._plan[0]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        q, qd = tensordict.get(keys.Q), tensordict.get(keys.QD)
-        if q.ndim != 1 or qd.ndim != 1:
-            raise ValueError(
-                f"ILQRPolicy needs unbatched q (nq,) and qd (nv,), got {tuple(q.shape)} "
-                f"and {tuple(qd.shape)}"
-            )
-        if PlannerPolicy._episode_starts(tensordict):
+        q, qd = read_state(tensordict, "ILQRPolicy")
+        if episode_starts(tensordict):
             self.reset()
         as_np = lambda x: x.detach().to("cpu", torch.float64).numpy()  # noqa: E731
         action = torch.from_numpy(self.act(as_np(q), as_np(qd)).copy())

@@ -16,6 +16,26 @@ from mbrl_delan.planners.base import ObjectiveFactory, PlanResult, SamplingPlann
 log = logging.getLogger(__name__)
 
 
+def read_state(tensordict: TensorDictBase, policy: str) -> tuple[Tensor, Tensor]:
+    """The unbatched state q (nq,), qd (nv,) a receding-horizon `policy` acts on."""
+    q, qd = tensordict.get(keys.Q), tensordict.get(keys.QD)
+    if q.ndim != 1 or qd.ndim != 1:
+        raise ValueError(
+            f"{policy} needs unbatched q (nq,) and qd (nv,), got {tuple(q.shape)} "
+            f"and {tuple(qd.shape)}"
+        )
+    return q, qd
+
+
+def episode_starts(tensordict: TensorDictBase) -> bool:
+    """First step of an episode, by TorchRL's InitTracker or StepCounter (if present)."""
+    is_init = tensordict.get(keys.IS_INIT, None)
+    if is_init is not None:
+        return bool(is_init.reshape(-1)[0])
+    step_count = tensordict.get(keys.STEP_COUNT, None)
+    return step_count is not None and int(step_count.reshape(-1)[0]) == 0
+
+
 class PlannerPolicy(TensorDictModuleBase):
     """Receding-horizon control with a sampling planner.
 
@@ -110,28 +130,14 @@ class PlannerPolicy(TensorDictModuleBase):
         self._steps_since_plan = 0
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        q, qd = tensordict.get(keys.Q), tensordict.get(keys.QD)
-        if q.ndim != 1 or qd.ndim != 1:
-            raise ValueError(
-                f"PlannerPolicy needs unbatched q (nq,) and qd (nv,), got {tuple(q.shape)} "
-                f"and {tuple(qd.shape)}"
-            )
-        if self._episode_starts(tensordict):
+        q, qd = read_state(tensordict, "PlannerPolicy")
+        if episode_starts(tensordict):
             self.reset()
         action = self.act(q, qd)
         device = tensordict.device if tensordict.device is not None else q.device
         dtype = self.action_dtype or q.dtype
         tensordict.set(keys.ACTION, action.to(device=device, dtype=dtype).clone())
         return tensordict
-
-    @staticmethod
-    def _episode_starts(tensordict: TensorDictBase) -> bool:
-        """First step of an episode, by TorchRL's InitTracker or StepCounter (if present)."""
-        is_init = tensordict.get(keys.IS_INIT, None)
-        if is_init is not None:
-            return bool(is_init.reshape(-1)[0])
-        step_count = tensordict.get(keys.STEP_COUNT, None)
-        return step_count is not None and int(step_count.reshape(-1)[0]) == 0
 
     # ---------------------------------------------------------------- checkpointing
     def get_extra_state(self) -> dict[str, Any]:

@@ -24,6 +24,8 @@ from collections.abc import Sequence
 import mujoco
 import numpy as np
 
+from mbrl_delan.planners.ilqr import ILQRPolicy, ILQRSettings, MujocoILQR
+from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.tracking import MotionTracking
 
 # pelvis, head, toes, feet, shins, hands, forearms, upper arms, thighs (CMU humanoid)
@@ -113,3 +115,28 @@ class TrackingResidual:
         rows += [body_jac(b) for b in self.points]
         J[2 * nv - 6 :, :nv] = np.concatenate(rows)
         return e, J
+
+
+# iLQR oracle settings for tracking (measured on 02_01 in docs/humanoid.md)
+TRACKING_ILQR = ILQRSettings(horizon=15, iterations=3)
+TRACKING_POINT_WEIGHT = 30.0  # per m^2, each body point
+TRACKING_ROOT_WEIGHT = 0.0  # the pelvis is a body point already
+
+
+def tracking_ilqr_policy(
+    system: System,
+    task: MotionTracking,
+    nthread: int = 1,
+    settings: ILQRSettings = TRACKING_ILQR,
+    point_weight: float = TRACKING_POINT_WEIGHT,
+    root_weight: float | None = TRACKING_ROOT_WEIGHT,
+) -> ILQRPolicy:
+    """Receding-horizon iLQR on `system`'s MuJoCo model with `task`'s tracking residuals.
+    Close it with `policy.planner.close()` (or leave it to the garbage collector)."""
+    if not isinstance(task, MotionTracking):
+        raise ValueError(f"the iLQR oracle needs a motion-tracking task, got {task.name}")
+    model = system.mj_model()
+    cost = TrackingResidual(model, task, point_weight=point_weight, root_weight=root_weight)
+    low, high = system.ctrl_low.numpy(), system.ctrl_high.numpy()
+    planner = MujocoILQR(model, system.frame_skip, low, high, cost, settings, nthread=nthread)
+    return ILQRPolicy(planner)

@@ -30,6 +30,7 @@ from mbrl_delan.data.buffer import (
     load_buffer_state,
 )
 from mbrl_delan.models.base import WorldModel
+from mbrl_delan.planners.ilqr import ILQRPolicy
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.posarith import differentiate_pos
 from mbrl_delan.systems.system import System
@@ -60,7 +61,7 @@ def run_episode(
 ) -> TensorDict:
     """One episode from a reset seeded with `seed`. -> rollout TensorDict (T,)."""
     env.set_seed(seed)
-    if isinstance(policy, PlannerPolicy):
+    if isinstance(policy, PlannerPolicy | ILQRPolicy):
         policy.reset()
     with torch.inference_mode():
         return env.rollout(max_steps, policy=policy, break_when_any_done=True)
