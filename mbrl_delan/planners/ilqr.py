@@ -15,7 +15,8 @@ u_0 and c the control weight. Each iteration (Gauss-Newton iLQR):
 2. a backward Riccati pass with the cost's Gauss-Newton Hessian J_e^T W J_e and
    Levenberg-Marquardt regularisation mu I on Q_uu, giving feed-forward terms k_t and gains K_t;
 3. a forward pass u_t = clip(u_t + alpha k_t + K_t (x_t (-) xbar_t)) on MuJoCo, for alpha in
-   `line_search` until the cost falls; mu shrinks after an accepted step and grows when none is.
+   `line_search` until the cost falls; mu shrinks after an accepted step and grows when none is
+   (the next iteration then reuses the derivatives: the trajectory has not moved).
 
 The plan is warm-started from the previous one shifted by a step, as the sampling planners are.
 Everything runs in float64 numpy on the CPU (MuJoCo's side of the oracle).
@@ -253,9 +254,11 @@ class MujocoILQR:
         actions = np.clip(np.asarray(actions, float), self.low, self.high)
         states = np.concatenate([state[None], self._rollout(state[None], actions[None])[0]])
         cost = initial = self.total_cost(states, actions, step)
-        mu, accepted = s.regularization, 0
+        mu, accepted, derivatives = s.regularization, 0, None
         for _ in range(s.iterations):
-            A, B = self.derivatives(states, actions)
+            if derivatives is None:  # the trajectory moved (or the first iteration)
+                derivatives = self.derivatives(states, actions)
+            A, B = derivatives
             gains = self._backward(states, actions, A, B, step, mu)
             while gains is None:
                 mu *= 10.0
@@ -265,7 +268,7 @@ class MujocoILQR:
                 trial = self.total_cost(trial_states, trial_actions, step)
                 if trial < cost:
                     states, actions, cost = trial_states, trial_actions, trial
-                    accepted += 1
+                    accepted, derivatives = accepted + 1, None
                     mu = max(mu / 3.0, 1e-8)
                     break
             else:
