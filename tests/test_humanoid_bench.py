@@ -25,9 +25,11 @@ from mbrl_delan.benchmarks.humanoid import (
     collect_episodes,
     rollout_error,
     suite_config,
+    tracking_errors,
 )
 from mbrl_delan.config import ConfigError, build_model
 from mbrl_delan.envs.registry import make_env_parts
+from tests.test_tracking import RUN_CLIP
 
 CONFIGS = Path(__file__).parents[1] / "configs"
 
@@ -246,3 +248,20 @@ def test_error_vs_horizon_figure(tmp_path: Path) -> None:
     broken = tmp_path / "broken.jsonl"
     broken.write_text('{"case": "x", "metric": "rollout_error", "value": 1.0}\n')
     assert figures_main([str(broken), "--out", str(out)]) == 2
+
+
+def test_tracking_errors_average_the_episodes_distances() -> None:
+    """An episode that reaches each reference state but one, there 0.3 m off along y (the
+    whole body): root error 0.3 / T on average and 0.3 at most; end effectors 0."""
+    from tensordict import TensorDict
+
+    task = make_env_parts("cmu_track", task_options=RUN_CLIP).task
+    T = 6
+    q = task.ref_q[1 : T + 1].clone()  # step t's action reaches ref_{t+1}
+    q[2, 1] += 0.3
+    rollout = TensorDict({keys.NEXT_Q: q.float()}, batch_size=[T])
+    errors = tracking_errors(task, rollout)
+    assert errors["root_error_m"] == pytest.approx(0.3 / T, abs=1e-6)
+    assert errors["root_error_max_m"] == pytest.approx(0.3, abs=1e-6)
+    assert errors["end_effector_error_m"] == pytest.approx(0.0, abs=1e-5)
+    assert errors["end_effector_error_max_m"] == pytest.approx(0.0, abs=1e-5)

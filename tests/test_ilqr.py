@@ -135,16 +135,17 @@ def track():
 
 def test_tracking_residual_is_zero_on_the_reference_and_its_jacobian_is_exact(track):
     model = track.system.mj_model()
-    cost = TrackingResidual(model, track.task, point_weight=30.0)
-    j = 5
+    cost = TrackingResidual(model, track.task, point_weight=30.0, point_velocity_weight=1.0)
+    j, nv, n_vel = 5, model.nv, 3 * len(cost.moving)
+    assert n_vel == 48  # the 16 body points
     ref_q, ref_qd = cost.ref_q[j], cost.ref_qd[j]
     np.testing.assert_allclose(cost.residual(ref_q, ref_qd, j - 1), 0.0, atol=1e-12)
     rng = np.random.default_rng(1)
     q = ref_q.copy()
-    mujoco.mj_integratePos(model, q, rng.uniform(-0.2, 0.2, model.nv), 1.0)
-    qd = ref_qd + rng.uniform(-1, 1, model.nv)
+    mujoco.mj_integratePos(model, q, rng.uniform(-0.2, 0.2, nv), 1.0)
+    qd = ref_qd + rng.uniform(-1, 1, nv)
     e, J = cost.jacobian(q, qd, j - 1)
-    eps, nv = 1e-6, model.nv
+    eps = 1e-6
     fd = np.empty_like(J)
     for i in range(2 * nv):
         dq, dqd = np.zeros(nv), np.zeros(nv)
@@ -152,9 +153,30 @@ def test_tracking_residual_is_zero_on_the_reference_and_its_jacobian_is_exact(tr
         qp = q.copy()
         mujoco.mj_integratePos(model, qp, dq, 1.0)
         fd[:, i] = (cost.residual(qp, qd + dqd, j - 1) - e) / eps
-    exact = np.r_[3 : e.size]  # all rows but the root rotation's (a Gauss-Newton approximation)
+    # all rows but the root rotation's (a Gauss-Newton approximation) and the body velocities'
+    exact = np.r_[3 : e.size - n_vel]
     np.testing.assert_allclose(J[exact], fd[exact], atol=1e-4)
+    # a body velocity J_b(q) qd: exact along qd; its change with q is left out (zero columns)
+    np.testing.assert_allclose(J[e.size - n_vel :, nv:], fd[e.size - n_vel :, nv:], atol=1e-4)
+    assert not J[e.size - n_vel :, :nv].any() and np.abs(fd[e.size - n_vel :, :nv]).max() > 0.1
     assert cost.weights.shape == e.shape and cost.weights.min() >= 0
+    np.testing.assert_array_equal(cost.weights[e.size - n_vel :], 1.0)
+
+
+def test_tracking_body_velocities_are_mujocos(track):
+    """The reference's body velocities J_b(q_ref) qd_ref equal MuJoCo's own (`mj_objectVelocity`
+    of the body frame, world-aligned linear part)."""
+    model = track.system.mj_model()
+    cost = TrackingResidual(model, track.task, point_weight=0.0, point_velocity_weight=1.0)
+    data = mujoco.MjData(model)
+    j = 7
+    data.qpos[:], data.qvel[:] = cost.ref_q[j], cost.ref_qd[j]
+    mujoco.mj_forward(model, data)
+    res = np.zeros(6)
+    for body, v in zip(cost.moving, cost.ref_velocities[j], strict=True):
+        mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_XBODY, body, res, 0)
+        np.testing.assert_allclose(v, res[3:], atol=1e-9)
+    assert np.abs(cost.ref_velocities[j]).max() > 0.1  # the clip moves
 
 
 def test_ilqr_policy_tracks_better_than_zero_torques_on_the_test_clip(track):

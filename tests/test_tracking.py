@@ -190,6 +190,38 @@ def test_terms_worked_examples(track) -> None:
     assert float(terms.pose) == pytest.approx(np.exp(-2.0 * 0.09))
 
 
+def test_distances_worked_examples(track) -> None:
+    """The reached reference: 0 m; the whole body moved 0.3 m: the root 0.3 m off, the end
+    effectors (relative to the root) 0 m; the root turned by 0.3 rad about its vertical axis:
+    the root 0 m off, each end effector by 2 sin(0.15) times its horizontal distance from the
+    root's vertical axis. An episode's errors average these over its steps."""
+    task, layout, nv = track.task, track.system.layout, track.system.nv
+    step = torch.tensor(9)
+    q = task.ref_q[10].clone()
+    at_ref = task.distances(q, step)
+    assert float(at_ref.root) == pytest.approx(0.0, abs=1e-12)
+    torch.testing.assert_close(at_ref.end_effector, torch.zeros(5, dtype=torch.float64))
+    moved = q.clone()
+    moved[1] += 0.3
+    d = task.distances(moved, step)
+    assert float(d.root) == pytest.approx(0.3)
+    torch.testing.assert_close(d.end_effector, torch.zeros(5, dtype=torch.float64))
+    turned = integrate_pos(layout, q, torch.zeros(nv).index_fill(0, torch.tensor([5]), 0.3), 1.0)
+    d = task.distances(turned, step)
+    assert float(d.root) == pytest.approx(0.0, abs=1e-9)
+    model = track.system.mj_model()
+    data = mujoco.MjData(model)
+    data.qpos[:] = q.numpy()
+    mujoco.mj_kinematics(model, data)
+    root = torch.from_numpy(data.xpos[task.root_body].copy())
+    axis = torch.from_numpy(data.xmat[task.root_body].reshape(3, 3)[:, 2].copy())  # body z
+    ee = torch.from_numpy(data.xpos[task.bodies.numpy()].copy()) - root  # (E, 3)
+    radial = ee - (ee @ axis).unsqueeze(-1) * axis  # (E, 3) off the axis
+    expected = 2.0 * np.sin(0.15) * torch.linalg.vector_norm(radial, dim=-1)
+    torch.testing.assert_close(d.end_effector, expected, atol=1e-9, rtol=1e-6)
+    assert float(expected.min()) > 0.01
+
+
 def test_weights_option_weighs_the_terms(track) -> None:
     """With weights (pose 0.5, velocity 0, end effector 0, root 0.5), a state off by 0.2 rad in
     one hinge and 0.1 m at the root scores 0.5 exp(-2 0.04) + 0.5 exp(-10 0.01)."""

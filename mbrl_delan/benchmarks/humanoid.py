@@ -31,12 +31,15 @@ with the humanoid envs' horizon 15, temperature 0.05 and noise 0.3) on MuJoCo's 
 on the real env, from the task's initial state, for at most `oracle_steps` control steps
 (default: the task's own: 1,000 standing or walking, the clip's length for cmu_track). It
 ends early when the task terminates (the humanoid fell, or left the clip's root by 0.5 m).
+With `oracle_method="ilqr"` (cmu_track only) the oracle is receding-horizon iLQR on MuJoCo's
+derivatives with the tracking residuals instead (`planners/tracking_residual.py`).
 
 Records: case ``{model}-n{n}``, metric ``rollout_error`` (field ``horizon``), and
 ``fit_s`` (seconds of the fit, both phases), with field ``rollout_steps`` (the K it was fitted
 with). Case ``oracle-{task}``: metric ``oracle_return`` (the episode's return; fields
-``steps`` run, ``episode_len`` asked, ``fell``, ``mean_reward``, the planner's settings) and
-``oracle_step_s`` (seconds per control step). Everything runs on `opts.device` except MuJoCo.
+``steps`` run, ``episode_len`` asked, ``fell``, ``mean_reward``, the planner's settings; on
+cmu_track also ``tracking_errors``) and ``oracle_step_s`` (seconds per control step).
+Everything runs on `opts.device` except MuJoCo.
 """
 
 from __future__ import annotations
@@ -51,7 +54,7 @@ import mujoco
 import numpy as np
 import torch
 from omegaconf import OmegaConf
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 
 from mbrl_delan import keys
 from mbrl_delan.benchmarks import (
@@ -63,7 +66,7 @@ from mbrl_delan.benchmarks import (
 from mbrl_delan.benchmarks.planner import Setting
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.config import build_model
-from mbrl_delan.envs.real import make_real_env
+from mbrl_delan.envs.real import env_parts_of, make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.planners.ilqr import ILQRPolicy, ILQRSettings
@@ -72,12 +75,12 @@ from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import (
     TRACKING_ILQR,
-    TRACKING_POINT_WEIGHT,
-    TRACKING_ROOT_WEIGHT,
+    TrackingCostWeights,
     tracking_ilqr_policy,
 )
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
+from mbrl_delan.tasks.tracking import MotionTracking
 from mbrl_delan.training.fit import FitConfig, fit_model
 from mbrl_delan.training.loop import episode_return, model_error, run_episode
 
@@ -141,11 +144,11 @@ class HumanoidBenchConfig:
     oracle_temperature: float = 0.05
     oracle_noise_std: float = 0.3
     # oracle_method "ilqr": iLQR on MuJoCo's derivatives (tracking tasks: their residuals, the
-    # task's w k plus body points in the world frame; planners/tracking_residual.py)
+    # task's w k plus body points' positions and velocities in the world frame;
+    # planners/tracking_residual.py)
     oracle_method: str = "mppi"
     oracle_ilqr: ILQRSettings = TRACKING_ILQR
-    oracle_point_weight: float = TRACKING_POINT_WEIGHT  # per m^2, each of the 16 body points
-    oracle_root_weight: float = TRACKING_ROOT_WEIGHT  # the pelvis is one of the body points
+    oracle_tracking_weights: TrackingCostWeights = TrackingCostWeights()
 
     @classmethod
     def quick(cls) -> HumanoidBenchConfig:
@@ -291,6 +294,20 @@ class OracleEpisode:
     episode_len: int  # control steps asked for
     fell: bool  # it ended because the task terminated (the humanoid fell)
     seconds: float  # wall time of the episode
+    tracking: dict[str, float] | None = None  # motion tracking: `tracking_errors` of the episode
+
+
+def tracking_errors(task: MotionTracking, rollout: TensorDictBase) -> dict[str, float]:
+    """How far an episode of `task` stayed from its reference, in metres: the root's distance
+    and the end effectors' root-relative distance at each reached state q_{t+1} against
+    ref_{t+1}, as means over the steps (and effectors), and the largest per-step mean."""
+    q = rollout.get(keys.NEXT_Q).to(torch.float64)  # (T, nq)
+    d = task.distances(q, torch.arange(q.shape[0]))
+    ee = d.end_effector.mean(-1)  # (T,)
+    return dict(
+        root_error_m=float(d.root.mean()), root_error_max_m=float(d.root.max()),
+        end_effector_error_m=float(ee.mean()), end_effector_error_max_m=float(ee.max()),
+    )  # fmt: skip
 
 
 def oracle_episode(
@@ -327,14 +344,13 @@ def ilqr_oracle_episode(
     steps: int | None,
     settings: ILQRSettings,
     seed: int,
-    point_weight: float,
-    root_weight: float | None,
+    weights: TrackingCostWeights,
 ) -> OracleEpisode:
     """Receding-horizon iLQR (`settings`) on MuJoCo's dynamics and derivatives, with the
-    tracking task's residuals (`TrackingResidual`), like `oracle_episode`."""
+    tracking task's residuals (`TrackingResidual`, `weights`), like `oracle_episode`."""
     parts = make_env_parts(task_name, None, steps)
     policy = tracking_ilqr_policy(
-        parts.system, parts.task, torch.get_num_threads(), settings, point_weight, root_weight
+        parts.system, parts.task, torch.get_num_threads(), settings, weights
     )
     try:
         return _timed_episode(task_name, parts.task.episode_len, seed, policy)
@@ -352,7 +368,11 @@ def _timed_episode(
     seconds = time.perf_counter() - start
     env.close()
     fell = bool(rollout[keys.NEXT_TERMINATED].any())
-    return OracleEpisode(episode_return(rollout), rollout.shape[0], episode_len, fell, seconds)
+    task = env_parts_of(env).task
+    tracking = tracking_errors(task, rollout) if isinstance(task, MotionTracking) else None
+    return OracleEpisode(
+        episode_return(rollout), rollout.shape[0], episode_len, fell, seconds, tracking
+    )
 
 
 def oracle_records(cfg: HumanoidBenchConfig, host: dict[str, Any]) -> Iterator[BenchRecord]:
@@ -363,7 +383,7 @@ def oracle_records(cfg: HumanoidBenchConfig, host: dict[str, Any]) -> Iterator[B
         fields = dict(
             env=name, steps=ep.steps, episode_len=ep.episode_len, fell=ep.fell,
             mean_reward=ep.ret / ep.steps, planner=cfg.oracle_method, **settings, seed=cfg.seed,
-            **host,
+            **(ep.tracking or {}), **host,
         )  # fmt: skip
         log.info("oracle-%s: return %.2f over %d steps%s", name, ep.ret, ep.steps,
                  " (fell)" if ep.fell else "")  # fmt: skip
@@ -376,13 +396,12 @@ def oracle_records(cfg: HumanoidBenchConfig, host: dict[str, Any]) -> Iterator[B
 def _oracle_run(cfg: HumanoidBenchConfig, name: str) -> tuple[OracleEpisode, dict[str, Any]]:
     """The oracle's episode on task `name` and its planner settings (record fields)."""
     if cfg.oracle_method == "ilqr":
-        s = cfg.oracle_ilqr
-        ep = ilqr_oracle_episode(
-            name, cfg.oracle_steps, s, cfg.seed, cfg.oracle_point_weight, cfg.oracle_root_weight
-        )
+        s, w = cfg.oracle_ilqr, cfg.oracle_tracking_weights
+        ep = ilqr_oracle_episode(name, cfg.oracle_steps, s, cfg.seed, w)
         return ep, dict(
             horizon=s.horizon, iterations=s.iterations, control_weight=s.control_weight,
-            point_weight=cfg.oracle_point_weight, root_weight=cfg.oracle_root_weight,
+            regularization=s.regularization, point_weight=w.point,
+            point_velocity_weight=w.point_velocity, root_weight=w.root,
         )  # fmt: skip
     s = cfg.oracle_planner
     ep = oracle_episode(

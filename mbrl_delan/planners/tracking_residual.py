@@ -10,16 +10,19 @@ pulling; iLQR uses the squared form:
 - end effectors: world positions relative to the root minus the reference's, weight w k;
 - root: the root position minus the reference's, weight w k (`root_weight` overrides);
 - body points: world positions of `point_bodies` minus the reference's, weight
-  `point_weight` per m^2 (0: off). They hold the whole body, pelvis included, in place.
+  `point_weight` per m^2 (0: off). They hold the whole body, pelvis included, in place;
+- body velocities: world linear velocities of the same bodies minus the reference's
+  (J_b(q_ref) qd_ref), weight `point_velocity_weight` per (m/s)^2 (0: off).
 
 Jacobians (tangent space): the pose and velocity rows are the identity on their DoFs (exact
 for hinges; the Gauss-Newton approximation of the root rotation's), the point rows come from
-`mj_jacBody`.
+`mj_jacBody`; a body velocity J_b(q) qd gets J_b on qd (its change with q is left out).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
@@ -44,6 +47,8 @@ class TrackingResidual:
         point_bodies: bodies scored by their world position.
         point_weight: weight of each body point's squared error (per m^2); 0 turns them off.
         root_weight: weight of the root term (None: the task's w k).
+        point_velocity_weight: weight of each body's squared velocity error (per (m/s)^2);
+            0 turns them off.
     """
 
     def __init__(
@@ -53,10 +58,13 @@ class TrackingResidual:
         point_bodies: Sequence[str] = CMU_BODY_POINTS,
         point_weight: float = 0.0,
         root_weight: float | None = None,
+        point_velocity_weight: float = 0.0,
     ) -> None:
-        if point_weight < 0 or (root_weight is not None and root_weight < 0):
+        given = (point_weight, point_velocity_weight, 0.0 if root_weight is None else root_weight)
+        if not all(np.isfinite(given)) or min(given) < 0:
             raise ValueError(
-                f"point_weight and root_weight must be >= 0, got {point_weight}, {root_weight}"
+                "point_weight, point_velocity_weight and root_weight must be finite and >= 0, "
+                f"got {point_weight}, {point_velocity_weight}, {root_weight}"
             )
         self.model, self.data = model, mujoco.MjData(model)
         self.ref_q, self.ref_qd = task.ref_q.numpy(), task.ref_qd.numpy()  # (T+1, nq), (T+1, nv)
@@ -68,13 +76,18 @@ class TrackingResidual:
         if missing:
             raise ValueError(f"body points not in the model: {', '.join(missing)}")
         self.points = ids if point_weight > 0 else []
+        self.moving = ids if point_velocity_weight > 0 else []  # bodies scored by velocity
         self.ref_points = [self._points(q) for q in self.ref_q]
+        self.ref_velocities = [
+            self._velocities(q, qd) for q, qd in zip(self.ref_q, self.ref_qd, strict=True)
+        ]
         w, k, nv = task.weights, task.scales, model.nv
         root = w.root * k.root if root_weight is None else root_weight
         self.weights = np.concatenate([
             np.full(nv - 3, w.pose * k.pose), np.full(nv - 3, w.velocity * k.velocity),
             np.full(3 * len(self.ee_bodies), w.end_effector * k.end_effector), np.full(3, root),
             np.full(3 * len(self.points), point_weight),
+            np.full(3 * len(self.moving), point_velocity_weight),
         ])  # fmt: skip
 
     def _points(self, q: np.ndarray) -> np.ndarray:
@@ -85,42 +98,63 @@ class TrackingResidual:
         root = xpos[self.root_body]
         return np.concatenate([root[None], xpos[self.ee_bodies] - root, xpos[self.points]])
 
+    def _body_jacobian(self, body: int) -> np.ndarray:
+        """Translational Jacobian (3, nv) of `body`'s origin at the kinematics in self.data."""
+        jac = np.zeros((3, self.model.nv))
+        mujoco.mj_jacBody(self.model, self.data, jac, None, body)
+        return jac
+
+    def _velocities(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """World linear velocities (B, 3) of the bodies scored by velocity (B may be 0)."""
+        if not self.moving:
+            return np.zeros((0, 3))
+        self.data.qpos[:] = q
+        mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_comPos(self.model, self.data)
+        return np.stack([self._body_jacobian(b) @ qd for b in self.moving])
+
     def residual(self, q: np.ndarray, qd: np.ndarray, step: int) -> np.ndarray:
-        """e (R,): pose, velocity, end effectors, root, body points against ref min(step+1, T)."""
+        """e (R,): pose, velocity, end effectors, root, body points, body velocities against
+        ref min(step + 1, T). Leaves the kinematics of q in self.data."""
         j = min(step + 1, self.last)
         pose = np.empty(self.model.nv)
         mujoco.mj_differentiatePos(self.model, pose, 1.0, self.ref_q[j], q)
+        velocities = self._velocities(q, qd) - self.ref_velocities[j]
         points = self._points(q) - self.ref_points[j]
         ee, rest = points[1 : 1 + len(self.ee_bodies)], points[1 + len(self.ee_bodies) :]
-        return np.concatenate(
-            [pose[3:], (qd - self.ref_qd[j])[3:], ee.ravel(), points[0], rest.ravel()]
-        )
+        return np.concatenate([
+            pose[3:], (qd - self.ref_qd[j])[3:], ee.ravel(), points[0], rest.ravel(),
+            velocities.ravel(),
+        ])  # fmt: skip
 
     def jacobian(self, q: np.ndarray, qd: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
         """e (R,) and de/d(dq, dqd) (R, 2 nv)."""
         e = self.residual(q, qd, step)  # leaves the kinematics of q in self.data
-        m, d, nv = self.model, self.data, self.model.nv
-        mujoco.mj_comPos(m, d)
+        nv, n_vel = self.model.nv, 3 * len(self.moving)
+        mujoco.mj_comPos(self.model, self.data)
         J = np.zeros((e.size, 2 * nv))
         J[: nv - 3, 3:nv] = np.eye(nv - 3)
         J[nv - 3 : 2 * nv - 6, nv + 3 :] = np.eye(nv - 3)
-
-        def body_jac(body: int) -> np.ndarray:
-            jac = np.zeros((3, nv))
-            mujoco.mj_jacBody(m, d, jac, None, body)
-            return jac
-
-        root = body_jac(self.root_body)
-        rows = [body_jac(b) - root for b in self.ee_bodies] + [root]
-        rows += [body_jac(b) for b in self.points]
-        J[2 * nv - 6 :, :nv] = np.concatenate(rows)
+        root = self._body_jacobian(self.root_body)
+        rows = [self._body_jacobian(b) - root for b in self.ee_bodies] + [root]
+        rows += [self._body_jacobian(b) for b in self.points]
+        J[2 * nv - 6 : e.size - n_vel, :nv] = np.concatenate(rows)
+        if n_vel:
+            J[e.size - n_vel :, nv:] = np.concatenate([self._body_jacobian(b) for b in self.moving])
         return e, J
 
 
-# iLQR oracle settings for tracking (measured on 02_01 in docs/humanoid.md)
-TRACKING_ILQR = ILQRSettings(horizon=15, iterations=3)
-TRACKING_POINT_WEIGHT = 30.0  # per m^2, each body point
-TRACKING_ROOT_WEIGHT = 0.0  # the pelvis is a body point already
+@dataclass(frozen=True)
+class TrackingCostWeights:
+    """What the iLQR oracle's cost adds to a tracking task's own w k terms (`TrackingResidual`)."""
+
+    point: float = 30.0  # per m^2, each body point's world position
+    point_velocity: float = 3.0  # per (m/s)^2, each body point's world linear velocity
+    root: float | None = 0.0  # the root term (None: the task's w k); the pelvis is a point already
+
+
+# the iLQR oracle for tracking (measured on 02_01 in docs/humanoid.md)
+TRACKING_ILQR = ILQRSettings(horizon=15, iterations=5, regularization=10.0)
 
 
 def tracking_ilqr_policy(
@@ -128,15 +162,17 @@ def tracking_ilqr_policy(
     task: MotionTracking,
     nthread: int = 1,
     settings: ILQRSettings = TRACKING_ILQR,
-    point_weight: float = TRACKING_POINT_WEIGHT,
-    root_weight: float | None = TRACKING_ROOT_WEIGHT,
+    weights: TrackingCostWeights = TrackingCostWeights(),
 ) -> ILQRPolicy:
     """Receding-horizon iLQR on `system`'s MuJoCo model with `task`'s tracking residuals.
     Close it with `policy.planner.close()` (or leave it to the garbage collector)."""
     if not isinstance(task, MotionTracking):
         raise ValueError(f"the iLQR oracle needs a motion-tracking task, got {task.name}")
     model = system.mj_model()
-    cost = TrackingResidual(model, task, point_weight=point_weight, root_weight=root_weight)
+    cost = TrackingResidual(
+        model, task, point_weight=weights.point, root_weight=weights.root,
+        point_velocity_weight=weights.point_velocity,
+    )  # fmt: skip
     low, high = system.ctrl_low.numpy(), system.ctrl_high.numpy()
     planner = MujocoILQR(model, system.frame_skip, low, high, cost, settings, nthread=nthread)
     return ILQRPolicy(planner)

@@ -77,6 +77,14 @@ class TrackingTerms:
     root: Tensor
 
 
+@dataclass
+class TrackingDistances:
+    """How far a state is from the reference, in metres."""
+
+    root: Tensor  # (...) |p_root - p_root,ref|
+    end_effector: Tensor  # (..., E) |(p_e - p_root) - (p_e,ref - p_root,ref)|
+
+
 class MotionTracking(Task):
     """Follow reference states ref_q (T + 1, nq), ref_qd (T + 1, nv) with a free-root model.
 
@@ -137,6 +145,12 @@ class MotionTracking(Task):
         """Index of the reference state the action of `step` should reach: min(step + 1, T)."""
         return torch.clamp(step + 1, max=self.ref_q.shape[0] - 1)
 
+    def _point_errors(self, q: Tensor, k: Tensor) -> tuple[Tensor, Tensor]:
+        """Root (..., 3) and root-relative end-effector (..., E, 3) errors against ref_k."""
+        ref = self.constants.on(q)
+        root, ee = self._points(q)
+        return root - ref["ref_root"][k], ee - ref["ref_ee"][k]
+
     def terms(self, q: Tensor, qd: Tensor, step: Tensor) -> TrackingTerms:
         """The four terms of the reward. (..., nq), (..., nv), step -> each (...)."""
         k = self.reference_index(step.to(device=q.device, dtype=torch.long))
@@ -146,15 +160,23 @@ class MotionTracking(Task):
         rot = slice(3, None)  # the root's rotation and the hinges, in velocity space
         pose_err = differentiate_pos(self.layout, ref_q, q, 1.0)[..., rot]
         vel_err = (qd - ref_qd)[..., rot]
-        root, ee = self._points(q)
-        ee_err = ee - ref["ref_ee"][k]
-        root_err = root - ref["ref_root"][k]
+        root_err, ee_err = self._point_errors(q, k)
         s = self.scales
         return TrackingTerms(
             pose=torch.exp(-s.pose * pose_err.square().sum(-1)),
             velocity=torch.exp(-s.velocity * vel_err.square().sum(-1)),
             end_effector=torch.exp(-s.end_effector * ee_err.square().sum((-2, -1))),
             root=torch.exp(-s.root * root_err.square().sum(-1)),
+        )
+
+    def distances(self, q: Tensor, step: Tensor) -> TrackingDistances:
+        """Distances of the root and the end effectors from the reference the action of
+        `step` should reach. (..., nq), step (...) -> `TrackingDistances`."""
+        k = self.reference_index(step.to(device=q.device, dtype=torch.long))
+        root_err, ee_err = self._point_errors(q, k)
+        return TrackingDistances(
+            root=torch.linalg.vector_norm(root_err, dim=-1),
+            end_effector=torch.linalg.vector_norm(ee_err, dim=-1),
         )
 
     def reward(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
@@ -172,10 +194,7 @@ class MotionTracking(Task):
 
     def terminated_at(self, q: Tensor, qd: Tensor, step: Tensor) -> Tensor:
         """The root farther than `fail_distance` from the reference root. -> (...) bool"""
-        k = self.reference_index(step.to(device=q.device, dtype=torch.long))
-        root, _ = self._points(q)
-        distance = torch.linalg.vector_norm(root - self.constants.on(q)["ref_root"][k], dim=-1)
-        return distance > self.fail_distance
+        return self.distances(q, step).root > self.fail_distance
 
     def terminated(self, q: Tensor, qd: Tensor) -> Tensor:
         raise TypeError(f"{self.name} is time-indexed: call terminated_at(q, qd, step)")
