@@ -31,12 +31,11 @@ from typing import Any, Protocol
 import mujoco
 import numpy as np
 import torch
-from mujoco import rollout as mj_rollout
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from mbrl_delan import keys
-from mbrl_delan.planners.oracle import FULLPHYSICS, QPOS, QVEL, _state_offset
+from mbrl_delan.planners.oracle import FULLPHYSICS, HeldControlRollout
 from mbrl_delan.planners.policy import episode_starts, read_state
 
 log = logging.getLogger(__name__)
@@ -112,57 +111,26 @@ class MujocoILQR:
         settings: ILQRSettings = ILQRSettings(),
         nthread: int = 1,
     ) -> None:
-        if frame_skip < 1 or nthread < 1:
-            raise ValueError(f"frame_skip and nthread must be >= 1, got {frame_skip}, {nthread}")
         self.model, self.frame_skip, self.cost, self.settings = model, frame_skip, cost, settings
         self.low, self.high = np.asarray(ctrl_low, float), np.asarray(ctrl_high, float)
         self.nq, self.nv, self.nu = model.nq, model.nv, model.nu
-        self.nstate = mujoco.mj_stateSize(model, FULLPHYSICS)
-        self.qpos_at, self.qvel_at = _state_offset(model, QPOS), _state_offset(model, QVEL)
-        self.data = mujoco.MjData(model)
-        self._datas = [mujoco.MjData(model) for _ in range(nthread)]
-        self._pool = mj_rollout.Rollout(nthread=nthread if nthread > 1 else 0)
+        self.sim = HeldControlRollout(model, frame_skip, nthread)
+        self.data = mujoco.MjData(model)  # the forward pass's
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.close()
-            self._pool = None
-
-    def __del__(self) -> None:
-        self.close()
+        self.sim.close()
 
     # ------------------------------------------------------------ states
     def full_state(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
         """FULLPHYSICS state (nstate,) at time 0 with qpos = q, qvel = qd."""
-        mujoco.mj_resetData(self.model, self.data)
-        self.data.qpos[:], self.data.qvel[:] = q, qd
-        state = np.empty(self.nstate)
-        mujoco.mj_getState(self.model, self.data, state, FULLPHYSICS)
-        return state
-
-    def qv(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(q (..., nq), qd (..., nv)) of FULLPHYSICS states (..., nstate)."""
-        q = state[..., self.qpos_at : self.qpos_at + self.nq]
-        return q, state[..., self.qvel_at : self.qvel_at + self.nv]
+        return self.sim.full_state(q, qd)
 
     def tangent(self, state: np.ndarray, ref: np.ndarray) -> np.ndarray:
         """state (-) ref in the tangent space: (dq, dqd) (2 nv,)."""
-        (q, qd), (q0, qd0) = self.qv(state), self.qv(ref)
+        (q, qd), (q0, qd0) = self.sim.qv(state), self.sim.qv(ref)
         dq = np.empty(self.nv)
         mujoco.mj_differentiatePos(self.model, dq, 1.0, q0, q)
         return np.concatenate([dq, qd - qd0])
-
-    def _rollout(self, states: np.ndarray, ctrl: np.ndarray) -> np.ndarray:
-        """Hold ctrl (N, T, nu) for frame_skip steps each from states (N, nstate).
-        -> the states after each control step (N, T, nstate)."""
-        if self._pool is None:
-            raise RuntimeError("MujocoILQR was closed")
-        skip = self.frame_skip
-        control = np.ascontiguousarray(np.repeat(ctrl, skip, axis=1))
-        out = np.empty((control.shape[0], control.shape[1], self.nstate))
-        init = np.ascontiguousarray(states)
-        self._pool.rollout(self.model, self._datas, init, control, state=out)
-        return out[:, skip - 1 :: skip]
 
     # ------------------------------------------------------------ cost
     def total_cost(self, states: np.ndarray, actions: np.ndarray, step: int) -> float:
@@ -170,7 +138,7 @@ class MujocoILQR:
         w = self.cost.weights
         total = 0.5 * self.settings.control_weight * float(np.sum(actions * actions))
         for t in range(1, states.shape[0]):
-            e = self.cost.residual(*self.qv(states[t]), step + t - 1)
+            e = self.cost.residual(*self.sim.qv(states[t]), step + t - 1)
             total += 0.5 * float(np.sum(w * e * e))
         return total
 
@@ -184,17 +152,17 @@ class MujocoILQR:
         ctrl = np.repeat(actions[:, None], n, axis=1)  # (H, n, nu)
         sign = np.where(actions + eps > self.high, -1.0, 1.0)  # stay inside the range
         for t in range(horizon):
-            q = self.qv(states[t])[0]
+            q = self.sim.qv(states[t])[0]
             for i in range(nv):
                 dq = np.zeros(nv)
                 dq[i] = eps
-                qpos = init[t, 1 + i, self.qpos_at : self.qpos_at + self.nq]
+                qpos = init[t, 1 + i, self.sim.qpos_at : self.sim.qpos_at + self.nq]
                 qpos[:] = q
                 mujoco.mj_integratePos(self.model, qpos, dq, 1.0)
-                init[t, 1 + nv + i, self.qvel_at + i] += eps
+                init[t, 1 + nv + i, self.sim.qvel_at + i] += eps
             ctrl[t, 1 + 2 * nv + np.arange(nu), np.arange(nu)] += sign[t] * eps
-        end = self._rollout(init.reshape(horizon * n, -1), ctrl.reshape(horizon * n, 1, nu))
-        end = end[:, 0].reshape(horizon, n, self.nstate)
+        end = self.sim(init.reshape(horizon * n, -1), ctrl.reshape(horizon * n, 1, nu))
+        end = end[:, 0].reshape(horizon, n, self.sim.nstate)
         A, B = np.empty((horizon, 2 * nv, 2 * nv)), np.empty((horizon, 2 * nv, nu))
         for t in range(horizon):
             cols = np.stack([self.tangent(end[t, c], end[t, 0]) for c in range(1, n)], axis=1)
@@ -209,14 +177,14 @@ class MujocoILQR:
     ) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
         """Feed-forward k (H, nu) and gains K (H, nu, 2nv); None if Q_uu is not positive."""
         horizon, w, c = actions.shape[0], self.cost.weights, self.settings.control_weight
-        e, J = self.cost.jacobian(*self.qv(states[horizon]), step + horizon - 1)
+        e, J = self.cost.jacobian(*self.sim.qv(states[horizon]), step + horizon - 1)
         vx, vxx = J.T @ (w * e), J.T @ (w[:, None] * J)
         k, K = np.empty((horizon, self.nu)), np.empty((horizon, self.nu, 2 * self.nv))
         eye = np.eye(self.nu)
         for t in range(horizon - 1, -1, -1):
             qx, qxx = A[t].T @ vx, A[t].T @ vxx @ A[t]
             if t > 0:  # x_0 is given: no cost on it
-                e, J = self.cost.jacobian(*self.qv(states[t]), step + t - 1)
+                e, J = self.cost.jacobian(*self.sim.qv(states[t]), step + t - 1)
                 qx, qxx = qx + J.T @ (w * e), qxx + J.T @ (w[:, None] * J)
             qu = c * actions[t] + B[t].T @ vx
             quu = (c + mu) * eye + B[t].T @ vxx @ B[t]
@@ -252,7 +220,7 @@ class MujocoILQR:
         """Improve actions (H, nu) from FULLPHYSICS `state` (nstate,) at episode `step`."""
         s = self.settings
         actions = np.clip(np.asarray(actions, float), self.low, self.high)
-        states = np.concatenate([state[None], self._rollout(state[None], actions[None])[0]])
+        states = np.concatenate([state[None], self.sim(state[None], actions[None])[0]])
         cost = initial = self.total_cost(states, actions, step)
         mu, accepted, derivatives = s.regularization, 0, None
         for _ in range(s.iterations):

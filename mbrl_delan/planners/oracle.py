@@ -39,6 +39,62 @@ def _state_offset(model: mujoco.MjModel, component: int) -> int:
     return mujoco.mj_stateSize(model, lower)
 
 
+class HeldControlRollout:
+    """MuJoCo rollouts of piecewise-constant controls, each held for `frame_skip` physics
+    steps, with `mujoco.rollout` (multi-threaded, MjData reused across calls).
+
+    States are FULLPHYSICS vectors (nstate,). Call `close()` to stop the thread pool early; it
+    is also closed when the object is garbage-collected.
+    """
+
+    def __init__(self, model: mujoco.MjModel, frame_skip: int, nthread: int = 1) -> None:
+        if frame_skip < 1 or nthread < 1:
+            raise ValueError(f"frame_skip and nthread must be >= 1, got {frame_skip}, {nthread}")
+        self.model, self.frame_skip = model, frame_skip
+        self.nstate = mujoco.mj_stateSize(model, FULLPHYSICS)
+        self.qpos_at, self.qvel_at = _state_offset(model, QPOS), _state_offset(model, QVEL)
+        self._template = mujoco.MjData(model)
+        self._datas = [mujoco.MjData(model) for _ in range(nthread)]
+        self._pool: mj_rollout.Rollout | None = mj_rollout.Rollout(
+            nthread=nthread if nthread > 1 else 0
+        )
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
+
+    def __del__(self) -> None:
+        self.close()
+
+    def full_state(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """FULLPHYSICS state (nstate,) at time 0 with qpos = q (nq,), qvel = qd (nv,)."""
+        data = self._template
+        mujoco.mj_resetData(self.model, data)
+        data.qpos[:], data.qvel[:] = q, qd
+        state = np.empty(self.nstate, dtype=np.float64)
+        mujoco.mj_getState(self.model, data, state, FULLPHYSICS)
+        return state
+
+    def qv(self, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Views (q (..., nq), qd (..., nv)) of FULLPHYSICS states (..., nstate)."""
+        q = state[..., self.qpos_at : self.qpos_at + self.model.nq]
+        return q, state[..., self.qvel_at : self.qvel_at + self.model.nv]
+
+    def __call__(self, states: np.ndarray, ctrl: np.ndarray) -> np.ndarray:
+        """Hold ctrl (N, T, nu) from states (N, nstate), or one state (nstate,) for all N.
+        -> the states after each control step (N, T, nstate)."""
+        if self._pool is None:
+            raise RuntimeError("the MuJoCo rollout was closed")
+        skip = self.frame_skip
+        control = np.ascontiguousarray(np.repeat(ctrl, skip, axis=1))  # (N, T*skip, nu)
+        n, nstep = control.shape[0], control.shape[1]
+        init = np.ascontiguousarray(np.broadcast_to(states, (n, self.nstate)))
+        out = np.empty((n, nstep, self.nstate), dtype=np.float64)
+        self._pool.rollout(self.model, self._datas, init, control, state=out)
+        return out[:, skip - 1 :: skip]
+
+
 @dataclass
 class OracleRollout:
     """States reached by a batch of rollouts and the controls actually applied."""
@@ -67,13 +123,7 @@ class MujocoObjectiveFactory:
         self.task = task
         self.discount = discount
         self.model = system.mj_model()
-        n_data = nthread if nthread > 1 else 1
-        self.datas = [mujoco.MjData(self.model) for _ in range(n_data)]
-        self._template = mujoco.MjData(self.model)
-        self._pool = mj_rollout.Rollout(nthread=nthread if nthread > 1 else 0)
-        self.nstate = mujoco.mj_stateSize(self.model, FULLPHYSICS)
-        self.qpos_at = _state_offset(self.model, QPOS)
-        self.qvel_at = _state_offset(self.model, QVEL)
+        self.sim = HeldControlRollout(self.model, system.frame_skip, nthread)
         self.ctrl_low = system.ctrl_low.numpy()
         self.ctrl_high = system.ctrl_high.numpy()
 
@@ -93,28 +143,15 @@ class MujocoObjectiveFactory:
         self.close()
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.close()
-            self._pool = None
-
-    def __del__(self) -> None:
-        self.close()
+        self.sim.close()
 
     def initial_state(self, q0: Tensor, qd0: Tensor) -> np.ndarray:
         """FULLPHYSICS state vector at time 0 with qpos=q0, qvel=qd0. (nstate,)"""
-        data = self._template
-        mujoco.mj_resetData(self.model, data)
-        data.qpos[:] = q0.detach().to("cpu", torch.float64).numpy()
-        data.qvel[:] = qd0.detach().to("cpu", torch.float64).numpy()
-        data.time = 0.0
-        state = np.empty(self.nstate, dtype=np.float64)
-        mujoco.mj_getState(self.model, data, state, FULLPHYSICS)
-        return state
+        as_np = lambda x: x.detach().to("cpu", torch.float64).numpy()  # noqa: E731
+        return self.sim.full_state(as_np(q0), as_np(qd0))
 
     def rollout(self, initial_state: np.ndarray, actions: Tensor) -> OracleRollout:
         """Roll out actions (N, H, nu) from one FULLPHYSICS state. -> OracleRollout"""
-        if self._pool is None:
-            raise RuntimeError("MujocoObjectiveFactory was closed")
         if actions.ndim != 3 or actions.shape[-1] != self.system.nu:
             raise ValueError(
                 f"actions must be (N, H, nu={self.system.nu}), got {tuple(actions.shape)}"
@@ -122,15 +159,7 @@ class MujocoObjectiveFactory:
         ctrl = np.clip(
             actions.detach().to("cpu", torch.float64).numpy(), self.ctrl_low, self.ctrl_high
         )  # (N, H, nu)
-        skip = self.system.frame_skip
-        control = np.ascontiguousarray(np.repeat(ctrl, skip, axis=1))  # (N, H*skip, nu)
-        n, nstep = control.shape[0], control.shape[1]
-        init = np.ascontiguousarray(np.broadcast_to(initial_state, (n, self.nstate)))
-        out = np.empty((n, nstep, self.nstate), dtype=np.float64)
-        self._pool.rollout(self.model, self.datas, init, control, state=out)
-        reached = out[:, skip - 1 :: skip]  # (N, H, nstate)
-        q = reached[..., self.qpos_at : self.qpos_at + self.model.nq]
-        qd = reached[..., self.qvel_at : self.qvel_at + self.model.nv]
+        q, qd = self.sim.qv(self.sim(initial_state, ctrl))  # (N, H, nq), (N, H, nv)
         return OracleRollout(
             states=State(
                 q=torch.from_numpy(np.ascontiguousarray(q)),
