@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +46,7 @@ from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.ilqr import ILQRPolicy
 from mbrl_delan.planners.oracle import available_cpus, mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
-from mbrl_delan.planners.tracking_residual import tracking_ilqr_policy
+from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, tracking_ilqr_policy
 from mbrl_delan.sweep import CRASH_FILE, exit_or_raise, marks_crash, with_sweep_group
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
@@ -124,14 +125,22 @@ def _planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPla
 
 
 def _oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy | ILQRPolicy:
-    """The oracle policy of `budget.oracle_planner`: `same` or `ilqr` (tracking tasks)."""
+    """The oracle policy of `budget.oracle_planner`: `same` (the loop's planner on MuJoCo) or
+    `ilqr` (tracking tasks: iLQR over the planner's horizon, `TRACKING_ILQR` otherwise)."""
     if cfg.budget.get("oracle_planner", "same") == "ilqr":
         if not isinstance(task, MotionTracking):
             raise ConfigError(
                 f"budget.oracle_planner=ilqr needs a motion-tracking env (cmu_track), got "
                 f"env={cfg.env.name}"
             )
-        return tracking_ilqr_policy(system, task, nthread=min(available_cpus(), 8))
+        settings = replace(TRACKING_ILQR, horizon=cfg.planner.horizon)
+        nthread = min(available_cpus(), 8)
+        log.info(
+            "oracle: iLQR, horizon %d, %d iterations, on MuJoCo's derivatives (%d threads)",
+            settings.horizon, settings.iterations, nthread,
+        )  # fmt: skip
+        return tracking_ilqr_policy(system, task, nthread, settings)
+    log.info("oracle: the loop's planner (%s) on MuJoCo's dynamics", cfg.planner.name)
     oracle_factory = mujoco_objective_factory(system, task, discount=cfg.planner.discount)
     return _policy(
         cfg.planner, _planner(cfg, system, torch.float64), oracle_factory, cfg.seed,

@@ -89,7 +89,8 @@ def test_tiny_humanoid_stand_run_with_the_residual_delan(tmp_path: Path) -> None
 @pytest.mark.slow
 def test_tiny_cmu_track_run_follows_the_clip_in_time(tmp_path: Path) -> None:
     """A time-indexed task through the whole loop: the CMU humanoid (56 actuators, contacts)
-    following the test clip, every reward scored against the reference frame of its step."""
+    following the test clip, every reward scored against the reference frame of its step; the
+    oracle is the env's default, iLQR over the planner's horizon (5 here)."""
     run_dir = tmp_path / "track"
     clip = ["env.task.clip=09_06", f"env.task.folders=[{DATA}]", "env.task.download=false"]
     out = train(run_dir, "env=cmu_track", *clip, "env.episode_len=6", "budget.iterations=1")
@@ -99,6 +100,8 @@ def test_tiny_cmu_track_run_follows_the_clip_in_time(tmp_path: Path) -> None:
     rec = records(run_dir)[-1]
     assert 0.0 < rec["eval_return_mean"] <= 6.0  # rewards lie in (0, 1]
     assert 0.0 < summary["oracle_return_mean"] <= 6.0
+    assert "oracle_planner: ilqr" in (run_dir / "config.yaml").read_text()
+    assert "oracle: iLQR, horizon 5" in out.stdout + out.stderr
 
 
 def test_ilqr_oracle_option_builds_the_tracking_ilqr() -> None:
