@@ -85,6 +85,26 @@ def test_ilqr_first_action_is_the_lqr_action_on_a_linear_system(frame_skip):
     np.testing.assert_allclose(Bd[0], B, atol=1e-7)
 
 
+def test_iterations_without_a_step_reuse_the_derivatives():
+    """At rest at the regulator's optimum (x 0, u 0, cost 0) no line search finds a lower
+    cost: the trajectory stays, so all iterations share the first one's derivatives. Away
+    from it, an accepted step moves the trajectory and the next iteration takes new ones."""
+    model = mujoco.MjModel.from_xml_string(POINT_MASS)
+    low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
+    settings = ILQRSettings(horizon=6, iterations=4, control_weight=0.01)
+    ilqr = MujocoILQR(model, 1, low, high, Quadratic(np.ones(4)), settings)
+    calls = []
+    derivatives = ilqr.derivatives
+    ilqr.derivatives = lambda *args: calls.append(1) or derivatives(*args)
+    rest = ilqr.plan(ilqr.full_state(np.zeros(2), np.zeros(2)), np.zeros((6, 2)))
+    assert rest.accepted == 0 and rest.cost == rest.initial_cost == 0.0
+    assert len(calls) == 1
+    calls.clear()
+    moved = ilqr.plan(ilqr.full_state(np.array([1.0, -0.5]), np.zeros(2)), np.zeros((6, 2)))
+    assert moved.accepted >= 1 and moved.cost < moved.initial_cost
+    assert 2 <= len(calls) <= 1 + moved.accepted
+
+
 def chained_transition(model, state, ctrl, frame_skip):
     """A, B of frame_skip physics steps chained from MuJoCo's own mjd_transitionFD."""
     data = mujoco.MjData(model)
