@@ -31,6 +31,7 @@ from typing import Any, Protocol
 import mujoco
 import numpy as np
 import torch
+from scipy.linalg import cho_factor, cho_solve
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
@@ -190,10 +191,10 @@ class MujocoILQR:
             quu = (c + mu) * eye + B[t].T @ vxx @ B[t]
             qux = B[t].T @ vxx @ A[t]
             try:
-                chol = np.linalg.cholesky(quu)
+                chol = cho_factor(quu, check_finite=False)
             except np.linalg.LinAlgError:
                 return None
-            gains = -_cho_solve(chol, np.concatenate([qu[:, None], qux], axis=1))
+            gains = -cho_solve(chol, np.hstack([qu[:, None], qux]), check_finite=False)
             k[t], K[t] = gains[:, 0], gains[:, 1:]
             vx = qx + K[t].T @ quu @ k[t] + K[t].T @ qu + qux.T @ k[t]
             vxx = qxx + K[t].T @ quu @ K[t] + K[t].T @ qux + qux.T @ K[t]
@@ -242,11 +243,6 @@ class MujocoILQR:
             else:
                 mu *= 10.0
         return ILQRResult(actions=actions, cost=cost, initial_cost=initial, accepted=accepted)
-
-
-def _cho_solve(chol: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve (L L^T) x = rhs for a lower Cholesky factor L."""
-    return np.linalg.solve(chol.T, np.linalg.solve(chol, rhs))
 
 
 class ILQRPolicy(TensorDictModuleBase):
