@@ -77,10 +77,11 @@ class TrackingResidual:
             raise ValueError(f"body points not in the model: {', '.join(missing)}")
         self.points = ids if point_weight > 0 else []
         self.moving = ids if point_velocity_weight > 0 else []  # bodies scored by velocity
-        self.ref_points = [self._points(q) for q in self.ref_q]
-        self.ref_velocities = [
-            self._velocities(q, qd) for q, qd in zip(self.ref_q, self.ref_qd, strict=True)
-        ]
+        self.ref_points, self.ref_velocities = [], []
+        for q, qd in zip(self.ref_q, self.ref_qd, strict=True):
+            self._pose(q)
+            self.ref_points.append(self._points())
+            self.ref_velocities.append(self._velocities(qd))
         w, k, nv = task.weights, task.scales, model.nv
         root = w.root * k.root if root_weight is None else root_weight
         self.weights = np.concatenate([
@@ -90,10 +91,15 @@ class TrackingResidual:
             np.full(3 * len(self.moving), point_velocity_weight),
         ])  # fmt: skip
 
-    def _points(self, q: np.ndarray) -> np.ndarray:
-        """Root, end effectors relative to it, body points: (1 + E + P, 3) world positions."""
+    def _pose(self, q: np.ndarray) -> None:
+        """Put the kinematics of q (positions and what `mj_jacBody` reads) in self.data."""
         self.data.qpos[:] = q
         mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_comPos(self.model, self.data)
+
+    def _points(self) -> np.ndarray:
+        """Root, end effectors relative to it, body points: (1 + E + P, 3) world positions
+        at the kinematics in self.data."""
         xpos = self.data.xpos
         root = xpos[self.root_body]
         return np.concatenate([root[None], xpos[self.ee_bodies] - root, xpos[self.points]])
@@ -104,13 +110,11 @@ class TrackingResidual:
         mujoco.mj_jacBody(self.model, self.data, jac, None, body)
         return jac
 
-    def _velocities(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
-        """World linear velocities (B, 3) of the bodies scored by velocity (B may be 0)."""
+    def _velocities(self, qd: np.ndarray) -> np.ndarray:
+        """World linear velocities (B, 3) of the bodies scored by velocity (B may be 0), at
+        the kinematics in self.data."""
         if not self.moving:
             return np.zeros((0, 3))
-        self.data.qpos[:] = q
-        mujoco.mj_kinematics(self.model, self.data)
-        mujoco.mj_comPos(self.model, self.data)
         return np.stack([self._body_jacobian(b) @ qd for b in self.moving])
 
     def residual(self, q: np.ndarray, qd: np.ndarray, step: int) -> np.ndarray:
@@ -119,8 +123,9 @@ class TrackingResidual:
         j = min(step + 1, self.last)
         pose = np.empty(self.model.nv)
         mujoco.mj_differentiatePos(self.model, pose, 1.0, self.ref_q[j], q)
-        velocities = self._velocities(q, qd) - self.ref_velocities[j]
-        points = self._points(q) - self.ref_points[j]
+        self._pose(q)
+        velocities = self._velocities(qd) - self.ref_velocities[j]
+        points = self._points() - self.ref_points[j]
         ee, rest = points[1 : 1 + len(self.ee_bodies)], points[1 + len(self.ee_bodies) :]
         return np.concatenate([
             pose[3:], (qd - self.ref_qd[j])[3:], ee.ravel(), points[0], rest.ravel(),
@@ -131,7 +136,6 @@ class TrackingResidual:
         """e (R,) and de/d(dq, dqd) (R, 2 nv)."""
         e = self.residual(q, qd, step)  # leaves the kinematics of q in self.data
         nv, n_vel = self.model.nv, 3 * len(self.moving)
-        mujoco.mj_comPos(self.model, self.data)
         J = np.zeros((e.size, 2 * nv))
         J[: nv - 3, 3:nv] = np.eye(nv - 3)
         J[nv - 3 : 2 * nv - 6, nv + 3 :] = np.eye(nv - 3)
