@@ -9,12 +9,14 @@ from torch._dynamo.utils import counters
 from torch.nn import functional as F
 
 from mbrl_delan import keys
-from mbrl_delan.envs.model_env import model_objective_factory
+from mbrl_delan.envs.model_env import loop_may_compile, model_objective_factory
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.delan import SMALL_SOLVE, DeLaN, unrolled_cholesky_solve
 from mbrl_delan.models.inverse import DeLaNInverse
-from mbrl_delan.models.tangent_mlp import _activate, log1p_unit
+from mbrl_delan.models.tangent_mlp import TangentMLP, _activate, log1p_unit
+from mbrl_delan.systems.external import humanoid_v5_xml
 from mbrl_delan.systems.system import load_system
+from mbrl_delan.tasks.pendulum import PendulumSwingup
 
 
 @pytest.mark.slow
@@ -54,26 +56,88 @@ def test_compiled_softplus_and_slope_match_eager_at_extremes() -> None:
     torch.testing.assert_close(slope, torch.sigmoid(z), rtol=1e-6, atol=1e-7)
 
 
+class _AngleReward(PendulumSwingup):
+    """The angle as reward: rewards differ every step."""
+
+    def reward(self, q: torch.Tensor, qd: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return q[..., 0] + 0.1 * action[..., 0]
+
+
+class _EndsPastAngle(_AngleReward):
+    """Ended once the angle passes 0.4 rad."""
+
+    def terminated(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
+        return q[..., 0] > 0.4
+
+
+class _GraphBreak(PendulumSwingup):
+    """A reward the compiler cannot capture in one graph."""
+
+    def reward(self, q: torch.Tensor, qd: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        torch._dynamo.graph_break()
+        return super().reward(q, qd, action)
+
+
+def _pendulum_model() -> DeLaN:
+    system = make_env_parts("pendulum").system
+    torch.manual_seed(0)
+    return DeLaN(system.layout, system.actuation.float(), system.control_dt, hidden=16).eval()
+
+
 @pytest.mark.slow
-def test_compiled_planning_objective_equals_eager() -> None:
-    parts = make_env_parts("pendulum")
+def test_compiled_planning_objective_masks_ended_steps_and_discounts_as_eager() -> None:
+    model, task = _pendulum_model(), _EndsPastAngle()
+    q0, qd0 = torch.tensor([0.2]), torch.tensor([0.0])
+    actions = 2.0 * torch.randn(64, 8, 1, generator=torch.Generator().manual_seed(3))
+    eager = model_objective_factory(model, task, discount=0.9)(q0, qd0)(actions)
+    never_ends = model_objective_factory(model, _AngleReward(), discount=0.9)
+    unmasked = never_ends(q0, qd0)(actions)
+    ended = (eager - unmasked).abs() > 1e-3
+    assert 0 < int(ended.sum()) < 64  # some sequences end inside the horizon, some do not
+    factory = model_objective_factory(model, task, discount=0.9, compile=True)
+    graphs = counters["stats"]["unique_graphs"]
+    compiled = factory(q0, qd0)(actions)
+    assert factory._compiled_loop is not None and factory._loop_compiles  # the loop ran
+    torch.testing.assert_close(compiled, eager, rtol=1e-5, atol=1e-5)
+    # one graph for all H steps of a batch size, reused from another start
+    factory(q0 + 0.1, qd0)(actions)
+    assert counters["stats"]["unique_graphs"] - graphs == 1
+
+
+@pytest.mark.slow
+def test_compiled_loop_of_a_two_dof_model_equals_eager() -> None:
+    parts = make_env_parts("acrobot")
     torch.manual_seed(0)
     model = DeLaN(
         parts.system.layout, parts.system.actuation.float(), parts.system.control_dt, hidden=16
     ).eval()
-    q0, qd0 = torch.tensor([0.3]), torch.tensor([-1.0])
-    actions = torch.randn(32, 6, 1, generator=torch.Generator().manual_seed(2))
-    eager = model_objective_factory(model, parts.task)(q0, qd0)(actions)
-    factory = model_objective_factory(model, parts.task, compile=True)
-    graphs = counters["stats"]["unique_graphs"]
+    q0, qd0 = torch.tensor([2.5, -0.5]), torch.tensor([1.0, -2.0])
+    actions = torch.randn(16, 5, 1, generator=torch.Generator().manual_seed(4))
+    eager = model_objective_factory(model, parts.task, discount=0.95)(q0, qd0)(actions)
+    factory = model_objective_factory(model, parts.task, discount=0.95, compile=True)
     compiled = factory(q0, qd0)(actions)
-    assert factory._compiled is not None  # the compiled path ran
+    assert factory._compiled_loop is not None and factory._loop_compiles
+    torch.testing.assert_close(compiled, eager, rtol=1e-5, atol=1e-6)
+    assert float(eager.std()) > 1e-3  # the sequences score differently
+
+
+@pytest.mark.slow
+def test_a_loop_that_does_not_compile_falls_back_to_compiled_steps() -> None:
+    model, task = _pendulum_model(), _GraphBreak()
+    q0, qd0 = torch.tensor([0.3]), torch.tensor([-1.0])
+    actions = torch.randn(8, 4, 1, generator=torch.Generator().manual_seed(5))
+    eager = model_objective_factory(model, task)(q0, qd0)(actions)
+    factory = model_objective_factory(model, task, compile=True)
+    compiled = factory(q0, qd0)(actions)
+    assert not factory._loop_compiles and factory._compiled is not None  # per step
     torch.testing.assert_close(compiled, eager, rtol=1e-5, atol=1e-5)
-    # one graph for all H steps of a batch size: the start state is no different kind of
-    # tensor from the states the model returns (a stride-0 or non-inference start compiled
-    # a second graph, whose compile time doubled the first call's)
-    factory(q0 + 0.1, qd0)(actions)
-    assert counters["stats"]["unique_graphs"] - graphs == 1
+
+
+def test_the_loop_is_not_tried_with_quaternion_joints() -> None:
+    humanoid = load_system(humanoid_v5_xml(), name="humanoid")
+    model = DeLaN(humanoid.layout, humanoid.actuation.float(), humanoid.control_dt, hidden=8)
+    assert not loop_may_compile(model)
+    assert loop_may_compile(_pendulum_model())
 
 
 def test_log1p_unit_polynomial_matches_log1p_on_the_unit_interval() -> None:
@@ -203,3 +267,19 @@ def test_train_config_compile_fit_compiles_the_one_step_loss_as_eager() -> None:
     metrics, grads = _loss_and_grads(model, batch)
     assert model._fit_graph.graph is not None  # the compiled path ran
     _assert_same_loss_and_grads((metrics, grads), (eager_metrics, eager_grads), abs=1e-7)
+
+
+def test_small_input_layers_keep_column_major_weights_with_the_same_values() -> None:
+    torch.manual_seed(0)
+    mlp = TangentMLP(n_in=2, n_out=3, hidden=8, layers=2)
+    first, second = mlp.hidden
+    assert first.weight.stride() == (1, 8) and second.weight.is_contiguous()
+    x = torch.randn(5, 2, generator=torch.Generator().manual_seed(1))
+    row_major = F.linear(x, first.weight.contiguous(), first.bias)
+    torch.testing.assert_close(F.linear(x, first.weight, first.bias), row_major)
+    # the layout survives a dtype move and loading a row-major state dict
+    state = {k: v.contiguous() for k, v in mlp.state_dict().items()}
+    mlp = mlp.double()
+    mlp.load_state_dict(state)
+    assert mlp.hidden[0].weight.stride() == (1, 8)
+    assert torch.equal(mlp.hidden[0].weight, state["hidden.0.weight"].double())

@@ -13,13 +13,14 @@ sample is scored by every member equally often.
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torch import Tensor, nn
+from torch import Tensor, nn, while_loop
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.model_based import ModelBasedEnvBase
 
@@ -28,8 +29,10 @@ from mbrl_delan.envs.cuda_graphs import GraphedCalls
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.delan import compile_dynamics
 from mbrl_delan.planners.base import discounted_masked_return, risk_adjusted_return
-from mbrl_delan.systems.system import System
+from mbrl_delan.systems.system import JointLayout, System
 from mbrl_delan.tasks.base import Task
+
+log = logging.getLogger(__name__)
 
 Transition = tuple[Tensor, Tensor, Tensor, Tensor]  # next q, next qd, reward, terminated
 
@@ -53,6 +56,14 @@ def model_placement(
     if first is None:
         return Placement(torch.device(fallback_device), fallback_dtype)
     return Placement(first.device, first.dtype)
+
+
+def loop_may_compile(model: nn.Module) -> bool:
+    """Whether a compiled rollout loop is worth trying for the model: not with quaternion
+    coordinates (free or ball joints), whose cached index tensors the compiler's C++ loop
+    does not declare (torch 2.13: the C++ fails to build, a minute or more into compiling)."""
+    layout = getattr(model, "layout", None)
+    return not isinstance(layout, JointLayout) or layout.only_scalar_joints
 
 
 @contextlib.contextmanager
@@ -129,6 +140,8 @@ class ModelObjectiveFactory:
         self.risk = float(risk)
         self.compile = compile
         self._compiled: Callable[[Tensor, Tensor, Tensor, Tensor], Transition] | None = None
+        self._compiled_loop: Callable[[Tensor, Tensor, Tensor, Tensor], Tensor] | None = None
+        self._loop_compiles = loop_may_compile(model)  # False once compiling it failed
         self.cuda_graph = cuda_graph
         self._graphs = GraphedCalls(
             self._returns,
@@ -141,10 +154,22 @@ class ModelObjectiveFactory:
 
         (nq,), (nv,), (N*P, H, nu) with particle p of sample n at n * P + p, episode step of
         the first action () int64 -> (N,). With `cuda_graph` and CUDA tensors, replayed from a
-        CUDA graph per shape (`GraphedCalls`).
+        CUDA graph per shape (`GraphedCalls`). With `compile` on CPU, the compiled loop
+        (`_looped_returns`) where it compiles, else one compiled call per step.
         """
         if self.cuda_graph and actions.is_cuda:
             return self._graphs(q0, qd0, actions, step)
+        if self.compile and not actions.is_cuda and self._loop_compiles:
+            if self._compiled_loop is None:
+                self._compiled_loop = compile_dynamics(self._looped_returns)
+            try:
+                return self._compiled_loop(q0, qd0, actions, step)
+            except torch._dynamo.exc.TorchDynamoException as err:
+                # e.g. the humanoids: the compiler's C++ loop does not yet declare the index
+                # tensors their quaternion arithmetic caches (torch 2.13)
+                self._loop_compiles = False
+                reason = str(err).strip().splitlines()[0]
+                log.warning("no compiled rollout loop (%s): one compiled call per step", reason)
         return self._returns(q0, qd0, actions, step)
 
     def _returns(self, q0: Tensor, qd0: Tensor, actions: Tensor, step: Tensor) -> Tensor:
@@ -162,6 +187,35 @@ class ModelObjectiveFactory:
             torch.stack(rewards, dim=-1), torch.stack(terminated, dim=-1), self.discount
         )  # (N*P,)
         return risk_adjusted_return(returns.reshape(-1, self.particles), self.risk)  # (N,)
+
+    def _looped_returns(self, q0: Tensor, qd0: Tensor, actions: Tensor, step: Tensor) -> Tensor:
+        """`_returns` with the H steps in one `while_loop`, for compiling on CPU: the compiled
+        loop runs every step's kernels from C++ without coming back to Python, where the
+        per-step graph call (guards, wrapper, allocations) cost about 70 us a step. The
+        return is accumulated step by step: r_t * discount^t while no earlier step has
+        terminated (`discounted_masked_return`). On CUDA the loop's condition would be a
+        device-to-host copy per step, so CUDA keeps one compiled call per step."""
+        batch, horizon, nu = actions.shape
+        q, qd = q0.expand(batch, -1).clone(), qd0.expand(batch, -1).clone()
+        total = actions.new_zeros(batch)  # (N*P,) discounted return so far
+        alive = torch.ones(batch, dtype=torch.bool, device=actions.device)  # none ended yet
+        weight = actions.new_ones(())  # discount^t
+        t0 = torch.zeros((), dtype=torch.long, device=actions.device)
+
+        def not_done(t: Tensor, *_: Tensor) -> Tensor:
+            return t < horizon
+
+        def one_step(
+            t: Tensor, q: Tensor, qd: Tensor, total: Tensor, alive: Tensor, weight: Tensor
+        ) -> tuple[Tensor, ...]:
+            action = actions.index_select(1, t.reshape(1)).reshape(batch, nu)  # (N*P, nu)
+            q, qd, reward, term = self._transition(q, qd, action, step + t)
+            total = total + torch.where(alive, weight * reward, torch.zeros_like(reward))
+            return t + 1, q, qd, total, alive & ~term, weight * self.discount
+
+        carried = (t0, q, qd, total, alive, weight)
+        total = while_loop(not_done, one_step, carried)[3]  # (N*P,)
+        return risk_adjusted_return(total.reshape(-1, self.particles), self.risk)  # (N,)
 
     def transition(self, q: Tensor, qd: Tensor, action: Tensor, step: Tensor) -> Transition:
         """One control step in the model and its task reward and termination.
@@ -221,8 +275,9 @@ def model_objective_factory(
         dtype: compute dtype override.
         risk: k in score = mean - k * std of the P particles' returns (population std, see
             `risk_adjusted_return`); 0 (default) is the plain mean, > 0 is risk-averse.
-        compile: run each control step (model step, reward, termination) as one
-            `torch.compile`d function (for deterministic models such as DeLaN).
+        compile: `torch.compile` the rollout (for deterministic models such as DeLaN): on
+            CPU all H steps with their rewards and terminations as one compiled loop
+            (`while_loop`), on CUDA each control step as one compiled call.
         cuda_graph: on a CUDA device, replay each rollout (all H steps and the returns)
             from a CUDA graph captured once per batch shape (`GraphedCalls`); with
             `compile`, the graph replays the compiled steps' kernels.

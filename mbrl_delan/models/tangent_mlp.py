@@ -73,6 +73,27 @@ def linear(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
     return out if bias is None else out + bias
 
 
+def column_major(layer: nn.Linear) -> None:
+    """Store the weight (m, k) column by column, same values: compiled, `linear` with a small
+    k reads each column as one vector (row-major, the stride-k reads kept the products
+    scalar). `.to()`, `load_state_dict` and optimizers keep the layout."""
+    weight = layer.weight.detach()
+    layer.weight = nn.Parameter(weight.t().contiguous().t(), requires_grad=weight.requires_grad)
+
+
+def linear_t(x: Tensor, weight: Tensor) -> Tensor:
+    """x W: (..., m), (m, k) -> (..., k), the product with the transpose that a backward
+    pass through `linear` needs; small m under compilation as broadcast products. (No `.T`
+    view of a parameter: a compiled `while_loop` refuses two of its inputs aliasing.)"""
+    m = weight.shape[0]
+    if not (torch.compiler.is_compiling() and m <= SMALL_DIM):
+        return x @ weight
+    out = x[..., 0:1] * weight[0]
+    for i in range(1, m):
+        out = out + x[..., i : i + 1] * weight[i]
+    return out
+
+
 @dataclass
 class MLPPass:
     """The values kept from a forward pass for the backward (vjp) pass."""
@@ -97,6 +118,9 @@ class TangentMLP(nn.Module):
         self.hidden = nn.ModuleList(
             nn.Linear(a, b) for a, b in zip(sizes[:-1], sizes[1:], strict=True)
         )
+        for layer in self.hidden:
+            if layer.in_features <= SMALL_DIM:
+                column_major(layer)
         self.head = nn.Linear(hidden, n_out)
         self.activation = activation
 
@@ -114,7 +138,7 @@ class TangentMLP(nn.Module):
         """Cotangent on the last hidden activation (..., hidden) -> on the input (..., n_in)."""
         g = cotangent
         for layer, slope in zip(reversed(self.hidden), reversed(fwd.slopes), strict=True):
-            g = linear(g * slope, layer.weight.T)
+            g = linear_t(g * slope, layer.weight)
         return g
 
     def forward(self, x: Tensor, dx: Tensor | None = None) -> MLPPass:
@@ -127,4 +151,4 @@ class TangentMLP(nn.Module):
 
     def vjp(self, fwd: MLPPass, cotangent: Tensor) -> Tensor:
         """(d out / d x)^T cotangent: (..., n_out) -> (..., n_in)."""
-        return self.body_vjp(fwd, linear(cotangent, self.head.weight.T))
+        return self.body_vjp(fwd, linear_t(cotangent, self.head.weight))
