@@ -274,6 +274,10 @@ def test_small_input_layers_keep_column_major_weights_with_the_same_values() -> 
     mlp = TangentMLP(n_in=2, n_out=3, hidden=8, layers=2)
     first, second = mlp.hidden
     assert first.weight.stride() == (1, 8) and second.weight.is_contiguous()
+    # still a trained parameter: every weight gets a gradient
+    mlp(torch.randn(4, 2)).out.square().sum().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in mlp.parameters())
+    mlp.zero_grad(set_to_none=True)
     x = torch.randn(5, 2, generator=torch.Generator().manual_seed(1))
     row_major = F.linear(x, first.weight.contiguous(), first.bias)
     torch.testing.assert_close(F.linear(x, first.weight, first.bias), row_major)

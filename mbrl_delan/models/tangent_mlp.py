@@ -77,8 +77,8 @@ def column_major(layer: nn.Linear) -> None:
     """Store the weight (m, k) column by column, same values: compiled, `linear` with a small
     k reads each column as one vector (row-major, the stride-k reads kept the products
     scalar). `.to()`, `load_state_dict` and optimizers keep the layout."""
-    weight = layer.weight.detach()
-    layer.weight = nn.Parameter(weight.t().contiguous().t(), requires_grad=weight.requires_grad)
+    trainable = layer.weight.requires_grad
+    layer.weight = nn.Parameter(layer.weight.detach().t().contiguous().t(), requires_grad=trainable)
 
 
 def linear_t(x: Tensor, weight: Tensor) -> Tensor:
