@@ -9,7 +9,7 @@ from torch._dynamo.utils import counters
 from torch.nn import functional as F
 
 from mbrl_delan import keys
-from mbrl_delan.envs.model_env import loop_may_compile, model_objective_factory
+from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.delan import SMALL_SOLVE, DeLaN, unrolled_cholesky_solve
 from mbrl_delan.models.inverse import DeLaNInverse
@@ -136,8 +136,8 @@ def test_a_loop_that_does_not_compile_falls_back_to_compiled_steps() -> None:
 def test_the_loop_is_not_tried_with_quaternion_joints() -> None:
     humanoid = load_system(humanoid_v5_xml(), name="humanoid")
     model = DeLaN(humanoid.layout, humanoid.actuation.float(), humanoid.control_dt, hidden=8)
-    assert not loop_may_compile(model)
-    assert loop_may_compile(_pendulum_model())
+    assert not model.loops_compile
+    assert _pendulum_model().loops_compile
 
 
 def test_log1p_unit_polynomial_matches_log1p_on_the_unit_interval() -> None:

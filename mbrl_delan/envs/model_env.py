@@ -29,7 +29,7 @@ from mbrl_delan.envs.cuda_graphs import GraphedCalls
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.delan import compile_dynamics
 from mbrl_delan.planners.base import discounted_masked_return, risk_adjusted_return
-from mbrl_delan.systems.system import JointLayout, System
+from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
 
 log = logging.getLogger(__name__)
@@ -56,14 +56,6 @@ def model_placement(
     if first is None:
         return Placement(torch.device(fallback_device), fallback_dtype)
     return Placement(first.device, first.dtype)
-
-
-def loop_may_compile(model: nn.Module) -> bool:
-    """Whether a compiled rollout loop is worth trying for the model: not with quaternion
-    coordinates (free or ball joints), whose cached index tensors the compiler's C++ loop
-    does not declare (torch 2.13: the C++ fails to build, a minute or more into compiling)."""
-    layout = getattr(model, "layout", None)
-    return not isinstance(layout, JointLayout) or layout.only_scalar_joints
 
 
 @contextlib.contextmanager
@@ -141,7 +133,7 @@ class ModelObjectiveFactory:
         self.compile = compile
         self._compiled: Callable[[Tensor, Tensor, Tensor, Tensor], Transition] | None = None
         self._compiled_loop: Callable[[Tensor, Tensor, Tensor, Tensor], Tensor] | None = None
-        self._loop_compiles = loop_may_compile(model)  # False once compiling it failed
+        self._loop_compiles = model.loops_compile  # False once compiling it failed
         self.cuda_graph = cuda_graph
         self._graphs = GraphedCalls(
             self._returns,

@@ -9,7 +9,7 @@ import torch
 from tensordict import TensorDictBase
 from torch import Tensor, nn
 
-from mbrl_delan.systems.system import State
+from mbrl_delan.systems.system import JointLayout, State
 
 
 @dataclass
@@ -31,6 +31,14 @@ class WorldModel(nn.Module, abc.ABC):
     """
 
     trains_on_windows: bool = False
+    layout: JointLayout | None = None  # the system's joints; models of a MuJoCo system set it
+
+    @property
+    def loops_compile(self) -> bool:
+        """Whether a compiled `torch.while_loop` over its steps may be tried: not with free or
+        ball joints, whose quaternion arithmetic builds index tensors while tracing that the
+        loop's C++ does not declare (torch 2.13: the build fails a minute or more in)."""
+        return self.layout is None or self.layout.only_scalar_joints
 
     @abc.abstractmethod
     def step(

@@ -64,12 +64,9 @@ def _activate(name: str, z: Tensor) -> tuple[Tensor, Tensor]:
 def linear(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
     """x W^T (+ b): (..., k), (m, k) -> (..., m). Small k under compilation: broadcast
     products that fuse into the next elementwise kernel (same value)."""
-    k = weight.shape[-1]
-    if not (torch.compiler.is_compiling() and k <= SMALL_DIM):
+    if not (torch.compiler.is_compiling() and weight.shape[-1] <= SMALL_DIM):
         return F.linear(x, weight, bias)
-    out = x[..., 0:1] * weight[:, 0]
-    for i in range(1, k):
-        out = out + x[..., i : i + 1] * weight[:, i]
+    out = _broadcast_products(x, weight, dim=1)
     return out if bias is None else out + bias
 
 
@@ -85,12 +82,17 @@ def linear_t(x: Tensor, weight: Tensor) -> Tensor:
     """x W: (..., m), (m, k) -> (..., k), the product with the transpose that a backward
     pass through `linear` needs; small m under compilation as broadcast products. (No `.T`
     view of a parameter: a compiled `while_loop` refuses two of its inputs aliasing.)"""
-    m = weight.shape[0]
-    if not (torch.compiler.is_compiling() and m <= SMALL_DIM):
+    if not (torch.compiler.is_compiling() and weight.shape[0] <= SMALL_DIM):
         return x @ weight
-    out = x[..., 0:1] * weight[0]
-    for i in range(1, m):
-        out = out + x[..., i : i + 1] * weight[i]
+    return _broadcast_products(x, weight, dim=0)
+
+
+def _broadcast_products(x: Tensor, weight: Tensor, dim: int) -> Tensor:
+    """sum_i x[..., i] * weight.select(dim, i): (..., k), weight with k along `dim` -> (...,
+    the other dim). Elementwise, so the compiler fuses it with its neighbours."""
+    out = x[..., 0:1] * weight.select(dim, 0)
+    for i in range(1, weight.shape[dim]):
+        out = out + x[..., i : i + 1] * weight.select(dim, i)
     return out
 
 
