@@ -303,4 +303,9 @@ def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> Sampli
             return_best=cfg.get("return_best", False),
             **common,
         )
-    return MPPIPlanner(temperature=cfg.temperature, noise_std=cfg.noise_std, **common)
+    return MPPIPlanner(
+        temperature=cfg.temperature,
+        noise_std=cfg.noise_std,
+        smoothing=cfg.get("smoothing", 0.0),
+        **common,
+    )

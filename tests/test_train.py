@@ -169,6 +169,7 @@ def test_sigkill_then_resume_continues_identically(
         ("env=cmu_track env.task.clip='99_99' env.task.download=false", "clip '99_99' not found"),
         ("env=cmu_track env.task.clip=131_03", "clip=13103 is not a clip name; quote it"),
         ("planner.temperature=-1", "temperature must be finite and > 0"),
+        ("planner.smoothing=1", "smoothing must be in [0, 1), got 1"),
         ("buffer.device=tpu", "buffer.device='tpu' is not valid"),
         ("buffer.device_fraction=0", "buffer.device_fraction=0 is not valid"),
         ("model.yaw_invariant=true", "yaw_invariant needs a model whose first joint is a free"),

@@ -117,7 +117,7 @@ ENSEMBLE_PARTICLES = 5
 
 # configs/planner/*.yaml without horizon, num_samples, iterations, replan_every, discount, risk
 PLANNER_SETTINGS: dict[str, dict[str, Any]] = {
-    "mppi": dict(temperature=0.5, noise_std=0.5),
+    "mppi": dict(temperature=0.5, noise_std=0.5, smoothing=0.8),
     "cem": dict(num_elites=25, init_std=0.5, min_std=0.05, momentum=0.1),
     "icem": dict(
         num_elites=25,

@@ -11,6 +11,22 @@ from torch import Tensor
 from mbrl_delan.planners.base import SamplingDistribution, SamplingPlanner, require
 
 
+def ar1_filter(horizon: int, smoothing: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """Matrix F (H, H) with eps = F n an AR(1) series of unit variance from white noise n.
+
+    eps_0 = n_0 and eps_t = a eps_{t-1} + sqrt(1 - a^2) n_t with a = `smoothing`, so every
+    eps_t is N(0, 1) and Corr(eps_t, eps_s) = a^|t - s|: F[t, 0] = a^t and
+    F[t, s] = sqrt(1 - a^2) a^(t - s) for 1 <= s <= t. a = 0 gives the identity.
+    """
+    t = torch.arange(horizon, dtype=torch.float64)
+    lag = t[:, None] - t[None, :]  # (H, H) t - s
+    gain = torch.full((horizon,), math.sqrt(1.0 - smoothing**2), dtype=torch.float64)
+    gain[0] = 1.0
+    a = torch.tensor(smoothing, dtype=torch.float64)
+    powers = torch.where(lag >= 0, a ** lag.clamp_min(0), 0.0)  # a^(t - s), zero above
+    return (powers * gain[None, :]).to(device=device, dtype=dtype)
+
+
 def mppi_weights(returns: Tensor, temperature: float) -> Tensor:
     """Softmax weights exp((R - max R) / temperature), finite for any returns. (N,) -> (N,)
 
@@ -31,6 +47,10 @@ class MPPIPlanner(SamplingPlanner):
         temperature: lambda > 0; small values approach picking the best sample.
         noise_std: standard deviation of the perturbations, scalar or (nu,), > 0. None
             falls back to `init_std`.
+        smoothing: action smoothing a in [0, 1): the perturbations are an AR(1) series along
+            the horizon, eps_t = a eps_{t-1} + sqrt(1 - a^2) n_t (`ar1_filter`), so
+            neighbouring actions move together while each keeps the std `noise_std`.
+            0 is white noise.
     """
 
     def __init__(
@@ -42,6 +62,7 @@ class MPPIPlanner(SamplingPlanner):
         iterations: int = 1,
         temperature: float = 1.0,
         noise_std: float | Sequence[float] | None = None,
+        smoothing: float = 0.0,
         shift_fill: str = "repeat",
         dtype: torch.dtype = torch.float32,
     ) -> None:
@@ -49,6 +70,7 @@ class MPPIPlanner(SamplingPlanner):
             math.isfinite(temperature) and temperature > 0,
             f"temperature must be finite and > 0, got {temperature}",
         )
+        require(0 <= smoothing < 1, f"smoothing must be in [0, 1), got {smoothing}")
         super().__init__(
             horizon,
             action_low,
@@ -60,6 +82,8 @@ class MPPIPlanner(SamplingPlanner):
             dtype=dtype,
         )
         self.temperature = temperature
+        self.smoothing = float(smoothing)
+        self._filters: dict[tuple[torch.device, torch.dtype], Tensor] = {}
 
     @property
     def noise_std(self) -> Tensor:
@@ -69,6 +93,21 @@ class MPPIPlanner(SamplingPlanner):
     def _initial_distribution(self, mean: Tensor) -> SamplingDistribution:
         std = self.init_std.to(mean.device, mean.dtype).expand_as(mean).clone()
         return SamplingDistribution(mean=mean, std=std)
+
+    def _noise(
+        self, dist: SamplingDistribution, generator: torch.Generator | None, num: int
+    ) -> Tensor:
+        """Unit-variance noise (num, H, nu): white, or AR(1) along H with `smoothing`."""
+        white = super()._noise(dist, generator, num)
+        if self.smoothing == 0.0:
+            return white
+        key = (white.device, white.dtype)
+        if key not in self._filters:
+            with torch.inference_mode(False):  # a normal tensor, usable in and out of it
+                self._filters[key] = ar1_filter(
+                    self.horizon, self.smoothing, white.dtype, white.device
+                )
+        return torch.einsum("ts,nsu->ntu", self._filters[key], white)
 
     def _update(
         self, dist: SamplingDistribution, samples: Tensor, returns: Tensor
