@@ -369,25 +369,32 @@ def test_discounted_masked_return() -> None:
     assert discounted_masked_return(rewards, terminated, 0.5).item() == 2.0
 
 
-@pytest.mark.slow
-def test_oracle_mppi_swings_pendulum_up() -> None:
-    """The torque limit (0.31 m g l) needs about 100 control steps of pumping; N = 128 keeps
-    the test near 15 s on two busy cores (N = 256 also swings up, at twice the cost)."""
-    parts = make_env_parts("pendulum")
+def oracle_mppi_episode(
+    env_name: str, horizon: int, steps: int, seed: int, temperature: float, noise_std: float
+) -> TensorDict:
+    """One episode of MPPI (N 128, one iteration, a plan every 2 steps) on MuJoCo's dynamics."""
+    parts = make_env_parts(env_name)
     system, task = parts.system, parts.task
     planner = MPPIPlanner(
-        30,
+        horizon,
         system.ctrl_low,
         system.ctrl_high,
         num_samples=128,
         iterations=1,
-        temperature=0.01,
-        noise_std=0.8,
+        temperature=temperature,
+        noise_std=noise_std,
     )
-    env = make_real_env("pendulum", seed=0)
+    env = make_real_env(env_name, seed=seed)
     with mujoco_objective_factory(system, task, nthread=2) as factory:
-        policy = PlannerPolicy(planner, factory, replan_every=2, seed=0)
-        td = env.rollout(110, policy=policy)
+        policy = PlannerPolicy(planner, factory, replan_every=2, seed=seed)
+        return env.rollout(steps, policy=policy)
+
+
+@pytest.mark.slow
+def test_oracle_mppi_swings_pendulum_up() -> None:
+    """The torque limit (0.31 m g l) needs about 100 control steps of pumping; N = 128 keeps
+    the test near 15 s on two busy cores (N = 256 also swings up, at twice the cost)."""
+    td = oracle_mppi_episode("pendulum", 30, 110, seed=0, temperature=0.01, noise_std=0.8)
     q = td[keys.NEXT_Q][:, 0].double()
     upright = 0.5 * (1 - torch.cos(q))  # 1 = straight up
     assert upright[-10:].mean() > 0.8, upright[::10]
@@ -396,23 +403,9 @@ def test_oracle_mppi_swings_pendulum_up() -> None:
 @pytest.mark.slow
 def test_oracle_mppi_swings_up_and_balances_the_cartpole() -> None:
     """From the hanging start: the pole is up for the last 50 of 150 control steps (2 s) with
-    the cart near the middle of the rail. N = 128, one iteration, a plan every 2 steps keep
-    the test near 7 s (it swings up in 50 to 80 steps on seeds 0 to 2)."""
-    parts = make_env_parts("cartpole")
-    system, task = parts.system, parts.task
-    planner = MPPIPlanner(
-        40,
-        system.ctrl_low,
-        system.ctrl_high,
-        num_samples=128,
-        iterations=1,
-        temperature=0.5,
-        noise_std=0.5,
-    )
-    env = make_real_env("cartpole", seed=1)
-    with mujoco_objective_factory(system, task, nthread=2) as factory:
-        policy = PlannerPolicy(planner, factory, replan_every=2, seed=1)
-        td = env.rollout(150, policy=policy)
+    the cart near the middle of the rail. The test takes about 7 s (it swings up in 50 to 80
+    steps on seeds 0 to 2)."""
+    td = oracle_mppi_episode("cartpole", 40, 150, seed=1, temperature=0.5, noise_std=0.5)
     assert td.shape[0] == 150
     q = td[keys.NEXT_Q].double()
     upright = 0.5 * (1 - torch.cos(q[:, 1]))  # 1 = pole straight up
