@@ -272,17 +272,14 @@ class LagrangianNetwork(MechanicsField):
         return root_frame_jet(jet, q, qd) if self.root_frame else jet
 
     def _network_jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
-        """With one DoF the tangent along a unit velocity is the whole Jacobian of the
-        trunk, so the pullback is a dot product with it (no reverse pass through the trunk)."""
+        """The jet through the trunk: a tangent along qd forward, one reverse pass back."""
+        if self.n == 1 and not self.still_potential and not self.height_q.numel():
+            return self._scalar_jet(q, qd)
         n, head = self.n, self.trunk.head
-        scalar = n == 1
-        direction = torch.ones_like(qd) if scalar else qd
-        body = self.trunk.body(self.features(q), self.features.jvp(q, direction))
-        jacobian = body.d_out  # (..., hidden): d hidden / dq when scalar, else along qd
-        d_body = jacobian * qd if scalar else jacobian  # tangent of the hidden layer along qd
+        body = self.trunk.body(self.features(q), self.features.jvp(q, qd))
         weight, bias = self._matrix_head()
         raw = linear(body.out, weight, bias).unflatten(-1, (n, n))  # (..., n, n), 0 above
-        d_raw = linear(d_body, weight).unflatten(-1, (n, n))
+        d_raw = linear(body.d_out, weight).unflatten(-1, (n, n))
         raw_diag = torch.diagonal(raw, dim1=-2, dim2=-1).clone()  # (..., n), unscaled
         diag_slope = self.row_scale * torch.sigmoid(raw_diag)  # d L_ii / d raw_ii
         L = raw  # fresh output of `linear`: its diagonal is replaced in place
@@ -290,9 +287,7 @@ class LagrangianNetwork(MechanicsField):
         torch.diagonal(L, dim1=-2, dim2=-1).copy_(diag)
         L_dot = d_raw
         torch.diagonal(L_dot, dim1=-2, dim2=-1).mul_(diag_slope)
-        v = self.v_row
-        v_weight = head.weight[v] * self.energy_scale
-        v_bias = head.bias[v : v + 1] * self.energy_scale
+        v_weight, v_bias = self._potential_head()
         potential = linear(body.out, v_weight.unsqueeze(0), v_bias).squeeze(-1)
         if self.height_q.numel():
             height_potential, height_weight = self._height_potential(q)
@@ -310,10 +305,7 @@ class LagrangianNetwork(MechanicsField):
             )
             if self.still_potential:
                 d_hidden = d_hidden + linear(d_V.unsqueeze(-1) * still_offset, still_weight.T)
-            if scalar:
-                grad = (d_hidden * jacobian).sum(-1, keepdim=True)  # (..., 1)
-            else:
-                grad = self.features.vjp(q, self.trunk.body_vjp(body, d_hidden))
+            grad = self.features.vjp(q, self.trunk.body_vjp(body, d_hidden))
             if self.still_potential:
                 still_grad = d_V.unsqueeze(-1) * still_force
                 grad = grad.index_add(-1, self.features.plain_v, still_grad)
@@ -322,6 +314,33 @@ class LagrangianNetwork(MechanicsField):
             return grad
 
         return MechanicsJet(L=L, L_dot=L_dot, potential_energy=potential, pullback=pullback)
+
+    def _potential_head(self) -> tuple[Tensor, Tensor]:
+        """The V head in energy units: weight (hidden,), bias (1,)."""
+        head, v = self.trunk.head, self.v_row
+        return head.weight[v] * self.energy_scale, head.bias[v : v + 1] * self.energy_scale
+
+    def _scalar_jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
+        """One DoF: the tangent along a unit velocity is the trunk's whole Jacobian J = dh/dq
+        (..., hidden). The heads map it once, (..., hidden) x (hidden, 2), to d raw/dq and
+        dV/dq; L_dot and the pullback are then products of (...)-sized values (no reverse
+        pass through the trunk, no reduction over the hidden units per cotangent)."""
+        body = self.trunk.body(self.features(q), self.features.jvp(q, torch.ones_like(qd)))
+        weight, bias = self._matrix_head()  # (1, hidden), (1,)
+        v_weight, v_bias = self._potential_head()
+        raw = linear(body.out, weight, bias)  # (..., 1)
+        slopes = linear(body.d_out, torch.cat([weight, v_weight.unsqueeze(0)]))  # (..., 2)
+        raw_q, potential_q = slopes[..., :1], slopes[..., 1:]  # d raw/dq, dV/dq (..., 1)
+        L_q = self.row_scale * torch.sigmoid(raw) * raw_q  # dL/dq (..., 1)
+        L = (self.row_scale * (F.softplus(raw) + self.diag_shift)).unsqueeze(-1)  # (..., 1, 1)
+        potential = linear(body.out, v_weight.unsqueeze(0), v_bias).squeeze(-1)  # (...)
+
+        def pullback(d_L: Tensor, d_V: Tensor) -> Tensor:
+            return d_L.flatten(-2) * L_q + d_V.unsqueeze(-1) * potential_q  # (..., 1)
+
+        return MechanicsJet(
+            L=L, L_dot=(L_q * qd).unsqueeze(-1), potential_energy=potential, pullback=pullback
+        )
 
 
 def to_root_frame(R: Tensor, x: Tensor) -> Tensor:
