@@ -135,6 +135,7 @@ def validate_train_config(cfg: DictConfig) -> None:
     build_fit_config(cfg)
     check_whole("seed", cfg.seed, 0)
     check_whole("threads", cfg.threads, 1, optional=True)
+    check_whole("model.rollout_threads", cfg.model.get("rollout_threads"), 1, optional=True)
     check_number("model.lr", cfg.model.lr, 0.0, open_low=True)
     check_number("model.weight_decay", cfg.model.weight_decay, 0.0)
     for path in (

@@ -178,6 +178,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy 
         risk=cfg.planner.get("risk", 0.0),
         compile=cfg.model.get("compile", False),
         cuda_graph=cfg.model.get("cuda_graph", False),
+        rollout_threads=cfg.model.get("rollout_threads"),
     )
     policy = _policy(cfg.planner, _planner(cfg, system, dtype), factory, cfg.seed, device)
     oracle = _oracle(cfg, system, task)

@@ -14,6 +14,8 @@ from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.delan import SMALL_SOLVE, DeLaN, unrolled_cholesky_solve
 from mbrl_delan.models.inverse import DeLaNInverse
 from mbrl_delan.models.tangent_mlp import TangentMLP, _activate, log1p_unit
+from mbrl_delan.planners.mppi import MPPIPlanner
+from mbrl_delan.planners.policy import PlannerPolicy, intra_op_threads
 from mbrl_delan.systems.external import humanoid_v5_xml
 from mbrl_delan.systems.system import load_system
 from mbrl_delan.tasks.pendulum import PendulumSwingup
@@ -131,6 +133,75 @@ def test_a_loop_that_does_not_compile_falls_back_to_compiled_steps() -> None:
     compiled = factory(q0, qd0)(actions)
     assert not factory._loop_compiles and factory._compiled is not None  # per step
     torch.testing.assert_close(compiled, eager, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.slow
+def test_compiled_loop_on_worker_threads_equals_eager_with_particles_kept_together() -> None:
+    """Five samples of two particles in two shares of three (the last padded): each share's loop
+    on its own worker thread, with one intra-op thread, the caller's count left as it was."""
+    model, task = _pendulum_model(), _AngleReward()
+    q0, qd0 = torch.tensor([0.3]), torch.tensor([-1.0])
+    actions = torch.randn(5, 6, 1, generator=torch.Generator().manual_seed(6))
+    eager = model_objective_factory(model, task, particles=2, discount=0.95)(q0, qd0)(actions)
+    factory = model_objective_factory(
+        model, task, particles=2, discount=0.95, compile=True, rollout_threads=2
+    )
+    before = torch.get_num_threads()
+    graphs = counters["stats"]["unique_graphs"]
+    shared = factory(q0, qd0)(actions)
+    assert counters["stats"]["unique_graphs"] - graphs == 1  # both shares one size
+    assert factory._loop_compiles and factory.planning_threads == 1
+    torch.testing.assert_close(shared, eager, rtol=1e-5, atol=1e-5)
+    assert float(eager.std()) > 1e-3  # the samples score differently: a mix-up would show
+    assert torch.get_num_threads() == before
+    assert factory._threads is not None
+    counts = factory._threads.map(lambda x: x.new_tensor(torch.get_num_threads()), [q0, qd0])
+    assert [int(c) for c in counts] == [1, 1]
+    factory.close()
+    assert model_objective_factory(model, task, compile=True, rollout_threads=1)._threads is None
+
+
+def test_rollout_threads_stop_when_the_loop_runs_uncompiled() -> None:
+    """Past the compiler's recompile limit a new batch size runs as Python, where the GIL
+    would serialise the shares: the factory goes back to one batch, with the same returns.
+    (The loop given back as Python stands in for the compiler giving up.)"""
+    model, task = _pendulum_model(), _AngleReward()
+    q0, qd0 = torch.tensor([0.3]), torch.tensor([-1.0])
+    factory = model_objective_factory(model, task, compile=True, rollout_threads=2)
+    factory._compiled_loop = factory._looped_returns
+    actions = torch.randn(5, 3, 1, generator=torch.Generator().manual_seed(7))
+    expected = model_objective_factory(model, task)(q0, qd0)(actions)
+    torch.testing.assert_close(factory(q0, qd0)(actions), expected, rtol=1e-5, atol=1e-5)
+    assert factory._loop_ran_eagerly
+    assert factory.rollout_threads == 1 and factory.planning_threads is None
+
+
+@pytest.mark.slow
+def test_policy_plans_alike_with_rollouts_on_worker_threads() -> None:
+    """The same seed gives the same plan with the compiled rollouts in shares on worker threads
+    (the plan itself on one intra-op thread) as with eager rollouts of the whole batch."""
+    model, task = _pendulum_model(), _AngleReward()
+    q, qd = torch.tensor([0.3]), torch.tensor([-1.0])
+    actions = []
+    for compiled in (False, True):
+        factory = model_objective_factory(model, task, compile=compiled, rollout_threads=2)
+        planner = MPPIPlanner(6, [-2.0], [2.0], num_samples=32, iterations=2, smoothing=0.5)
+        policy = PlannerPolicy(planner, factory, seed=3)
+        actions.append(torch.stack([policy.act(q, qd) for _ in range(2)]))
+        factory.close()
+    torch.testing.assert_close(actions[0], actions[1], rtol=1e-4, atol=1e-5)
+
+
+def test_intra_op_threads_are_put_back() -> None:
+    before = torch.get_num_threads()
+    with intra_op_threads(2):
+        assert torch.get_num_threads() == 2
+    assert torch.get_num_threads() == before
+    with pytest.raises(RuntimeError), intra_op_threads(2):
+        raise RuntimeError("inside")
+    assert torch.get_num_threads() == before
+    with intra_op_threads(None):
+        assert torch.get_num_threads() == before
 
 
 def test_the_loop_is_not_tried_with_quaternion_joints() -> None:

@@ -33,6 +33,9 @@ a test keeps them equal):
 - `pendulum_ensemble`: the MLP ensemble on the pendulum, 5 particles per sequence (TSinf).
 - `pendulum_oracle`: MuJoCo's true pendulum dynamics (`planners/oracle.py`, `mujoco.rollout` on
   torch's thread count), planners in float64 on the CPU as `train.py` builds the oracle.
+- `_compiled`: the case with `model.compile=true`; on CPU, where the rollout compiles as one
+  loop, its samples are rolled out in `rollout_threads` shares on worker threads (None:
+  torch's thread count, as `model.rollout_threads: null`; records carry `rollout_threads`).
 
 Planner settings other than N, H and iterations are those of `configs/planner/*.yaml`
 (`PLANNER_SETTINGS`), with num_elites capped at N.
@@ -461,6 +464,12 @@ def latency_records(
     yield BenchRecord(SUITE, case_name, "realtime_factor", factor, "x", str(device), extra)
 
 
+def _threads_field(factory: ObjectiveFactory) -> dict[str, int]:
+    """{"rollout_threads": shares} for a model's factory (`ModelObjectiveFactory`)."""
+    shares = getattr(factory, "rollout_threads", None)
+    return {} if shares is None else {"rollout_threads": shares}
+
+
 def _fields(case: Case, setting: Setting, planner: str, dtype: torch.dtype) -> dict[str, Any]:
     return dict(
         model=case.name,
@@ -477,7 +486,9 @@ def _fields(case: Case, setting: Setting, planner: str, dtype: torch.dtype) -> d
     )
 
 
-def _objective_factory(case: Case, device: torch.device) -> ObjectiveFactory:
+def _objective_factory(
+    case: Case, device: torch.device, rollout_threads: int | None = None
+) -> ObjectiveFactory:
     if case.model is None:
         return mujoco_objective_factory(case.system, case.task, nthread=torch.get_num_threads())
     generator = torch.Generator(device=device).manual_seed(0)
@@ -488,6 +499,7 @@ def _objective_factory(case: Case, device: torch.device) -> ObjectiveFactory:
         generator=generator,
         compile=case.compile,
         cuda_graph=case.cuda_graph,
+        rollout_threads=rollout_threads,
     )
 
 
@@ -506,7 +518,7 @@ def our_records(
     oracle = case.model is None
     device = torch.device("cpu") if oracle else opts.device
     dtype = torch.float64 if oracle else DTYPE
-    factory = _objective_factory(case, device)
+    factory = _objective_factory(case, device, opts.rollout_threads)
     q0, qd0 = case.q0.to(device, dtype), case.qd0.to(device, dtype)
     sync, predictor = synchronizer(device), LatencyPredictor()
     for setting in grid.settings():
@@ -523,6 +535,7 @@ def our_records(
         else:
             compiles = case.compile or case.cuda_graph  # its first call compiles or captures
             measured = measure(make, setting, predictor, opts, sync, compiles)
+        fields.update(_threads_field(factory))  # as timed (shares stop if the loop ran eagerly)
         name = f"{case.name}-{kind}-{setting.tag()}"
         yield from latency_records(
             name, "plan_latency_ms", measured, case.system.control_dt, device, fields
@@ -656,7 +669,8 @@ def paired_records(
     device = opts.device
     eager = make_case(case.name.removesuffix(COMPILED_SUFFIX), device) if case.compile else case
     env = ModelEnv(eager.model, eager.task, eager.system, device=device, dtype=DTYPE)
-    factory, start = _objective_factory(case, device), _start_tensordict(eager, env)
+    factory = _objective_factory(case, device, opts.rollout_threads)
+    start = _start_tensordict(eager, env)
     q0, qd0 = case.q0.to(device, DTYPE), case.qd0.to(device, DTYPE)
     sync = synchronizer(device)
     one = replace(opts.timing, repeats=1, warmup=0)
@@ -679,6 +693,7 @@ def paired_records(
             paired = paired_ratio(ours, theirs, opts.timing.repeats, seconds_per_call)
             value = paired.ratio
             fields.update(
+                _threads_field(factory),
                 plan_latency_ms=1e3 * paired.ours_s,
                 torchrl_plan_latency_ms=1e3 * paired.theirs_s,
                 spread=paired.spread,

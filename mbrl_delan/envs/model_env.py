@@ -15,7 +15,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-from collections.abc import Callable, Iterator
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import torch
@@ -102,6 +104,70 @@ class ModelObjective:
         return returns.to(actions.device, dtype)
 
 
+class RolloutThreads:
+    """Worker threads that each roll out a share of a batch with one intra-op thread.
+
+    On a CPU of a few cores a batch split this way runs its shares side by side, each share's
+    kernels on one core with its data in that core's cache, where the whole batch on all the
+    intra-op threads synchronises the cores and moves data between them at every kernel (on
+    a 2-core machine a third of its time, and more when the host places the two cores far
+    apart). The compiled rollout loop releases the GIL while it runs. The caller's own
+    intra-op threads should stay idle meanwhile (`ModelObjectiveFactory.planning_threads`).
+    """
+
+    def __init__(self, threads: int) -> None:
+        if threads < 2:
+            raise ValueError(f"RolloutThreads needs threads >= 2, got {threads}")
+        self.threads = threads
+        self._pool: ThreadPoolExecutor | None = None
+        self._seen: set[tuple[int, ...]] = set()  # share shapes already run (compiled)
+
+    def map(self, fn: Callable[[Tensor], Tensor], shares: Sequence[Tensor]) -> list[Tensor]:
+        """[fn(share) for share in shares], the shares in the workers under the caller's grad
+        and inference modes. The first share of a new shape runs alone (it compiles)."""
+        pool = self._start()
+        modes = (torch.is_grad_enabled(), torch.is_inference_mode_enabled())
+        results: list[Future[Tensor] | Tensor] = []
+        for share in shares:
+            future = pool.submit(_call_in_modes, fn, share, *modes)
+            shape = tuple(share.shape)
+            if shape not in self._seen:
+                results.append(future.result())
+                self._seen.add(shape)
+            else:
+                results.append(future)
+        return [r.result() if isinstance(r, Future) else r for r in results]
+
+    def _start(self) -> ThreadPoolExecutor:
+        """The pool, its workers started with one intra-op thread each. `torch.set_num_threads`
+        in a worker also sets the default of threads started later, so the caller's is put
+        back once all the workers run."""
+        if self._pool is None:
+            threads = torch.get_num_threads()
+            pool = ThreadPoolExecutor(
+                self.threads, "rollout", initializer=torch.set_num_threads, initargs=(1,)
+            )
+            ready = threading.Barrier(self.threads)
+            for started in [pool.submit(ready.wait) for _ in range(self.threads)]:
+                started.result()
+            torch.set_num_threads(threads)
+            self._pool = pool
+        return self._pool
+
+    def close(self) -> None:
+        """Stop the workers (a later `map` starts new ones)."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+
+
+def _call_in_modes(
+    fn: Callable[[Tensor], Tensor], x: Tensor, grad: bool, inference: bool
+) -> Tensor:
+    with torch.inference_mode(inference), torch.set_grad_enabled(grad):
+        return fn(x)
+
+
 class ModelObjectiveFactory:
     """(q0 (nq,), qd0 (nv,)) -> `ModelObjective`. See `model_objective_factory`."""
 
@@ -116,6 +182,7 @@ class ModelObjectiveFactory:
         risk: float = 0.0,
         compile: bool = False,
         cuda_graph: bool = False,
+        rollout_threads: int | None = None,
     ) -> None:
         if particles < 1:
             raise ValueError(f"particles must be >= 1, got {particles}")
@@ -135,6 +202,14 @@ class ModelObjectiveFactory:
         self._compiled_loop: Callable[[Tensor, Tensor, Tensor, Tensor], Tensor] | None = None
         self._loop_compiles = model.loops_compile  # False once compiling it failed
         self.cuda_graph = cuda_graph
+        threads = torch.get_num_threads() if rollout_threads is None else rollout_threads
+        if threads < 1:
+            raise ValueError(f"rollout_threads must be >= 1, got {rollout_threads}")
+        # shares of a batch in parallel: only where the loop compiles and the model draws no
+        # random numbers (a generator shared by threads would make the draws' order vary)
+        shares = compile and threads > 1 and model.deterministic
+        self._threads = RolloutThreads(threads) if shares else None
+        self._loop_ran_eagerly = False  # a batch shape past the compiler's recompile limit
         self._graphs = GraphedCalls(
             self._returns,
             watched=lambda: [*model.parameters(), *model.buffers()],
@@ -152,10 +227,8 @@ class ModelObjectiveFactory:
         if self.cuda_graph and actions.is_cuda:
             return self._graphs(q0, qd0, actions, step)
         if self.compile and not actions.is_cuda and self._loop_compiles:
-            if self._compiled_loop is None:
-                self._compiled_loop = compile_dynamics(self._looped_returns)
             try:
-                return self._compiled_loop(q0, qd0, actions, step)
+                return self._loop_returns(q0, qd0, actions, step)
             except torch._dynamo.exc.TorchDynamoException as err:
                 # e.g. the humanoids: the compiler's C++ loop does not yet declare the index
                 # tensors their quaternion arithmetic caches (torch 2.13)
@@ -163,6 +236,53 @@ class ModelObjectiveFactory:
                 reason = str(err).strip().splitlines()[0]
                 log.warning("no compiled rollout loop (%s): one compiled call per step", reason)
         return self._returns(q0, qd0, actions, step)
+
+    def _loop_returns(self, q0: Tensor, qd0: Tensor, actions: Tensor, step: Tensor) -> Tensor:
+        """The compiled loop on the whole batch, or with `rollout_threads` on as many shares
+        of its samples (each with its P particles), one per worker thread, all of one size
+        (a batch of a new size compiles once, not once per share size). (N,)"""
+        if self._compiled_loop is None:
+            self._compiled_loop = compile_dynamics(self._looped_returns)
+        loop = self._compiled_loop
+        if self._threads is None:
+            return loop(q0, qd0, actions, step)
+        samples = actions.unflatten(0, (-1, self.particles))  # (N, P, H, nu)
+        n, k = samples.shape[0], self._threads.threads
+        size = -(-n // k)  # samples per share, the last share padded with copies of the last
+        if size * k > n:
+            samples = torch.cat([samples, samples[-1:].expand(size * k - n, *samples.shape[1:])])
+        shares = [s.flatten(0, 1) for s in samples.split(size)]  # one shape: one compiled graph
+        scores = self._threads.map(lambda share: loop(q0, qd0, share, step), shares)
+        if self._loop_ran_eagerly:  # eager kernels on one thread each, serialised by the GIL
+            log.warning(
+                "the compiled rollout loop ran uncompiled for a share of %d rows (the "
+                "compiler's recompile limit: too many batch sizes); rollouts go back to one "
+                "batch on torch's threads",
+                shares[0].shape[0],
+            )
+            self.close()
+            self._threads = None
+        return torch.cat(scores)[:n]  # (N,)
+
+    @property
+    def rollout_threads(self) -> int:
+        """Shares of a batch rolled out side by side on worker threads (1: one batch)."""
+        return 1 if self._threads is None else self._threads.threads
+
+    @property
+    def planning_threads(self) -> int | None:
+        """Intra-op threads for a planner's own work while it plans with this factory: 1 while
+        the rollouts run on worker threads (an intra-op thread of the planner's, idle between
+        its parallel kernels, spins for milliseconds on a core the workers need), else None
+        (leave them as they are). See `PlannerPolicy`."""
+        if self._threads is None or not self._loop_compiles:
+            return None
+        return 1 if self.placement(torch.device("cpu")).device.type == "cpu" else None
+
+    def close(self) -> None:
+        """Stop the rollout worker threads, if any (a later call starts them again)."""
+        if self._threads is not None:
+            self._threads.close()
 
     def _returns(self, q0: Tensor, qd0: Tensor, actions: Tensor, step: Tensor) -> Tensor:
         batch, horizon, _ = actions.shape
@@ -187,6 +307,8 @@ class ModelObjectiveFactory:
         return is accumulated step by step: r_t * discount^t while no earlier step has
         terminated (`discounted_masked_return`). On CUDA the loop's condition would be a
         device-to-host copy per step, so CUDA keeps one compiled call per step."""
+        if not torch.compiler.is_compiling():  # run as Python: the compiler gave this shape up
+            self._loop_ran_eagerly = True
         batch, horizon, nu = actions.shape
         q, qd = q0.expand(batch, -1).clone(), qd0.expand(batch, -1).clone()
         total = actions.new_zeros(batch)  # (N*P,) discounted return so far
@@ -253,6 +375,7 @@ def model_objective_factory(
     risk: float = 0.0,
     compile: bool = False,
     cuda_graph: bool = False,
+    rollout_threads: int | None = None,
 ) -> ModelObjectiveFactory:
     """Objectives over (N, H, nu) action sequences rolled out in the learned world model.
 
@@ -273,6 +396,10 @@ def model_objective_factory(
         cuda_graph: on a CUDA device, replay each rollout (all H steps and the returns)
             from a CUDA graph captured once per batch shape (`GraphedCalls`); with
             `compile`, the graph replays the compiled steps' kernels.
+        rollout_threads: with `compile` on CPU and a deterministic model (DeLaN), the
+            compiled loop runs on this many shares of the samples at once, each in its own
+            worker thread with one intra-op thread (`RolloutThreads`); 1 runs the whole batch
+            on torch's intra-op threads. None: torch's thread count at construction.
     """
     return ModelObjectiveFactory(
         model,
@@ -284,6 +411,7 @@ def model_objective_factory(
         risk=risk,
         compile=compile,
         cuda_graph=cuda_graph,
+        rollout_threads=rollout_threads,
     )
 
 

@@ -31,6 +31,7 @@ class WorldModel(nn.Module, abc.ABC):
     """
 
     trains_on_windows: bool = False
+    deterministic: bool = False  # `step` draws no random numbers (ignores its generator)
     layout: JointLayout | None = None  # the system's joints; models of a MuJoCo system set it
 
     @property

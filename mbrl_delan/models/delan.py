@@ -742,6 +742,8 @@ class DeLaN(WorldModel):
     backward pass run through `torch.compile` (`step`, `_losses_for`).
     """
 
+    deterministic = True
+
     def __init__(
         self,
         layout: JointLayout,

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+from collections.abc import Iterator
 from typing import Any
 
 import torch
@@ -36,6 +38,22 @@ def episode_starts(tensordict: TensorDictBase) -> bool:
     return step_count is not None and int(step_count.reshape(-1)[0]) == 0
 
 
+@contextlib.contextmanager
+def intra_op_threads(threads: int | None) -> Iterator[None]:
+    """torch's intra-op threads set to `threads` for the block, then put back (None: left
+    as they are). OpenMP's and MKL's counts are the calling thread's; torch's default for
+    threads started inside the block is the block's count."""
+    if threads is None:
+        yield
+        return
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 class PlannerPolicy(TensorDictModuleBase):
     """Receding-horizon control with a sampling planner.
 
@@ -48,6 +66,8 @@ class PlannerPolicy(TensorDictModuleBase):
     Call `reset()` at the start of each episode (it is also called automatically when the
     input carries TorchRL's `step_count` equal to 0). `state_dict()` holds the current plan,
     the step counter and the generator state, so a checkpointed run resumes identically.
+    A factory with a `planning_threads` count (rollouts on worker threads) has the plan run
+    on that many intra-op threads (`intra_op_threads`).
 
     Args:
         planner: the optimiser (CEM, MPPI, ...).
@@ -121,7 +141,8 @@ class PlannerPolicy(TensorDictModuleBase):
         warm = {}
         if self._plan is not None:
             warm = self.planner.warm_start(self._carried, self._steps_since_plan)
-        result = self.planner.plan(objective, init, self.generator, **warm)
+        with intra_op_threads(getattr(self.objective_factory, "planning_threads", None)):
+            result = self.planner.plan(objective, init, self.generator, **warm)
         if log.isEnabledFor(logging.DEBUG):  # float() syncs with the device
             log.debug("planned: best return %.4g", float(result.best_return))
         self.last_result = result
