@@ -109,9 +109,10 @@ class RolloutThreads:
 
     On a CPU of a few cores a batch split this way runs its shares side by side, each share's
     kernels on one core with its data in that core's cache, where the whole batch on all the
-    intra-op threads synchronises the cores and moves data between them at every kernel (on
-    a 2-core machine a third of its time, and more when the host places the two cores far
-    apart). The compiled rollout loop releases the GIL while it runs. The caller's own
+    intra-op threads synchronises the cores and moves data between them at every kernel. (On
+    the 2-core CI machines, the pendulum's loop at N 1024: 8.4-9.5 ms in shares, 9.0-9.7 ms as
+    one batch, and 12.6-13.3 ms in the processes where the host made the cores slow to
+    share data.) The compiled rollout loop releases the GIL while it runs. The caller's own
     intra-op threads should stay idle meanwhile (`ModelObjectiveFactory.planning_threads`).
     """
 
@@ -267,7 +268,7 @@ class ModelObjectiveFactory:
     @property
     def rollout_threads(self) -> int:
         """Shares of a batch rolled out side by side on worker threads (1: one batch)."""
-        return 1 if self._threads is None else self._threads.threads
+        return self._threads.threads if self._threads is not None and self._in_shares() else 1
 
     @property
     def planning_threads(self) -> int | None:
@@ -275,9 +276,13 @@ class ModelObjectiveFactory:
         the rollouts run on worker threads (an intra-op thread of the planner's, idle between
         its parallel kernels, spins for milliseconds on a core the workers need), else None
         (leave them as they are). See `PlannerPolicy`."""
+        return 1 if self._in_shares() else None
+
+    def _in_shares(self) -> bool:
+        """Whether the rollouts run in shares: the compiled loop, on the CPU."""
         if self._threads is None or not self._loop_compiles:
-            return None
-        return 1 if self.placement(torch.device("cpu")).device.type == "cpu" else None
+            return False
+        return self.placement(torch.device("cpu")).device.type == "cpu"
 
     def close(self) -> None:
         """Stop the rollout worker threads, if any (a later call starts them again)."""
