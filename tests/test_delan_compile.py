@@ -146,17 +146,18 @@ def test_compiled_loop_on_worker_threads_equals_eager_with_particles_kept_togeth
     factory = model_objective_factory(
         model, task, particles=2, discount=0.95, compile=True, rollout_threads=2
     )
-    before = torch.get_num_threads()
     graphs = counters["stats"]["unique_graphs"]
-    shared = factory(q0, qd0)(actions)
+    with intra_op_threads(2):  # a caller on two threads (the suite runs on one)
+        shared = factory(q0, qd0)(actions)
+        assert torch.get_num_threads() == 2
+        assert factory._threads is not None
+        probe = [q0, qd0]
+        counts = factory._threads.map(lambda x: x.new_tensor(torch.get_num_threads()), probe)
+    assert [int(c) for c in counts] == [1, 1]
     assert counters["stats"]["unique_graphs"] - graphs == 1  # both shares one size
     assert factory._loop_compiles and factory.planning_threads == 1
     torch.testing.assert_close(shared, eager, rtol=1e-5, atol=1e-5)
     assert float(eager.std()) > 1e-3  # the samples score differently: a mix-up would show
-    assert torch.get_num_threads() == before
-    assert factory._threads is not None
-    counts = factory._threads.map(lambda x: x.new_tensor(torch.get_num_threads()), [q0, qd0])
-    assert [int(c) for c in counts] == [1, 1]
     factory.close()
     assert model_objective_factory(model, task, compile=True, rollout_threads=1)._threads is None
 

@@ -145,9 +145,7 @@ class RolloutThreads:
         back once all the workers run."""
         if self._pool is None:
             threads = torch.get_num_threads()
-            pool = ThreadPoolExecutor(
-                self.threads, "rollout", initializer=torch.set_num_threads, initargs=(1,)
-            )
+            pool = ThreadPoolExecutor(self.threads, "rollout", initializer=_one_intra_op_thread)
             ready = threading.Barrier(self.threads)
             for started in [pool.submit(ready.wait) for _ in range(self.threads)]:
                 started.result()
@@ -160,6 +158,14 @@ class RolloutThreads:
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
+
+
+def _one_intra_op_thread() -> None:
+    """A worker's intra-op threads set to 1. torch sets a thread's count from its default at
+    the thread's first parallel call, unless that has happened: read it first, so a later
+    call does not raise it back to the caller's count."""
+    torch.get_num_threads()
+    torch.set_num_threads(1)
 
 
 def _call_in_modes(
