@@ -322,18 +322,19 @@ class LagrangianNetwork(MechanicsField):
 
     def _scalar_jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
         """One DoF: the tangent along a unit velocity is the trunk's whole Jacobian J = dh/dq
-        (..., hidden). The heads map it once, (..., hidden) x (hidden, 2), to d raw/dq and
-        dV/dq; L_dot and the pullback are then products of (...)-sized values (no reverse
-        pass through the trunk, no reduction over the hidden units per cotangent)."""
+        (..., hidden). The two heads (raw L, V) map h and J once each, (..., hidden) x
+        (hidden, 2); L_dot and the pullback are then products of (...)-sized values (no
+        reverse pass through the trunk, no reduction over the hidden units per cotangent)."""
         body = self.trunk.body(self.features(q), self.features.jvp(q, torch.ones_like(qd)))
         weight, bias = self._matrix_head()  # (1, hidden), (1,)
         v_weight, v_bias = self._potential_head()
-        raw = linear(body.out, weight, bias)  # (..., 1)
-        slopes = linear(body.d_out, torch.cat([weight, v_weight.unsqueeze(0)]))  # (..., 2)
-        raw_q, potential_q = slopes[..., :1], slopes[..., 1:]  # d raw/dq, dV/dq (..., 1)
+        heads = torch.cat([weight, v_weight.unsqueeze(0)])  # (2, hidden)
+        values = linear(body.out, heads, torch.cat([bias, v_bias]))  # raw L, V (..., 2)
+        slopes = linear(body.d_out, heads)  # d raw/dq, dV/dq (..., 2)
+        raw, potential = values[..., :1], values[..., 1]  # (..., 1), (...)
+        raw_q, potential_q = slopes[..., :1], slopes[..., 1:]  # (..., 1) each
         L_q = self.row_scale * torch.sigmoid(raw) * raw_q  # dL/dq (..., 1)
         L = (self.row_scale * (F.softplus(raw) + self.diag_shift)).unsqueeze(-1)  # (..., 1, 1)
-        potential = linear(body.out, v_weight.unsqueeze(0), v_bias).squeeze(-1)  # (...)
 
         def pullback(d_L: Tensor, d_V: Tensor) -> Tensor:
             return d_L.flatten(-2) * L_q + d_V.unsqueeze(-1) * potential_q  # (..., 1)
