@@ -97,6 +97,7 @@ def test_options_reach_the_suites() -> None:
         "horizons=[]",
         "n_samples=0",
         "max_epochs=1.5",
+        "rollout_threads=0",
     ],
 )
 def test_bad_option_values_are_config_errors(override: str) -> None:

@@ -223,6 +223,7 @@ def test_new_run_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was(
         ("seed=abc", "seed='abc' is not valid; it must be a whole number >= 0"),
         ("seed=-3", "seed=-3 is not valid"),
         ("threads=0", "threads=0 is not valid; it must be a whole number >= 1 or null"),
+        ("model.rollout_threads=0", "model.rollout_threads=0 is not valid; it must be a whole"),
         ("model.lr=nan", "model.lr=nan is not valid; it must be a number > 0.0"),
         ("model.lr=0", "model.lr=0 is not valid"),
         ("model.weight_decay=-1", "model.weight_decay=-1 is not valid"),
