@@ -29,7 +29,8 @@ from mbrl_delan.benchmarks import (
     get_suite,
 )
 from mbrl_delan.benchmarks.records import RecordWriter, format_table
-from mbrl_delan.config import PLANNER_NAMES, ConfigError, check_device
+from mbrl_delan.config import ConfigError, check_device
+from mbrl_delan.schema import PLANNER_SCHEMAS
 
 log = logging.getLogger("mbrl_delan.bench")
 
@@ -148,7 +149,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         quick=bool(values["quick"]),
         n_samples=_optional_positive_int("n_samples", values["n_samples"]),
         max_epochs=_optional_positive_int("max_epochs", values["max_epochs"]),
-        planners=_optional_choices("planners", values["planners"], PLANNER_NAMES),
+        planners=_optional_choices("planners", values["planners"], tuple(PLANNER_SCHEMAS)),
         models=_optional_choices(
             "models",
             values["models"],

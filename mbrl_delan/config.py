@@ -6,16 +6,23 @@ and rejects a bad value at start with a message that names it and lists what is 
 
 from __future__ import annotations
 
+import difflib
+import logging
 import math
-from collections.abc import Sequence
-from dataclasses import fields
+import os
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import fields, is_dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.errors import HydraException, MissingConfigException
+from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
-from mbrl_delan.envs.registry import ENV_NAMES
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
@@ -24,12 +31,18 @@ from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.mppi import MPPIPlanner
+from mbrl_delan.registry import ENVS, MODELS, PLANNERS, PluginError, load_plugins
+from mbrl_delan.schema import (
+    MODEL_SCHEMAS,
+    PLANNER_SCHEMAS,
+    TrainConfig,
+    field_rule,
+)
 from mbrl_delan.systems.system import System
 from mbrl_delan.training.fit import FitConfig
 
-MODEL_NAMES = ("delan", "ensemble", "delan_ensemble")
-PLANNER_NAMES = ("cem", "icem", "mppi")
-ORACLE_PLANNERS = ("same", "ilqr")  # budget.oracle_planner
+log = logging.getLogger(__name__)
+
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 
@@ -50,9 +63,48 @@ def refuse_used_run_dir(run_dir: Path, run_files: Sequence[str], instead: str) -
         )
 
 
-def _choice(path: str, value: Any, choices: tuple[str, ...]) -> None:
+def _choice(path: str, value: Any, choices: Sequence[str]) -> None:
     if value not in choices:
         raise ConfigError(f"{path}={value!r} is not valid; choose one of: {', '.join(choices)}")
+
+
+# what Hydra's composition and OmegaConf raise for a bad command line or config file
+COMPOSE_ERRORS = (HydraException, OmegaConfBaseException)
+
+
+def config_error_line(err: BaseException) -> str:
+    """One line for a config error: ours, OmegaConf's (the full key; the nearest names of an
+    unknown key) or Hydra's (an unknown group option: the valid ones)."""
+    cause = err.__cause__ if isinstance(err.__cause__, OmegaConfBaseException) else err
+    if isinstance(cause, OmegaConfBaseException):
+        return schema_error_message(cause)
+    if isinstance(err, MissingConfigException) and err.options is not None:
+        options = [o for o in err.options if not o.startswith("base_")]
+        return f"{str(err).strip().splitlines()[0]}; choose one of: {', '.join(options)}"
+    return " ".join(str(err).split())
+
+
+def exit_config_error(err: BaseException) -> NoReturn:
+    """Log `config_error_line(err)` and exit with code 2."""
+    log.error("config error: %s", config_error_line(err))
+    sys.exit(2)
+
+
+def exit_on_config_errors(hydra_main: Callable[[], Any]) -> Any:
+    """Run a ``@hydra.main`` function; a config error, from Hydra's composition or from the
+    checks before the run starts, ends the process with exit code 2 and one line naming it
+    (Hydra alone prints several lines and exits 1). Other errors propagate unchanged."""
+    previous = os.environ.get("HYDRA_FULL_ERROR")
+    os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises its errors instead of exiting 1
+    try:
+        return hydra_main()
+    except (ConfigError, *COMPOSE_ERRORS) as err:
+        exit_config_error(err)
+    finally:
+        if previous is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+        else:
+            os.environ["HYDRA_FULL_ERROR"] = previous
 
 
 def check_whole(path: str, value: Any, low: int, optional: bool = False) -> None:
@@ -107,68 +159,175 @@ def check_device(device: str) -> torch.device:
     return dev
 
 
-def validate_train_config(cfg: DictConfig) -> None:
-    """Every value the training entry point uses, checked before anything is built or written."""
-    _choice("env.name", cfg.env.name, ENV_NAMES)
-    _choice("model.name", cfg.model.name, MODEL_NAMES)
-    _choice("planner.name", cfg.planner.name, PLANNER_NAMES)
-    _choice("dtype", cfg.dtype, tuple(DTYPES))
-    check_device(cfg.device)
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"  # the entry points' YAML files
+
+
+def compose_train_config(overrides: Sequence[str] = ()) -> DictConfig:
+    """The training config Hydra composes from ``configs/`` with `overrides` (as on the
+    command line), typed and checked (`validate_train_config`). For code that builds parts as
+    ``python -m mbrl_delan.train`` would (the benchmarks), also inside a running Hydra app."""
+    running = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+            cfg = compose("config", overrides=list(overrides))
+    finally:  # the running app's Hydra back (the context set a new GlobalHydra instance)
+        GlobalHydra.instance().clear()
+        if running is not None:
+            GlobalHydra.instance().initialize(running)
+    return validate_train_config(cfg)
+
+
+# keys added after runs were first saved, with the value a run saved without them used
+MIGRATIONS: dict[str, Any] = {
+    "plugins": [],
+    "video": False,
+    "budget.oracle_planner": "same",
+    "buffer.device": "auto",
+    "buffer.device_fraction": 0.5,
+    "planner.risk": 0.0,
+    "planner.smoothing": 0.0,  # MPPI without it: white noise
+    "planner.min_samples": None,
+    "planner.return_best": False,
+    "model.init_from": None,
+    "model.cuda_graph": False,
+    "model.rollout_threads": None,
+    "model.compile_fit": False,
+    "model.yaw_invariant": False,
+}
+
+
+def migrate(cfg: DictConfig) -> DictConfig:
+    """A run's saved config with the keys added since it was saved (`MIGRATIONS`), where its
+    model or planner has them (its schema lists them), filled with the values it ran with."""
+    out = cfg.copy()
+    with open_dict(out):
+        for key, value in MIGRATIONS.items():
+            group, _, leaf = key.rpartition(".")
+            node = out if not group else out.get(group)
+            if node is None or leaf in node or not _has_field(out, group, leaf):
+                continue
+            node[leaf] = value
+    return out
+
+
+def _has_field(cfg: DictConfig, group: str, leaf: str) -> bool:
+    """Whether the schema of `group` (model or planner: by its name) has the field `leaf`."""
+    if group not in ("model", "planner"):
+        return True
+    registry = MODELS if group == "model" else PLANNERS
+    name = cfg[group].get("name")
+    schema = registry[name].schema if name in registry else None
+    return schema is not None and leaf in {f.name for f in fields(schema)}
+
+
+def validate_train_config(cfg: DictConfig) -> DictConfig:
+    """The training config typed by its schemas and checked, before anything is built or
+    written; a `ConfigError` names the first bad key. Returns the typed config.
+
+    Loads the config's ``plugins`` first (their envs, models and planners), then: every group
+    merged into its schema (`mbrl_delan.schema`: types and unknown keys), every field's range
+    (`check_ranges`: also NaN or inf in any float), the names against the registries, and the
+    rules between keys (`_check_rules`).
+    """
+    try:
+        load_plugins(cfg.get("plugins") or [])
+    except PluginError as err:
+        raise ConfigError(str(err)) from err
+    typed = typed_train_config(cfg)
+    check_ranges(typed)
+    for family, registry in (("env", ENVS), ("model", MODELS), ("planner", PLANNERS)):
+        _choice(f"{family}.name", typed[family].name, registry.names())
+    check_device(typed.device)
+    _check_rules(typed)
+    build_fit_config(typed)
+    return typed
+
+
+def typed_train_config(cfg: DictConfig) -> DictConfig:
+    """`cfg` merged into `TrainConfig`, its model and planner into the schemas their registry
+    entries give (an entry without a schema leaves its group untyped)."""
+    base = OmegaConf.structured(TrainConfig)
+    with open_dict(base):
+        for family, registry in (("model", MODELS), ("planner", PLANNERS)):
+            name = _get_name(cfg, family)
+            schema = registry[name].schema if name in registry else None
+            base[family] = OmegaConf.structured(schema) if schema else {}
+    try:
+        return OmegaConf.merge(base, cfg)
+    except OmegaConfBaseException as err:
+        raise ConfigError(schema_error_message(err)) from err
+
+
+def _get_name(cfg: DictConfig, family: str) -> Any:
+    group = cfg.get(family)
+    if not isinstance(group, DictConfig) or "name" not in group:
+        raise ConfigError(f"{family}.name is missing: choose a {family} ({family}=NAME)")
+    return group.name
+
+
+def schema_error_message(err: OmegaConfBaseException) -> str:
+    """One line from OmegaConf's error: the full key, the value and why, and for an unknown key
+    the nearest valid names."""
+    key = getattr(err, "full_key", None) or "?"
+    first = str(err).strip().splitlines()[0]
+    if isinstance(err, ConfigKeyError | ConfigAttributeError):
+        parent = getattr(err, "parent_node", None)
+        known = [str(k) for k in parent] if isinstance(parent, DictConfig) else []
+        return f"{key} is not a config key{_nearest(key.rsplit('.', 1)[-1], known)}"
+    return f"{key}: {first}"
+
+
+def check_ranges(cfg: DictConfig, prefix: str = "") -> None:
+    """Every field of a typed node within its `rule` (`mbrl_delan.schema`), every float finite,
+    recursively; the first that is not is a `ConfigError` naming its full key."""
+    schema = OmegaConf.get_type(cfg)
+    rules = (
+        {f.name: field_rule(f.metadata) for f in fields(schema)} if is_dataclass(schema) else {}
+    )
+    if rules:  # a key added with `+` to a typed group (Hydra lets it in)
+        _refuse_unknown_keys(cfg, rules, prefix)
+    for key in cfg:
+        path = f"{prefix}{key}"
+        value = cfg[key]
+        if isinstance(value, DictConfig):
+            check_ranges(value, f"{path}.")
+            continue
+        if value is None:
+            continue
+        rule = rules.get(str(key))
+        if isinstance(value, float) and not math.isfinite(value) or rule and not rule.allows(value):
+            why = rule.describe(value) if rule else "it must be a finite number"
+            raise ConfigError(f"{path}={value!r} is not valid; {why}")
+
+
+def _refuse_unknown_keys(cfg: DictConfig, known: Sequence[str], prefix: str) -> None:
+    unknown = [str(k) for k in cfg if k not in known]
+    if unknown:
+        raise ConfigError(f"{prefix}{unknown[0]} is not a config key{_nearest(unknown[0], known)}")
+
+
+def _nearest(key: str, known: Sequence[str]) -> str:
+    """"; did you mean a, b?" with the known keys nearest to `key`, or ""."""
+    near = difflib.get_close_matches(key, list(known), n=3)
+    return f"; did you mean {', '.join(near)}?" if near else ""
+
+
+def _check_rules(cfg: DictConfig) -> None:
+    """The rules between keys (single values are checked by `check_ranges`)."""
     if cfg.model.get("cuda_graph", False) and not str(cfg.device).startswith("cuda"):
         raise ConfigError(f"model.cuda_graph=true needs device=cuda, got device={cfg.device}")
-    for path in (
-        "planner.horizon",
-        "planner.num_samples",
-        "planner.iterations",
-        "planner.replan_every",
-        "budget.iterations",
-        "budget.eval_every",
-        "model.particles",
-        "buffer.capacity",
-        "fit.batch_size",
-        "fit.max_epochs",
-        "fit.rollout_steps",
-    ):
-        check_number(path, _get(cfg, path), 1)
     _check_rollout_steps(cfg)
     _check_buffer(cfg)
-    build_fit_config(cfg)
-    check_whole("seed", cfg.seed, 0)
-    check_whole("threads", cfg.threads, 1, optional=True)
-    check_whole("model.rollout_threads", cfg.model.get("rollout_threads"), 1, optional=True)
-    check_number("model.lr", cfg.model.lr, 0.0, open_low=True)
-    check_number("model.weight_decay", cfg.model.weight_decay, 0.0)
-    for path in (
-        "budget.random_episodes",
-        "budget.eval_episodes",
-        "budget.final_eval_episodes",
-        "budget.oracle_episodes",
-    ):
-        check_number(path, _get(cfg, path), 0)
-    oracle_planner = cfg.budget.get("oracle_planner", "same")
-    if oracle_planner not in ORACLE_PLANNERS:
-        raise ConfigError(
-            f"budget.oracle_planner={oracle_planner!r} is not valid; use one of: "
-            + ", ".join(ORACLE_PLANNERS)
-        )
-    if cfg.budget.random_episodes == 0:
-        raise ConfigError("budget.random_episodes=0 is not valid: the first fit needs data (>= 1)")
-    if cfg.model.name == "delan":
-        check_number("model.velocity_margin", cfg.model.velocity_margin, 1.0)
     if cfg.planner.replan_every > cfg.planner.horizon:
         raise ConfigError(
             f"planner.replan_every={cfg.planner.replan_every} is not valid; it "
             f"must be <= planner.horizon={cfg.planner.horizon}"
         )
-    if not 0 < cfg.planner.discount <= 1:
-        raise ConfigError(f"planner.discount={cfg.planner.discount} is not valid; use (0, 1]")
-    risk = cfg.planner.get("risk", 0.0)
-    if not isinstance(risk, int | float) or isinstance(risk, bool) or not math.isfinite(risk):
-        raise ConfigError(f"planner.risk={risk!r} is not valid; it must be a finite number")
     if (
-        cfg.model.name in ("ensemble", "delan_ensemble")
-        and cfg.model.propagation == "tsinf"
-        and (cfg.model.particles % cfg.model.ensemble_size)
+        cfg.model.get("propagation") == "tsinf"
+        and "ensemble_size" in cfg.model
+        and cfg.model.particles % cfg.model.ensemble_size
     ):
         raise ConfigError(
             f"model.particles={cfg.model.particles} is not valid with tsinf: it "
@@ -240,27 +399,42 @@ def _delan_arguments(cfg: DictConfig, system: System) -> dict[str, Any]:
         still_first_order=cfg.still_first_order,
         dof_parents=system.mj_model().dof_parentid.tolist() if cfg.tree_sparse else None,
         armature=system.mj_model().dof_armature.tolist() if cfg.armature else None,
-        yaw_invariant=cfg.get("yaw_invariant", False),
+        yaw_invariant=cfg.yaw_invariant,
     )
 
 
 def build_model(cfg: DictConfig, system: System) -> WorldModel:
-    """The world model named by `cfg.name`, with the system's layout and actuation."""
-    if cfg.name == "delan":
-        return DeLaN(
-            **_delan_arguments(cfg, system),
-            compile_step=cfg.compile,
-            compile_fit=cfg.get("compile_fit", False),
-            residual=cfg.residual,
-        )
-    if cfg.name == "delan_ensemble":
-        return DeLaNEnsemble(
-            **_delan_arguments(cfg, system),
-            residual=cfg.residual,
-            ensemble_size=cfg.ensemble_size,
-            propagation=cfg.propagation,
-            bootstrap=cfg.bootstrap,
-        )
+    """The world model named by ``cfg.name`` (the model group), built by its registry entry."""
+    return MODELS[cfg.name].build(cfg, system)
+
+
+def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPlanner:
+    """The planner named by ``cfg.name`` (the planner group), built by its registry entry."""
+    return PLANNERS[cfg.name].build(cfg, system, dtype)
+
+
+@MODELS.register("delan", schema=MODEL_SCHEMAS["delan"])
+def _delan(cfg: DictConfig, system: System) -> DeLaN:
+    return DeLaN(
+        **_delan_arguments(cfg, system),
+        compile_fit=cfg.compile_fit,
+        residual=cfg.residual,
+    )
+
+
+@MODELS.register("delan_ensemble", schema=MODEL_SCHEMAS["delan_ensemble"])
+def _delan_ensemble(cfg: DictConfig, system: System) -> DeLaNEnsemble:
+    return DeLaNEnsemble(
+        **_delan_arguments(cfg, system),
+        residual=cfg.residual,
+        ensemble_size=cfg.ensemble_size,
+        propagation=cfg.propagation,
+        bootstrap=cfg.bootstrap,
+    )
+
+
+@MODELS.register("ensemble", schema=MODEL_SCHEMAS["ensemble"])
+def _ensemble(cfg: DictConfig, system: System) -> GaussianEnsemble:
     return GaussianEnsemble(
         layout=system.layout,
         nu=system.nu,
@@ -273,9 +447,9 @@ def build_model(cfg: DictConfig, system: System) -> WorldModel:
     )
 
 
-def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPlanner:
-    """CEM, iCEM or MPPI over the system's control range."""
-    common = dict(
+def _planner_arguments(cfg: DictConfig, system: System, dtype: torch.dtype) -> dict[str, Any]:
+    """The constructor arguments every sampling planner takes."""
+    return dict(
         horizon=cfg.horizon,
         action_low=system.ctrl_low,
         action_high=system.ctrl_high,
@@ -283,30 +457,40 @@ def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> Sampli
         iterations=cfg.iterations,
         dtype=dtype,
     )
-    if cfg.name == "cem":
-        return CEMPlanner(
-            num_elites=cfg.num_elites,
-            init_std=cfg.init_std,
-            min_std=cfg.min_std,
-            momentum=cfg.momentum,
-            **common,
-        )
-    if cfg.name == "icem":
-        return ICEMPlanner(
-            num_elites=cfg.num_elites,
-            beta=cfg.beta,
-            decay=cfg.decay,
-            min_samples=cfg.get("min_samples"),
-            keep_elites=cfg.keep_elites,
-            init_std=cfg.init_std,
-            min_std=cfg.min_std,
-            momentum=cfg.momentum,
-            return_best=cfg.get("return_best", False),
-            **common,
-        )
+
+
+@PLANNERS.register("cem", schema=PLANNER_SCHEMAS["cem"])
+def _cem(cfg: DictConfig, system: System, dtype: torch.dtype) -> CEMPlanner:
+    return CEMPlanner(
+        num_elites=cfg.num_elites,
+        init_std=cfg.init_std,
+        min_std=cfg.min_std,
+        momentum=cfg.momentum,
+        **_planner_arguments(cfg, system, dtype),
+    )
+
+
+@PLANNERS.register("icem", schema=PLANNER_SCHEMAS["icem"])
+def _icem(cfg: DictConfig, system: System, dtype: torch.dtype) -> ICEMPlanner:
+    return ICEMPlanner(
+        num_elites=cfg.num_elites,
+        beta=cfg.beta,
+        decay=cfg.decay,
+        min_samples=cfg.min_samples,
+        keep_elites=cfg.keep_elites,
+        init_std=cfg.init_std,
+        min_std=cfg.min_std,
+        momentum=cfg.momentum,
+        return_best=cfg.return_best,
+        **_planner_arguments(cfg, system, dtype),
+    )
+
+
+@PLANNERS.register("mppi", schema=PLANNER_SCHEMAS["mppi"])
+def _mppi(cfg: DictConfig, system: System, dtype: torch.dtype) -> MPPIPlanner:
     return MPPIPlanner(
         temperature=cfg.temperature,
         noise_std=cfg.noise_std,
-        smoothing=cfg.get("smoothing", 0.0),
-        **common,
+        smoothing=cfg.smoothing,
+        **_planner_arguments(cfg, system, dtype),
     )

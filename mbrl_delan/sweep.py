@@ -3,6 +3,8 @@
 * ``with_sweep_group(cfg)``: in a multirun (``-m``), a run whose ``logger.group`` is null gets
   the sweep's name as its wandb group, so the runs of one sweep are grouped together.
 * ``exit_or_raise``: how the entry point ends a failed run without stopping the sweep.
+* ``StartChecks``: a Hydra callback that checks the training config, and refuses a folder
+  holding another run, before Hydra creates the run dir or writes in it.
 * ``marks_crash``: decorates the training entry function; when it raises, the run dir gets
   ``crash.json`` (written atomically) and the exception propagates unchanged. A later
   successful (resumed) run removes the marker.
@@ -10,6 +12,7 @@
 
 from __future__ import annotations
 
+import copy
 import datetime
 import functools
 import json
@@ -21,16 +24,31 @@ from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
 from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, open_dict
 
-from mbrl_delan.training.checkpoint import atomic_write
-from mbrl_delan.training.recorder import ITERATION, METRICS_FILE, RUN_CONFIG, read_metrics
+from mbrl_delan.config import (
+    ConfigError,
+    exit_config_error,
+    refuse_used_run_dir,
+    validate_train_config,
+)
+from mbrl_delan.training.checkpoint import CHECKPOINT_FILE, atomic_write
+from mbrl_delan.training.recorder import (
+    ITERATION,
+    METRICS_FILE,
+    RUN_CONFIG,
+    SUMMARY_FILE,
+    read_metrics,
+)
 
 log = logging.getLogger(__name__)
 
 CRASH_FILE = "crash.json"
 TRACEBACK_CHARS = 4000  # the tail of the traceback kept in crash.json
+# files that mark a folder as holding a run of mbrl_delan.train (finished, stopped or crashed)
+RUN_FILES = (RUN_CONFIG, CHECKPOINT_FILE, METRICS_FILE, SUMMARY_FILE, CRASH_FILE)
 
 T = TypeVar("T")
 
@@ -160,3 +178,33 @@ def _record_crash(cfg: DictConfig, err: BaseException) -> None:
             log.info("run failed (%s: %s); wrote %s", type(err).__name__, err, path)
     except (OSError, ValueError) as write_err:
         log.warning("could not write %s: %s", CRASH_FILE, write_err)
+
+
+class StartChecks(Callback):
+    """Hydra callback of ``python -m mbrl_delan.train`` (``hydra.callbacks`` in
+    configs/config.yaml): before Hydra creates the run dir or writes its ``.hydra/`` record,
+    the composed config is checked (`validate_train_config`) and a new run in a folder that
+    holds another run is refused: one line naming the cause, exit code 2, nothing written.
+    (Hydra turns a callback's exceptions into warnings, so it exits itself.) A resumed run's
+    own config is checked when it is loaded, and each job of a sweep (``-m``) when it starts:
+    a bad job fails with ``crash.json`` in its folder while the others run."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        cfg = _task_config(config)
+        if cfg.get("resume") is not None:
+            return
+        run_dir = Path(config.hydra.run.dir)
+        instead = f"continue it with resume={run_dir}, or start a new one in another hydra.run.dir"
+        try:
+            validate_train_config(cfg)
+            refuse_used_run_dir(run_dir, RUN_FILES, instead)
+        except ConfigError as err:
+            exit_config_error(err)
+
+
+def _task_config(config: DictConfig) -> DictConfig:
+    """The task's config: Hydra's full config without its ``hydra`` node."""
+    cfg = copy.deepcopy(config)
+    with open_dict(cfg):
+        del cfg["hydra"]
+    return cfg

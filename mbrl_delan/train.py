@@ -28,7 +28,8 @@ from mbrl_delan.config import (
     build_model,
     build_planner,
     check_device,
-    refuse_used_run_dir,
+    exit_on_config_errors,
+    migrate,
     validate_train_config,
 )
 from mbrl_delan.data.buffer import (
@@ -47,11 +48,12 @@ from mbrl_delan.planners.ilqr import ILQRPolicy
 from mbrl_delan.planners.oracle import available_cpus, mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, tracking_ilqr_policy
-from mbrl_delan.sweep import CRASH_FILE, exit_or_raise, marks_crash, with_sweep_group
+from mbrl_delan.sweep import exit_or_raise, marks_crash, with_sweep_group
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.tracking import MotionTracking
 from mbrl_delan.training.checkpoint import (
+    CHECKPOINT_FILE,
     CheckpointError,
     load_checkpoint,
     rng_state,
@@ -64,7 +66,6 @@ from mbrl_delan.training.plots import plot_run
 from mbrl_delan.training.recorder import (
     METRICS_FILE,
     RUN_CONFIG,
-    SUMMARY_FILE,
     Recorder,
     read_metrics,
 )
@@ -79,9 +80,7 @@ from mbrl_delan.training.video import (
 
 log = logging.getLogger("mbrl_delan.train")
 
-CHECKPOINT = "checkpoint.pt"
-# files that mark a folder as holding a run (finished, stopped or crashed)
-RUN_FILES = (RUN_CONFIG, CHECKPOINT, METRICS_FILE, SUMMARY_FILE, CRASH_FILE)
+CHECKPOINT = CHECKPOINT_FILE
 
 OmegaConf.register_new_resolver(
     "run_dir_or", lambda resume, default: resume or default, replace=True
@@ -127,7 +126,7 @@ def _planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPla
 def _oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy | ILQRPolicy:
     """The oracle policy of `budget.oracle_planner`: `same` (the loop's planner on MuJoCo) or
     `ilqr` (tracking tasks: iLQR over the planner's horizon, `TRACKING_ILQR` otherwise)."""
-    if cfg.budget.get("oracle_planner", "same") == "ilqr":
+    if cfg.budget.oracle_planner == "ilqr":
         if not isinstance(task, MotionTracking):
             raise ConfigError(
                 f"budget.oracle_planner=ilqr needs a motion-tracking env (cmu_track), got "
@@ -175,8 +174,8 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy 
         particles=cfg.model.particles,
         discount=cfg.planner.discount,
         generator=model_gen,
-        risk=cfg.planner.get("risk", 0.0),
-        compile=cfg.model.get("compile", False),
+        risk=cfg.planner.risk,
+        compile=cfg.model.get("compile", False),  # models without the key: never compiled
         cuda_graph=cfg.model.get("cuda_graph", False),
         rollout_threads=cfg.model.get("rollout_threads"),
     )
@@ -197,7 +196,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy 
         seed=cfg.seed,
         error_horizon=cfg.planner.horizon,
         model_generator=model_gen,
-        keep_eval_rollouts=cfg.video_episodes if cfg.get("video", False) else 0,
+        keep_eval_rollouts=cfg.video_episodes if cfg.video else 0,
     )
     return loop, oracle
 
@@ -217,12 +216,12 @@ def _replay_buffer(
             shutil.rmtree(folder)
         log.info("replay buffer: memmap in %s", folder)
         return make_replay_buffer(cfg.buffer.capacity, memmap_dir=str(folder))
-    place = place_buffer(  # .get: runs saved before session 14 have no such keys
-        str(cfg.buffer.get("device", "auto")),
+    place = place_buffer(
+        str(cfg.buffer.device),
         model_device,
         cfg.buffer.capacity * transition_nbytes(env),
         free_device_bytes(model_device),
-        cfg.buffer.get("device_fraction", 0.5),
+        cfg.buffer.device_fraction,
     )
     log.info("replay buffer: on %s (%s)", place.device, place.reason)
     return make_replay_buffer(cfg.buffer.capacity, device=place.device)
@@ -238,16 +237,13 @@ VIDEO_DIR = "videos"
 
 def _check_video(cfg: DictConfig) -> None:
     """With `video=true`: check the video keys and render a test frame, before any training."""
-    if not cfg.get("video", False):
+    if not cfg.video:
         return
     for key in ("video_width", "video_height"):
-        value = cfg.get(key)
-        if not isinstance(value, int) or value < 2 or value % 2:
-            raise ConfigError(f"{key}={value!r} is not valid; it must be an even integer >= 2")
-    if not isinstance(cfg.get("video_episodes"), int) or cfg.video_episodes < 1:
-        raise ConfigError(f"video_episodes={cfg.get('video_episodes')!r} is not valid; use >= 1")
+        if cfg[key] % 2:
+            raise ConfigError(f"{key}={cfg[key]!r} is not valid; it must be an even integer >= 2")
     try:
-        backend = check_backend(cfg.get("video_backend"))
+        backend = check_backend(cfg.video_backend)
     except VideoBackendError as err:
         raise ConfigError(f"video=true: {err}") from err
     log.info("videos: MuJoCo renders with the %r OpenGL backend", backend)
@@ -260,9 +256,9 @@ def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Reco
     the round's checkpoint: a failed video only warns and never leaves a partial MP4.
     """
     evaluation, k = loop.last_evaluation, loop.counters.iteration
-    if not cfg.get("video", False) or evaluation is None or not evaluation.rollouts:
+    if not cfg.video or evaluation is None or not evaluation.rollouts:
         return
-    if k < cfg.budget.iterations and not cfg.get("video_every_eval", False):
+    if k < cfg.budget.iterations and not cfg.video_every_eval:
         return
     try:
         with VideoRecorder(
@@ -270,7 +266,7 @@ def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Reco
             cfg.video_width,
             cfg.video_height,
             fps=1.0 / loop.system.control_dt,
-            backend=resolve_backend(cfg.get("video_backend")),
+            backend=resolve_backend(cfg.video_backend),
         ) as video:
             for j, rollout in enumerate(evaluation.rollouts):
                 path = video.record(
@@ -325,16 +321,6 @@ def _yaml(value: Any) -> str:
     return str(value).lower() if isinstance(value, bool) else str(value)
 
 
-def check_new_run_dir(cfg: DictConfig) -> None:
-    """A new run (no `resume=`) must not start in a folder that holds another run: its
-    config, checkpoint and metrics would be overwritten. Raises ConfigError naming them."""
-    if cfg.get("resume") is not None or not HydraConfig.initialized():
-        return
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
-    instead = f"continue it with resume={run_dir}, or start a new one in another hydra.run.dir"
-    refuse_used_run_dir(run_dir, RUN_FILES, instead)
-
-
 def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | None]:
     """The config and run dir to use, and the checkpoint when resuming."""
     if cfg.resume is None:
@@ -347,7 +333,7 @@ def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | No
             f"resume={cfg.resume!r}: no {RUN_CONFIG} in that folder, so it is not "
             "a run dir of mbrl_delan.train"
         )
-    run_cfg = OmegaConf.load(saved)
+    run_cfg = migrate(OmegaConf.load(saved))
     run_cfg.resume = str(run_dir)
     ckpt = run_dir / CHECKPOINT
     state = load_checkpoint(ckpt, weights_only=False) if ckpt.exists() else None
@@ -361,7 +347,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     When it raises, the run dir gets ``crash.json`` (see ``mbrl_delan.sweep``).
     """
     cfg, run_dir, state = _resolve_run(cfg)
-    validate_train_config(cfg)
+    cfg = validate_train_config(cfg)
     _check_video(cfg)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -499,9 +485,9 @@ def _print_summary(run_dir: Path, s: dict[str, Any]) -> None:
 
 
 @hydra.main(version_base="1.3", config_path="../configs", config_name="config")
-def main(cfg: DictConfig) -> float | None:
+def run(cfg: DictConfig) -> float | None:
+    """The Hydra task: the config was checked by `StartChecks` before the run dir existed."""
     try:
-        check_new_run_dir(cfg)  # before `train`: a refusal leaves no crash.json behind
         summary = train(cfg)
     except ConfigError as err:
         log.error("config error: %s", err)
@@ -524,6 +510,11 @@ def main(cfg: DictConfig) -> float | None:
         log.error("cannot resume: %s", err)
         exit_or_raise(2, err)
     return summary["eval_return_mean"]
+
+
+def main() -> float | None:
+    """``python -m mbrl_delan.train``: a config error exits 2 with one line naming it."""
+    return exit_on_config_errors(run)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,14 @@
-"""Test-session settings."""
+"""Test-session settings and the in-process command runner."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Callable
 
 import pytest
 import torch
+from hydra.core.global_hydra import GlobalHydra
 
 
 @pytest.fixture(autouse=True, scope="session")
@@ -11,3 +18,35 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(previous)
+
+
+@pytest.fixture
+def run_main(
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+    caplog: pytest.LogCaptureFixture,
+) -> Callable[..., tuple[int, str]]:
+    """Run an entry point's ``main`` in this process as its command would: ``run_main(main,
+    *args)`` -> (exit code, everything it printed and logged). Hydra finds the config folder
+    from the entry point's file, as with ``python -m``; its logging set-up is undone after."""
+    root, handlers, level = logging.getLogger(), logging.getLogger().handlers[:], logging.root.level
+    monkeypatch.setenv("HYDRA_MAIN_MODULE", "__main__")
+
+    def run(main: Callable[[], object], *args: str) -> tuple[int, str]:
+        GlobalHydra.instance().clear()
+        monkeypatch.setattr(sys, "argv", ["main", *args])
+        try:
+            main()
+            code = 0
+        except SystemExit as exit_:
+            code = exit_.code if isinstance(exit_.code, int) else 1
+        finally:
+            GlobalHydra.instance().clear()
+            root.handlers[:] = handlers
+            root.setLevel(level)
+        out = capsys.readouterr()
+        text = out.out + out.err + caplog.text
+        caplog.clear()
+        return code, text
+
+    return run

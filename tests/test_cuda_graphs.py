@@ -12,9 +12,9 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from mbrl_delan.accelerate import GraphedCalls
 from mbrl_delan.benchmarks.planner import build_delan
 from mbrl_delan.config import ConfigError, validate_train_config
-from mbrl_delan.envs.cuda_graphs import GraphedCalls
 from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.envs.registry import make_env_parts
 

@@ -9,11 +9,13 @@ from torch._dynamo.utils import counters
 from torch.nn import functional as F
 
 from mbrl_delan import keys
+from mbrl_delan.accelerate import CompiledLoop, CompiledStep
 from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.envs.registry import make_env_parts
-from mbrl_delan.models.delan import SMALL_SOLVE, DeLaN, unrolled_cholesky_solve
+from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.inverse import DeLaNInverse
-from mbrl_delan.models.tangent_mlp import TangentMLP, _activate, log1p_unit
+from mbrl_delan.models.kernels import SMALL_SOLVE, activate, log1p_unit, unrolled_cholesky_solve
+from mbrl_delan.models.tangent_mlp import TangentMLP
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.policy import PlannerPolicy, intra_op_threads
 from mbrl_delan.systems.external import humanoid_v5_xml
@@ -22,21 +24,21 @@ from mbrl_delan.tasks.pendulum import PendulumSwingup
 
 
 @pytest.mark.slow
-def test_compiled_step_equals_eager_step_and_is_dropped_on_dtype_change() -> None:
+def test_compiled_step_equals_eager_step() -> None:
+    """`CompiledStep` (TorchRL's planners over a compiled model) steps as the model does, and
+    compiles only without autograd."""
     system = load_system("acrobot")
     torch.manual_seed(0)
     model = DeLaN(system.layout, system.actuation.float(), system.control_dt, hidden=16)
-    model.compile_step = True
     g = torch.Generator().manual_seed(1)
     q, qd, a = (torch.randn(8, k, generator=g) for k in (system.nq, system.nv, system.nu))
-    eager = model._step(q, qd, a)
+    eager = model.step(q, qd, a)
+    counters.clear()
     with torch.inference_mode():
-        compiled = model.step(q, qd, a)
-    assert model._compiled_step is not None  # the compiled path ran
+        compiled = CompiledStep(model).step(q, qd, a)
+    assert counters["stats"]["unique_graphs"] >= 1  # the compiled path ran
     torch.testing.assert_close(compiled.q, eager.q, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(compiled.qd, eager.qd, rtol=1e-5, atol=1e-5)
-    model.double()  # moving the model drops the compiled step (it is specific to a dtype)
-    assert model._compiled_step is None
 
 
 def test_unrolled_cholesky_solve_equals_lapack() -> None:
@@ -53,7 +55,7 @@ def test_unrolled_cholesky_solve_equals_lapack() -> None:
 @pytest.mark.slow
 def test_compiled_softplus_and_slope_match_eager_at_extremes() -> None:
     z = torch.cat([torch.linspace(-100.0, 100.0, 401), torch.tensor([0.0, -1e-8, 1e-8])])
-    value, slope = torch.compile(lambda x: _activate("softplus", x), dynamic=False)(z)
+    value, slope = torch.compile(lambda x: activate("softplus", x), dynamic=False)(z)
     torch.testing.assert_close(value, F.softplus(z), rtol=1e-6, atol=1e-7)
     torch.testing.assert_close(slope, torch.sigmoid(z), rtol=1e-6, atol=1e-7)
 
@@ -169,11 +171,11 @@ def test_rollout_threads_stop_when_the_loop_runs_uncompiled() -> None:
     model, task = _pendulum_model(), _AngleReward()
     q0, qd0 = torch.tensor([0.3]), torch.tensor([-1.0])
     factory = model_objective_factory(model, task, compile=True, rollout_threads=2)
-    factory._compiled_loop = factory._looped_returns
+    factory._compiled_loop = CompiledLoop(factory._looped_returns, compiler=lambda fn: fn)
     actions = torch.randn(5, 3, 1, generator=torch.Generator().manual_seed(7))
     expected = model_objective_factory(model, task)(q0, qd0)(actions)
     torch.testing.assert_close(factory(q0, qd0)(actions), expected, rtol=1e-5, atol=1e-5)
-    assert factory._loop_ran_eagerly
+    assert factory._compiled_loop.ran_eagerly
     assert factory.rollout_threads == 1 and factory.planning_threads is None
 
 
@@ -359,3 +361,24 @@ def test_small_input_layers_keep_column_major_weights_with_the_same_values() -> 
     mlp.load_state_dict(state)
     assert mlp.hidden[0].weight.stride() == (1, 8)
     assert torch.equal(mlp.hidden[0].weight, state["hidden.0.weight"].double())
+
+
+def test_model_error_compiles_nothing_in_a_compiled_loop(tmp_path: Path) -> None:
+    """With model.compile=true the planning rollouts compile; `model_error` steps the model
+    itself, eagerly, over episodes of any length (it once compiled a graph per length, each
+    over 100 s on a humanoid)."""
+    from mbrl_delan.config import compose_train_config
+    from mbrl_delan.train import build_loop
+    from mbrl_delan.training.loop import model_error, run_episode
+
+    cfg = compose_train_config(["model.compile=true", "model.hidden=8", "env.episode_len=12"])
+    loop, _ = build_loop(cfg, tmp_path)
+    assert loop.policy.objective_factory.compile
+    loop.collect_random(1)
+    loop.fit()
+    episode = run_episode(loop.env, loop.random_policy, seed=5, max_steps=12)
+    counters.clear()
+    for length in (12, 9, 5):
+        err = model_error(loop.model, loop.system, episode[:length], horizon=4)
+        assert err.one_step > 0 and err.multi_step > 0
+    assert not counters["stats"]  # no frame was even traced

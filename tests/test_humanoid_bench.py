@@ -12,17 +12,17 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
 from mbrl_delan import keys
 from mbrl_delan.bench import build_options
 from mbrl_delan.benchmarks.figures import describe_curves, error_curves
 from mbrl_delan.benchmarks.figures import main as figures_main
 from mbrl_delan.benchmarks.humanoid import (
-    MODEL_SETTINGS,
     HumanoidBenchConfig,
     PDHoldPolicy,
     collect_episodes,
+    model_config,
+    oracle_planner_config,
     rollout_error,
     suite_config,
     tracking_errors,
@@ -99,7 +99,7 @@ def test_episodes_are_contiguous_mujoco_transitions(humanoid) -> None:
 def test_rollout_error_skips_episodes_shorter_than_the_horizon(humanoid) -> None:
     cfg = HumanoidBenchConfig.quick()
     episodes = collect_episodes(humanoid.system, humanoid.task, 20, cfg, seed=4)
-    model = build_model(OmegaConf.create(cfg.model_settings["ensemble"]), humanoid.system)
+    model = build_model(model_config("ensemble", cfg), humanoid.system)
     model.fit_normalization(torch.cat(episodes).to(torch.float32))
     assert rollout_error(model, humanoid.system, episodes, horizon=10_000) is None
     assert rollout_error(model, humanoid.system, episodes, horizon=1) > 0
@@ -112,9 +112,10 @@ def test_untrained_humanoid_delan_has_a_finite_first_gradient(humanoid) -> None:
     data = torch.cat(collect_episodes(humanoid.system, humanoid.task, 120, cfg, 0))
     losses = {}
     for scaling in (True, False):
-        settings = {**MODEL_SETTINGS["delan"], "inertia_scaling": scaling}
+        settings = model_config("delan", HumanoidBenchConfig())
+        settings.inertia_scaling = scaling
         torch.manual_seed(0)
-        model = build_model(OmegaConf.create(settings), humanoid.system)
+        model = build_model(settings, humanoid.system)
         model.fit_normalization(data.to(torch.float32))
         out = model.loss(data[:64].to(torch.float32))
         out.loss.backward()
@@ -125,22 +126,13 @@ def test_untrained_humanoid_delan_has_a_finite_first_gradient(humanoid) -> None:
     assert losses[False][0] > 1e6  # what the setting fixes
 
 
-def test_model_settings_are_the_configs_for_the_humanoid(humanoid) -> None:
-    env = OmegaConf.load(CONFIGS / "env" / "humanoid_stand.yaml")
-    for name, settings in MODEL_SETTINGS.items():
-        yaml = OmegaConf.load(CONFIGS / "model" / f"{name}.yaml")
-        merged = OmegaConf.merge(OmegaConf.create({"env": env}), OmegaConf.create({"m": yaml}))
-        resolved = OmegaConf.to_container(merged, resolve=True)["m"]
-        for key, value in settings.items():
-            assert resolved[key] == value, (name, key)
-
-
 def test_loop_delan_with_the_free_tree_structure(humanoid) -> None:
     """model.tree_sparse and model.translation_invariant reach the loop's DeLaN: on
     Humanoid-v5 its M is zero between the two legs, and a step moves the state finitely."""
-    settings = {**MODEL_SETTINGS["delan"], "tree_sparse": True, "translation_invariant": True}
+    settings = model_config("delan", HumanoidBenchConfig())
+    settings.tree_sparse, settings.translation_invariant = True, True
     torch.manual_seed(0)
-    model = build_model(OmegaConf.create(settings), humanoid.system).double()
+    model = build_model(settings, humanoid.system).double()
     cfg = HumanoidBenchConfig.quick()
     data = torch.cat(collect_episodes(humanoid.system, humanoid.task, 60, cfg, 0))
     model.fit_normalization(data)
@@ -170,19 +162,17 @@ def test_models_and_rollout_steps_options() -> None:
         build_options(bad_steps)
 
 
-def test_oracle_planner_is_the_loops_mppi_on_the_humanoid() -> None:
+def test_the_suite_builds_the_loops_model_and_oracle_planner() -> None:
+    """The models and the oracle's MPPI are the loop's, composed from configs/ for the env."""
     cfg = HumanoidBenchConfig()
+    delan = model_config("delan", cfg)
+    assert delan.residual and delan.inertia_scaling and delan.integrator == "euler"
+    quick = model_config("ensemble", HumanoidBenchConfig.quick())
+    assert (quick.hidden, quick.layers, quick.ensemble_size) == (8, 1, 2)
     for env in cfg.oracle_tasks:
-        with initialize_config_dir(config_dir=str(CONFIGS.resolve()), version_base=None):
-            planner = compose("config", overrides=[f"env={env}", "planner=mppi"]).planner
-        setting = cfg.oracle_planner
-        assert (planner.num_samples, planner.horizon, planner.iterations) == (
-            setting.num_samples,
-            setting.horizon,
-            setting.iterations,
-        )
-        assert planner.temperature == cfg.oracle_temperature
-        assert planner.noise_std == cfg.oracle_noise_std
+        planner = oracle_planner_config(env, cfg)
+        assert (planner.num_samples, planner.horizon, planner.iterations) == (256, 15, 2)
+        assert (planner.temperature, planner.noise_std, planner.smoothing) == (0.05, 0.3, 0.0)
 
 
 def test_oracle_options() -> None:

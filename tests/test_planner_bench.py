@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
+from mbrl_delan.accelerate import CompiledStep
 from mbrl_delan.bench import build_options
 from mbrl_delan.benchmarks import (
     PLANNER_MODELS,
@@ -21,10 +21,6 @@ from mbrl_delan.benchmarks import (
 )
 from mbrl_delan.benchmarks import planner as suite
 from mbrl_delan.benchmarks.planner import (
-    DELAN_SETTINGS,
-    ENSEMBLE_PARTICLES,
-    ENSEMBLE_SETTINGS,
-    PLANNER_SETTINGS,
     LatencyPredictor,
     PlannerGrid,
     Setting,
@@ -35,8 +31,10 @@ from mbrl_delan.benchmarks.planner import (
     measure,
     model_steps_per_call,
     paired_ratio,
+    planner_config,
     run_planner,
     time_plan,
+    torchrl_model,
 )
 from mbrl_delan.benchmarks.records import BASE_FIELDS, RecordWriter, read_records
 from mbrl_delan.config import ConfigError
@@ -110,17 +108,17 @@ def test_suite_is_registered() -> None:
     assert "planner" in SUITE_NAMES and get_suite("planner") is suite.run_planner_suite
 
 
-def test_settings_are_the_configs_defaults() -> None:
-    """The suite builds models and planners as configs/model and configs/planner say."""
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
-        delan = compose("config", overrides=["env=pendulum", "model=delan"]).model
-    assert {k: delan[k] for k in DELAN_SETTINGS} == DELAN_SETTINGS
-    ensemble = OmegaConf.load(CONFIGS / "model" / "ensemble.yaml")
-    assert {k: ensemble[k] for k in ENSEMBLE_SETTINGS} == ENSEMBLE_SETTINGS
-    assert ensemble.particles == ENSEMBLE_PARTICLES
-    for kind, settings in PLANNER_SETTINGS.items():
-        cfg = OmegaConf.load(CONFIGS / "planner" / f"{kind}.yaml")
-        assert {k: cfg[k] for k in settings} == settings, kind
+def test_cases_and_planners_are_the_loops() -> None:
+    """The suite builds models and planners from the loop's config on the pendulum: the
+    YAML's settings, the setting's N, H and iterations, num_elites capped at N."""
+    delan, ensemble = (make_case(name, torch.device("cpu")) for name in PLANNER_MODELS[:3:2])
+    assert (delan.model.integrator, delan.model.substeps, delan.particles) == ("euler", 2, 1)
+    assert ensemble.particles == 5 and ensemble.model.ensemble_size == 5
+    mppi = planner_config("mppi", Setting(64, 7, 3))
+    assert (mppi.num_samples, mppi.horizon, mppi.iterations) == (64, 7, 3)
+    assert (mppi.temperature, mppi.noise_std, mppi.smoothing) == (0.5, 0.5, 0.8)
+    assert planner_config("icem", Setting(16, 5, 1)).num_elites == 16
+    assert planner_config("icem", Setting(1024, 5, 1)).num_elites == 25
 
 
 # ---------------------------------------------------------------------------- the grid
@@ -225,10 +223,10 @@ def test_quick_suite_writes_every_figure(tmp_path: Path) -> None:
 def test_compiled_cases_compile_our_step_and_the_model_step() -> None:
     case = make_case("pendulum_delan_compiled", torch.device("cpu"))
     plain = make_case("pendulum_delan", torch.device("cpu"))
-    assert case.compile and case.model.compile_step
-    assert not plain.compile and not plain.model.compile_step
-    factory = _objective_factory(case, torch.device("cpu"))
-    assert factory.compile
+    assert case.compile and isinstance(torchrl_model(case), CompiledStep)
+    assert not plain.compile and torchrl_model(plain) is plain.model
+    assert _objective_factory(case, torch.device("cpu")).compile
+    assert not _objective_factory(plain, torch.device("cpu")).compile
 
 
 def test_a_compiling_call_is_timed_after_two_untimed_calls() -> None:

@@ -14,14 +14,16 @@ from torchrl.envs.utils import check_env_specs
 
 from mbrl_delan import keys
 from mbrl_delan.envs import (
-    ENV_IDS,
-    ENV_NAMES,
     MujocoTaskEnv,
     env_parts_of,
+    gym_id,
     make_env_parts,
     make_real_env,
     register_envs,
 )
+from mbrl_delan.registry import ENVS
+
+ENV_NAMES = ENVS.names()
 
 # cmu_track's clip: the test data's (its default, 02_01, may not be on the machine)
 TASK_OPTIONS = {
@@ -112,8 +114,9 @@ def test_unknown_env_name_lists_choices() -> None:
 def test_gymnasium_registration_is_idempotent() -> None:
     register_envs()
     register_envs()
-    assert set(ENV_IDS) == set(ENV_NAMES)
-    env = gym.make(ENV_IDS["arm_reach"], disable_env_checker=True)
+    assert gym_id("arm_reach") == "mbrl_delan/ArmReach-v0"
+    assert all(gym_id(name) in gym.registry for name in ENV_NAMES)
+    env = gym.make(gym_id("arm_reach"), disable_env_checker=True)
     assert isinstance(env.unwrapped, MujocoTaskEnv)
     obs, _ = env.reset(seed=0)
     assert set(obs) == {keys.Q, keys.QD} and obs[keys.Q].dtype == np.float32

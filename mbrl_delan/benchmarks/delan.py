@@ -44,6 +44,7 @@ from torch.func import grad, jacfwd, vmap
 from torch.nn import functional as F
 
 from mbrl_delan import keys
+from mbrl_delan.accelerate import compile_dynamics
 from mbrl_delan.benchmarks import (
     SuiteOptions,
     Timing,
@@ -53,7 +54,7 @@ from mbrl_delan.benchmarks import (
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
-from mbrl_delan.models.delan import DeLaN, LagrangianNetwork, compile_dynamics
+from mbrl_delan.models.delan import DeLaN, LagrangianNetwork
 from mbrl_delan.systems.external import humanoid_cmu_xml
 from mbrl_delan.systems.system import HINGE, JointLayout
 

@@ -11,8 +11,8 @@ transitions? For each training-set size n in `sizes`:
    episodes of the same policy from other seeds (`test_transitions` in all). This is not the
    planner's on-policy data: collecting 10k-50k planner steps takes hours on a CPU.
 2. Models, built as `python -m mbrl_delan.train env=humanoid_stand model=...` builds them
-   (`config.build_model`; settings `HumanoidBenchConfig.model_settings`, the defaults of
-   `configs/model/*.yaml` with the humanoid env's integrator and residual force): `delan`
+   (`config.build_model` on the loop's config `env=humanoid_stand model=NAME`, composed from
+   `configs/` by `model_config`): `delan`
    (DeLaN with the residual generalized force), `delan_ensemble` (5 such members) and
    `ensemble` (5 Gaussian MLPs, the PETS baseline), each fitted on the same n transitions
    with `training.fit.fit_model` (Adam, early stopping on a 10% validation split). Models
@@ -53,7 +53,7 @@ from typing import Any
 import mujoco
 import numpy as np
 import torch
-from omegaconf import OmegaConf
+from omegaconf import DictConfig
 from tensordict import TensorDict, TensorDictBase
 
 from mbrl_delan import keys
@@ -63,14 +63,12 @@ from mbrl_delan.benchmarks import (
     SuiteOptions,
     host_fields,
 )
-from mbrl_delan.benchmarks.planner import Setting
 from mbrl_delan.benchmarks.records import BenchRecord
-from mbrl_delan.config import build_model
+from mbrl_delan.config import build_model, build_planner, compose_train_config
 from mbrl_delan.envs.real import env_parts_of, make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.planners.ilqr import ILQRPolicy, ILQRSettings
-from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import (
@@ -89,34 +87,6 @@ log = logging.getLogger(__name__)
 SUITE = "humanoid"
 MODEL_CASES = HUMANOID_MODELS
 
-# configs/model/{delan,delan_ensemble,ensemble}.yaml with configs/env/humanoid_stand.yaml's
-# model_integrator (euler), model_substeps (2), model_residual and model_inertia_scaling
-# (true); compared in a test
-_DELAN = dict(
-    hidden=64, layers=2, activation="softplus", diag_shift=0.001, integrator="euler",
-    substeps=2, loss="forward", dissipation=True, coulomb=True, velocity_margin=3.0,
-    residual=True, inertia_scaling=True, translation_invariant=False, yaw_invariant=False,
-    tree_sparse=False, still_first_order=False, armature=False,
-    lr=0.003, weight_decay=0.0,
-)  # fmt: skip
-MODEL_SETTINGS: dict[str, dict[str, Any]] = {
-    "delan": dict(name="delan", compile=False, **_DELAN),
-    "delan_ensemble": dict(
-        name="delan_ensemble", ensemble_size=5, propagation="tsinf", bootstrap=True, **_DELAN
-    ),
-    "ensemble": dict(
-        name="ensemble",
-        ensemble_size=5,
-        hidden=128,
-        layers=3,
-        activation="silu",
-        propagation="tsinf",
-        lr=0.001,
-        weight_decay=0.00005,
-    ),
-}
-
-
 @dataclass(frozen=True)
 class HumanoidBenchConfig:
     """Sizes and settings of the suite (`quick`: seconds, for tests)."""
@@ -134,15 +104,14 @@ class HumanoidBenchConfig:
         default_factory=lambda: FitConfig(batch_size=256, max_epochs=200, patience=10)
     )
     rollout_steps: int = 5  # fit.rollout_steps of the models that train on windows (DeLaNs)
-    model_settings: dict[str, dict[str, Any]] = field(default_factory=lambda: MODEL_SETTINGS)
+    # the loop's `model=NAME` on `env` (configs/, `model_config`), with these overrides
+    model_overrides: dict[str, tuple[str, ...]] = field(default_factory=dict)
     seed: int = 0
     oracle_tasks: tuple[str, ...] = HUMANOID_ORACLE_TASKS
     oracle_steps: int | None = None  # control steps per oracle episode (None: the task's own)
-    # the loop's MPPI on env=humanoid_stand / humanoid_walk (configs/planner/mppi.yaml with the
-    # envs' horizon, mppi_temperature and mppi_noise_std; compared in a test)
-    oracle_planner: Setting = Setting(num_samples=256, horizon=15, iterations=2)
-    oracle_temperature: float = 0.05
-    oracle_noise_std: float = 0.3
+    # the loop's MPPI on each oracle task's env (configs/, `oracle_planner_config`), with these
+    # overrides
+    oracle_overrides: tuple[str, ...] = ()
     # oracle_method "ilqr": iLQR on MuJoCo's derivatives (tracking tasks: their residuals, the
     # task's w k plus body points' positions and velocities in the world frame;
     # planners/tracking_residual.py)
@@ -152,9 +121,8 @@ class HumanoidBenchConfig:
 
     @classmethod
     def quick(cls) -> HumanoidBenchConfig:
-        tiny = {name: {**s, "hidden": 8, "layers": 1} for name, s in MODEL_SETTINGS.items()}
-        for name in ("delan_ensemble", "ensemble"):
-            tiny[name]["ensemble_size"] = 2
+        tiny = ("model.hidden=8", "model.layers=1")
+        ensemble = (*tiny, "model.ensemble_size=2", "model.particles=2")
         return cls(
             sizes=(120,),
             test_transitions=60,
@@ -162,10 +130,12 @@ class HumanoidBenchConfig:
             episode_len=30,
             fit=FitConfig(batch_size=32, max_epochs=2, patience=None),
             rollout_steps=2,
-            model_settings=tiny,
+            model_overrides={"delan": tiny, "delan_ensemble": ensemble, "ensemble": ensemble},
             oracle_tasks=("humanoid_stand",),
             oracle_steps=3,
-            oracle_planner=Setting(num_samples=16, horizon=3, iterations=1),
+            oracle_overrides=(
+                "planner.num_samples=16", "planner.horizon=3", "planner.iterations=1"
+            ),
         )
 
 
@@ -251,11 +221,24 @@ class FittedModel:
     rollout_steps: int  # K of its fit: cfg.rollout_steps if it trains on windows, else 1
 
 
+def model_config(name: str, cfg: HumanoidBenchConfig) -> DictConfig:
+    """The model group of ``python -m mbrl_delan.train env=<cfg.env> model=<name>``, with the
+    suite's `model_overrides` for it."""
+    overrides = [f"env={cfg.env}", f"model={name}", *cfg.model_overrides.get(name, ())]
+    return compose_train_config(overrides).model
+
+
+def oracle_planner_config(task_name: str, cfg: HumanoidBenchConfig) -> DictConfig:
+    """The planner group of ``python -m mbrl_delan.train env=<task_name> planner=mppi``, with
+    the suite's `oracle_overrides`."""
+    return compose_train_config([f"env={task_name}", "planner=mppi", *cfg.oracle_overrides]).planner
+
+
 def fit_world_model(
     name: str, system: System, data: TensorDict, cfg: HumanoidBenchConfig, device: torch.device
 ) -> FittedModel:
     """Model `name` fitted on time-ordered transitions ``data`` (N,)."""
-    settings = OmegaConf.create(cfg.model_settings[name])
+    settings = model_config(name, cfg)
     torch.manual_seed(cfg.seed)
     model = build_model(settings, system).to(device=device, dtype=torch.float32)
     optimizer = torch.optim.Adam(
@@ -311,28 +294,13 @@ def tracking_errors(task: MotionTracking, rollout: TensorDictBase) -> dict[str, 
 
 
 def oracle_episode(
-    task_name: str,
-    steps: int | None,
-    setting: Setting,
-    seed: int,
-    temperature: float = 0.05,
-    noise_std: float = 0.3,
+    task_name: str, steps: int | None, planner_cfg: DictConfig, seed: int
 ) -> OracleEpisode:
-    """MPPI (`setting`, `temperature`, `noise_std`) over MuJoCo's dynamics on `task_name`'s
+    """The planner of `planner_cfg` (a planner group) over MuJoCo's dynamics on `task_name`'s
     real env for at most `steps` control steps (None: the task's episode length), from the
     task's initial state of `seed`."""
     parts = make_env_parts(task_name, None, steps)
-    system = parts.system
-    planner = MPPIPlanner(
-        horizon=setting.horizon,
-        action_low=system.ctrl_low,
-        action_high=system.ctrl_high,
-        num_samples=setting.num_samples,
-        iterations=setting.iterations,
-        temperature=temperature,
-        noise_std=noise_std,
-        dtype=torch.float64,
-    )
+    planner = build_planner(planner_cfg, parts.system, torch.float64)
     threads = torch.get_num_threads()  # the suite's `threads`: MuJoCo rollout threads too
     with mujoco_objective_factory(parts.system, parts.task, nthread=threads) as factory:
         policy = PlannerPolicy(planner, factory, seed=seed, action_dtype=torch.float32)
@@ -403,13 +371,11 @@ def _oracle_run(cfg: HumanoidBenchConfig, name: str) -> tuple[OracleEpisode, dic
             regularization=s.regularization, point_weight=w.point,
             point_velocity_weight=w.point_velocity, root_weight=w.root,
         )  # fmt: skip
-    s = cfg.oracle_planner
-    ep = oracle_episode(
-        name, cfg.oracle_steps, s, cfg.seed, cfg.oracle_temperature, cfg.oracle_noise_std
-    )
+    p = oracle_planner_config(name, cfg)
+    ep = oracle_episode(name, cfg.oracle_steps, p, cfg.seed)
     return ep, dict(
-        num_samples=s.num_samples, horizon=s.horizon, iterations=s.iterations,
-        temperature=cfg.oracle_temperature, noise_std=cfg.oracle_noise_std,
+        num_samples=p.num_samples, horizon=p.horizon, iterations=p.iterations,
+        temperature=p.temperature, noise_std=p.noise_std,
     )  # fmt: skip
 
 

@@ -22,8 +22,8 @@ For each world-model case in `PlannerGrid.models`, planner in `planners`, sample
   twin (the same weights, from the same seed).
 
 World-model cases (`PLANNER_MODELS`), all untrained (timing does not depend on the weights),
-float32, with the settings of `configs/model/*.yaml` (`DELAN_SETTINGS`, `ENSEMBLE_SETTINGS`;
-a test keeps them equal):
+float32, built as ``python -m mbrl_delan.train env=pendulum model=delan`` (or
+``model=ensemble``) builds them, from the config Hydra composes (`loop_config`):
 
 - `pendulum_delan`: DeLaN on the pendulum (nv 1, control period 0.05 s), task pendulum swing-up.
 - `humanoid_delan`: DeLaN on the layout of gymnasium's Humanoid-v5 (`humanoid.xml`: a free root,
@@ -37,8 +37,8 @@ a test keeps them equal):
   loop, its samples are rolled out in `rollout_threads` shares on worker threads (None:
   torch's thread count, as `model.rollout_threads: null`; records carry `rollout_threads`).
 
-Planner settings other than N, H and iterations are those of `configs/planner/*.yaml`
-(`PLANNER_SETTINGS`), with num_elites capped at N.
+Planners are the loop's (``planner=KIND`` on ``env=pendulum``, `planner_config`) with N, H
+and the iterations of the setting, num_elites capped at N.
 
 Timing (`time_plan`): settings of one (model, planner) pair run in order of work
 N x H x iterations, and each call's seconds are predicted linearly in that work from the
@@ -60,12 +60,14 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
+from omegaconf import DictConfig
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor, nn
 from torchrl.modules.planners import CEMPlanner as TorchRLCEMPlanner
 from torchrl.modules.planners import MPPIPlanner as TorchRLMPPIPlanner
 
 from mbrl_delan import keys
+from mbrl_delan.accelerate import CompiledStep
 from mbrl_delan.benchmarks import (
     COMPILED_SUFFIX,
     GRAPH_SUFFIX,
@@ -77,15 +79,15 @@ from mbrl_delan.benchmarks import (
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.config import build_model, compose_train_config
+from mbrl_delan.config import build_planner as config_build_planner
 from mbrl_delan.envs.model_env import ModelEnv, model_objective_factory
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.ensemble import GaussianEnsemble
 from mbrl_delan.planners.base import ObjectiveFactory, SamplingPlanner
-from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
-from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.oracle import MujocoObjectiveFactory, mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.external import humanoid_v5_xml
@@ -100,40 +102,8 @@ PLANNERS = ("mppi", "cem", "icem")
 TORCHRL_PLANNERS = ("mppi", "cem")
 HUMANOID_FRAME_SKIP = 5  # Humanoid-v5: 5 x 0.003 s = 0.015 s per control step
 
-# configs/model/delan.yaml and ensemble.yaml (tests/test_planner_bench.py keeps them equal)
-DELAN_SETTINGS: dict[str, Any] = dict(
-    hidden=64,
-    layers=2,
-    activation="softplus",
-    diag_shift=0.001,
-    integrator="euler",
-    substeps=2,
-    loss="forward",
-    dissipation=True,
-    coulomb=True,
-)
-DELAN_PARTICLES = 1
-ENSEMBLE_SETTINGS: dict[str, Any] = dict(
-    ensemble_size=5, hidden=128, layers=3, activation="silu", propagation="tsinf"
-)
-ENSEMBLE_PARTICLES = 5
-
-# configs/planner/*.yaml without horizon, num_samples, iterations, replan_every, discount, risk
-PLANNER_SETTINGS: dict[str, dict[str, Any]] = {
-    "mppi": dict(temperature=0.5, noise_std=0.5, smoothing=0.8),
-    "cem": dict(num_elites=25, init_std=0.5, min_std=0.05, momentum=0.1),
-    "icem": dict(
-        num_elites=25,
-        beta=2.0,
-        decay=1.25,
-        min_samples=None,
-        keep_elites=0.3,
-        init_std=0.5,
-        min_std=0.05,
-        momentum=0.1,
-        return_best=False,
-    ),
-}
+# the loop's settings: ``python -m mbrl_delan.train env=pendulum`` with these groups
+MODEL_CONFIGS = {"delan": "model=delan", "ensemble": "model=ensemble"}
 
 
 # ----------------------------------------------------------------------------- the grid
@@ -242,20 +212,19 @@ class Case:
     cuda_graph: bool = False  # replay each rollout from a CUDA graph (ours, on CUDA only)
 
 
-def build_delan(system: System, compile_step: bool = False) -> DeLaN:
-    """DeLaN as `config.build_model` builds it from configs/model/delan.yaml."""
-    return DeLaN(
-        system.layout,
-        system.actuation.float(),
-        system.control_dt,
-        compile_step=compile_step,
-        **DELAN_SETTINGS,
-    )
+def loop_config(*overrides: str) -> DictConfig:
+    """The loop's config on the pendulum (``env=pendulum``) with `overrides`."""
+    return compose_train_config(["env=pendulum", *overrides])
+
+
+def build_delan(system: System) -> DeLaN:
+    """DeLaN as ``python -m mbrl_delan.train env=pendulum model=delan`` builds it."""
+    return build_model(loop_config(MODEL_CONFIGS["delan"]).model, system)
 
 
 def build_ensemble(system: System) -> GaussianEnsemble:
-    """The ensemble as `config.build_model` builds it from configs/model/ensemble.yaml."""
-    return GaussianEnsemble(system.layout, system.nu, system.control_dt, **ENSEMBLE_SETTINGS)
+    """The ensemble as ``python -m mbrl_delan.train env=pendulum model=ensemble`` builds it."""
+    return build_model(loop_config(MODEL_CONFIGS["ensemble"]).model, system)
 
 
 def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
@@ -272,13 +241,14 @@ def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
         system, task = parts.system, parts.task
     start = task.initial_state((), torch.Generator().manual_seed(seed))
     model: WorldModel | None
-    particles = DELAN_PARTICLES
+    particles = loop_config(MODEL_CONFIGS["delan"]).model.particles
     if name == "pendulum_oracle":
         model = None
     elif name == "pendulum_ensemble":
-        model, particles = build_ensemble(system), ENSEMBLE_PARTICLES
+        model = build_ensemble(system)
+        particles = loop_config(MODEL_CONFIGS["ensemble"]).model.particles
     else:
-        model = build_delan(system, compile_step=compiled)
+        model = build_delan(system)
     if model is not None:
         model = model.to(device=device, dtype=DTYPE).eval()
     return Case(
@@ -289,23 +259,22 @@ def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
 # ----------------------------------------------------------------------------- planners
 
 
+def planner_config(kind: str, setting: Setting) -> DictConfig:
+    """The loop's `planner=kind` with the setting's N, H and iterations (num_elites <= N)."""
+    n, h, i = setting.num_samples, setting.horizon, setting.iterations
+    overrides = [f"planner={kind}", f"planner.num_samples={n}", f"planner.horizon={h}"]
+    overrides.append(f"planner.iterations={i}")
+    elites = loop_config(f"planner={kind}").planner.get("num_elites")
+    if elites is not None:
+        overrides.append(f"planner.num_elites={min(elites, n)}")
+    return loop_config(*overrides).planner
+
+
 def build_planner(
     kind: str, setting: Setting, system: System, dtype: torch.dtype
 ) -> SamplingPlanner:
-    """Our planner `kind` with `PLANNER_SETTINGS` (num_elites capped at N)."""
-    settings = dict(PLANNER_SETTINGS[kind])
-    if "num_elites" in settings:
-        settings["num_elites"] = min(settings["num_elites"], setting.num_samples)
-    cls = {"mppi": MPPIPlanner, "cem": CEMPlanner, "icem": ICEMPlanner}[kind]
-    return cls(
-        horizon=setting.horizon,
-        action_low=system.ctrl_low,
-        action_high=system.ctrl_high,
-        num_samples=setting.num_samples,
-        iterations=setting.iterations,
-        dtype=dtype,
-        **settings,
-    )
+    """Our planner `kind` as the loop builds it (`planner_config`)."""
+    return config_build_planner(planner_config(kind, setting), system, dtype)
 
 
 def model_steps_per_call(planner: SamplingPlanner, particles: int) -> int:
@@ -331,12 +300,13 @@ def build_torchrl_planner(kind: str, setting: Setting, env: ModelEnv) -> nn.Modu
     """TorchRL's planner `kind` on `env`: CEM with top_k = our num_elites; MPPI over all N
     samples with TorchRL's temperature (a multiplier of the return) = 1 / ours."""
     n, h, i = setting.num_samples, setting.horizon, setting.iterations
+    ours = planner_config(kind, setting)
     if kind == "cem":
-        top_k = min(PLANNER_SETTINGS["cem"]["num_elites"], n)
+        top_k = ours.num_elites
         return TorchRLCEMPlanner(
             env, planning_horizon=h, optim_steps=i, num_candidates=n, top_k=top_k
         )
-    temperature = 1.0 / PLANNER_SETTINGS["mppi"]["temperature"]
+    temperature = 1.0 / ours.temperature
     return TorchRLMPPIPlanner(
         env,
         ReturnToGo(),
@@ -586,11 +556,17 @@ def torchrl_note(case: Case) -> str:
     return f"{TORCHRL_NOTE}; one rollout per candidate (ours: {case.particles} particles)"
 
 
+def torchrl_model(case: Case) -> WorldModel:
+    """The model TorchRL's planners step: a compiled case's with each step compiled."""
+    assert case.model is not None
+    return CompiledStep(case.model) if case.compile else case.model
+
+
 def torchrl_records(
     case: Case, kind: str, grid: PlannerGrid, opts: SuiteOptions, host: dict[str, Any]
 ) -> Iterator[BenchRecord]:
     """`torchrl_plan_latency_ms` and `realtime_factor` of TorchRL's planner `kind`."""
-    env = ModelEnv(case.model, case.task, case.system, device=opts.device, dtype=DTYPE)
+    env = ModelEnv(torchrl_model(case), case.task, case.system, device=opts.device, dtype=DTYPE)
     start = _start_tensordict(case, env)
     sync, predictor = synchronizer(opts.device), LatencyPredictor()
     note = torchrl_note(case)

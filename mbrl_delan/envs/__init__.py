@@ -1,27 +1,27 @@
-"""Environments: the real MuJoCo env (gymnasium + TorchRL) and the env registry.
+"""Environments: the real MuJoCo env (gymnasium + TorchRL) and the package's registered envs.
 
-Importing this package registers the gymnasium ids in `ENV_IDS` (e.g. mbrl_delan/Pendulum-v0).
+Importing this package registers a gymnasium id for every registered env (`gym_id`, e.g.
+mbrl_delan/Pendulum-v0); `make_real_env` registers those of envs added later.
 """
 
 from mbrl_delan.envs.model_env import ModelEnv, model_objective_factory
 from mbrl_delan.envs.real import (
-    ENV_IDS,
     MujocoTaskEnv,
     env_parts_of,
+    gym_id,
     make_real_env,
     register_envs,
 )
-from mbrl_delan.envs.registry import ENV_NAMES, EnvParts, make_env_parts
+from mbrl_delan.envs.registry import EnvParts, make_env_parts
 
 register_envs()
 
 __all__ = [
-    "ENV_IDS",
-    "ENV_NAMES",
     "EnvParts",
     "ModelEnv",
     "MujocoTaskEnv",
     "env_parts_of",
+    "gym_id",
     "make_env_parts",
     "make_real_env",
     "model_objective_factory",

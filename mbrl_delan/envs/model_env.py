@@ -15,9 +15,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-import threading
-from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import torch
@@ -27,9 +25,8 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.model_based import ModelBasedEnvBase
 
 from mbrl_delan import keys
-from mbrl_delan.envs.cuda_graphs import GraphedCalls
+from mbrl_delan.accelerate import CompiledLoop, GraphedCalls, RolloutThreads, compile_dynamics
 from mbrl_delan.models.base import WorldModel
-from mbrl_delan.models.delan import compile_dynamics
 from mbrl_delan.planners.base import discounted_masked_return, risk_adjusted_return
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
@@ -104,77 +101,6 @@ class ModelObjective:
         return returns.to(actions.device, dtype)
 
 
-class RolloutThreads:
-    """Worker threads that each roll out a share of a batch with one intra-op thread.
-
-    On a CPU of a few cores a batch split this way runs its shares side by side, each share's
-    kernels on one core with its data in that core's cache, where the whole batch on all the
-    intra-op threads synchronises the cores and moves data between them at every kernel. (On
-    the 2-core CI machines, the pendulum's loop at N 1024: 8.4-9.5 ms in shares, 9.0-9.7 ms as
-    one batch, and 12.6-13.3 ms in the processes where the host made the cores slow to
-    share data.) The compiled rollout loop releases the GIL while it runs. The caller's own
-    intra-op threads should stay idle meanwhile (`ModelObjectiveFactory.planning_threads`).
-    """
-
-    def __init__(self, threads: int) -> None:
-        if threads < 2:
-            raise ValueError(f"RolloutThreads needs threads >= 2, got {threads}")
-        self.threads = threads
-        self._pool: ThreadPoolExecutor | None = None
-        self._seen: set[tuple[int, ...]] = set()  # share shapes already run (compiled)
-
-    def map(self, fn: Callable[[Tensor], Tensor], shares: Sequence[Tensor]) -> list[Tensor]:
-        """[fn(share) for share in shares], the shares in the workers under the caller's grad
-        and inference modes. The first share of a new shape runs alone (it compiles)."""
-        pool = self._start()
-        modes = (torch.is_grad_enabled(), torch.is_inference_mode_enabled())
-        results: list[Future[Tensor] | Tensor] = []
-        for share in shares:
-            future = pool.submit(_call_in_modes, fn, share, *modes)
-            shape = tuple(share.shape)
-            if shape not in self._seen:
-                results.append(future.result())
-                self._seen.add(shape)
-            else:
-                results.append(future)
-        return [r.result() if isinstance(r, Future) else r for r in results]
-
-    def _start(self) -> ThreadPoolExecutor:
-        """The pool, its workers started with one intra-op thread each. `torch.set_num_threads`
-        in a worker also sets the default of threads started later, so the caller's is put
-        back once all the workers run."""
-        if self._pool is None:
-            threads = torch.get_num_threads()
-            pool = ThreadPoolExecutor(self.threads, "rollout", initializer=_one_intra_op_thread)
-            ready = threading.Barrier(self.threads)
-            for started in [pool.submit(ready.wait) for _ in range(self.threads)]:
-                started.result()
-            torch.set_num_threads(threads)
-            self._pool = pool
-        return self._pool
-
-    def close(self) -> None:
-        """Stop the workers (a later `map` starts new ones)."""
-        if self._pool is not None:
-            self._pool.shutdown()
-            self._pool = None
-
-
-def _one_intra_op_thread() -> None:
-    """A worker's intra-op threads set to 1. torch sets a thread's count from its default at
-    the thread's first parallel call, unless that has happened: read it first, so a later
-    call does not raise it back to the caller's count."""
-    torch.get_num_threads()
-    torch.set_num_threads(1)
-
-
-def _call_in_modes(
-    fn: Callable[[Tensor], Tensor], x: Tensor, grad: bool, inference: bool
-) -> Tensor:
-    with torch.inference_mode(inference), torch.set_grad_enabled(grad):
-        return fn(x)
-
-
 class ModelObjectiveFactory:
     """(q0 (nq,), qd0 (nv,)) -> `ModelObjective`. See `model_objective_factory`."""
 
@@ -206,7 +132,7 @@ class ModelObjectiveFactory:
         self.risk = float(risk)
         self.compile = compile
         self._compiled: Callable[[Tensor, Tensor, Tensor, Tensor], Transition] | None = None
-        self._compiled_loop: Callable[[Tensor, Tensor, Tensor, Tensor], Tensor] | None = None
+        self._compiled_loop: CompiledLoop | None = None
         self._loop_compiles = model.loops_compile  # False once compiling it failed
         self.cuda_graph = cuda_graph
         threads = torch.get_num_threads() if rollout_threads is None else rollout_threads
@@ -216,7 +142,6 @@ class ModelObjectiveFactory:
         # random numbers (a generator shared by threads would make the draws' order vary)
         shares = compile and threads > 1 and model.deterministic
         self._threads = RolloutThreads(threads) if shares else None
-        self._loop_ran_eagerly = False  # a batch shape past the compiler's recompile limit
         self._graphs = GraphedCalls(
             self._returns,
             watched=lambda: [*model.parameters(), *model.buffers()],
@@ -249,7 +174,7 @@ class ModelObjectiveFactory:
         of its samples (each with its P particles), one per worker thread, all of one size
         (a batch of a new size compiles once, not once per share size). (N,)"""
         if self._compiled_loop is None:
-            self._compiled_loop = compile_dynamics(self._looped_returns)
+            self._compiled_loop = CompiledLoop(self._looped_returns)
         loop = self._compiled_loop
         if self._threads is None:
             return loop(q0, qd0, actions, step)
@@ -260,7 +185,7 @@ class ModelObjectiveFactory:
             samples = torch.cat([samples, samples[-1:].expand(size * k - n, *samples.shape[1:])])
         shares = [s.flatten(0, 1) for s in samples.split(size)]  # one shape: one compiled graph
         scores = self._threads.map(lambda share: loop(q0, qd0, share, step), shares)
-        if self._loop_ran_eagerly:  # eager kernels on one thread each, serialised by the GIL
+        if loop.ran_eagerly:  # eager kernels on one thread each, serialised by the GIL
             log.warning(
                 "the compiled rollout loop ran uncompiled for a share of %d rows (the "
                 "compiler's recompile limit: too many batch sizes); rollouts go back to one "
@@ -318,8 +243,6 @@ class ModelObjectiveFactory:
         return is accumulated step by step: r_t * discount^t while no earlier step has
         terminated (`discounted_masked_return`). On CUDA the loop's condition would be a
         device-to-host copy per step, so CUDA keeps one compiled call per step."""
-        if not torch.compiler.is_compiling():  # run as Python: the compiler gave this shape up
-            self._loop_ran_eagerly = True
         batch, horizon, nu = actions.shape
         q, qd = q0.expand(batch, -1).clone(), qd0.expand(batch, -1).clone()
         total = actions.new_zeros(batch)  # (N*P,) discounted return so far

@@ -15,21 +15,17 @@ import torch
 from torchrl.envs import GymEnv
 
 from mbrl_delan import keys
-from mbrl_delan.envs.registry import ENV_NAMES, EnvParts, TaskOptions, make_env_parts
+from mbrl_delan.envs.registry import EnvParts, TaskOptions, make_env_parts
+from mbrl_delan.registry import ENVS
 from mbrl_delan.systems.system import State
 
 log = logging.getLogger(__name__)
 
-ENV_IDS: dict[str, str] = {
-    "pendulum": "mbrl_delan/Pendulum-v0",
-    "cartpole": "mbrl_delan/Cartpole-v0",
-    "acrobot": "mbrl_delan/Acrobot-v0",
-    "arm_reach": "mbrl_delan/ArmReach-v0",
-    "humanoid_stand": "mbrl_delan/HumanoidStand-v0",
-    "humanoid_walk": "mbrl_delan/HumanoidWalk-v0",
-    "cmu_track": "mbrl_delan/CmuTrack-v0",
-}
-assert set(ENV_IDS) == set(ENV_NAMES)
+
+
+def gym_id(name: str) -> str:
+    """The gymnasium id of a registered env: ``mbrl_delan/<Name>-v0`` (arm_reach: ArmReach)."""
+    return "mbrl_delan/" + "".join(part.capitalize() for part in name.split("_")) + "-v0"
 
 
 class MujocoTaskEnv(gym.Env):
@@ -135,8 +131,9 @@ class MujocoTaskEnv(gym.Env):
 
 
 def register_envs() -> None:
-    """Register the gymnasium ids in `ENV_IDS` (idempotent)."""
-    for name, env_id in ENV_IDS.items():
+    """Register the gymnasium id (`gym_id`) of every env in the registry (idempotent)."""
+    for name in ENVS.names():
+        env_id = gym_id(name)
         if env_id not in gym.registry:
             gym.register(
                 id=env_id,
@@ -161,11 +158,11 @@ def make_real_env(
     action repeat); `task_options` those of `make_env_parts` (cmu_track: the clip); extra
     `kwargs` go to `GymEnv`. Use `env_parts_of(env)` for the system and task.
     """
-    if name not in ENV_IDS:
-        raise ValueError(f"unknown env name {name!r}; valid choices: {', '.join(ENV_NAMES)}")
+    if name not in ENVS:
+        raise ValueError(f"unknown env name {name!r}; valid choices: {', '.join(ENVS.names())}")
     register_envs()
     env = GymEnv(
-        ENV_IDS[name],
+        gym_id(name),
         device=device,
         physics_frame_skip=frame_skip,
         episode_len=episode_len,

@@ -1,14 +1,18 @@
-"""Named environments: which MJCF system, which task, and their default settings."""
+"""The package's envs (which MJCF system, which task, their defaults) and `make_env_parts`.
+
+Each env is an entry of `mbrl_delan.registry.ENVS`, added with `register_env`; a user's own
+env registers the same way from their module (docs/architecture.md, "How to add an env").
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
-from pathlib import Path
 from typing import Any, TypeVar
 
 import torch
 
+from mbrl_delan.registry import ENVS, EnvSpec, TaskFactory, register_env
 from mbrl_delan.systems.external import humanoid_cmu_xml, humanoid_v5_xml
 from mbrl_delan.systems.system import System, load_system
 from mbrl_delan.tasks import AcrobotSwingup, ArmReach, CartpoleSwingup, PendulumSwingup
@@ -21,15 +25,6 @@ from mbrl_delan.tasks.tracking import (
     ground_reference,
 )
 
-ENV_NAMES = (
-    "pendulum",
-    "cartpole",
-    "acrobot",
-    "arm_reach",
-    "humanoid_stand",
-    "humanoid_walk",
-    "cmu_track",
-)
 TaskOptions = Mapping[str, Any]
 TermSettings = TypeVar("TermSettings", TrackingWeights, TrackingScales)
 # cmu_track's task options: the clip to follow and where to find its AMC and ASF files
@@ -51,22 +46,6 @@ class EnvParts:
 
     system: System
     task: Task
-
-
-@dataclass(frozen=True)
-class _EnvDefaults:
-    asset: str | Callable[[], Path]  # MJCF stem under systems/assets, or where to find the file
-    frame_skip: int  # MuJoCo steps per control step (0.025 s each; cartpole 0.02 s)
-    # (system, episode_len or None, task options) -> task
-    make_task: Callable[[System, int | None, TaskOptions], Task]
-    options: Mapping[str, Any] | None = None  # the task options it takes, with defaults
-
-
-def _task_factory(cls: Callable[..., Task]) -> Callable[[System, int | None, TaskOptions], Task]:
-    def make(system: System, episode_len: int | None, options: TaskOptions) -> Task:
-        return cls() if episode_len is None else cls(episode_len=episode_len)
-
-    return make
 
 
 def _humanoid_v5_task(
@@ -143,22 +122,30 @@ def term_settings(
     return cls(**{k: float(v) for k, v in given.items()})
 
 
-_DEFAULTS: dict[str, _EnvDefaults] = {
-    "pendulum": _EnvDefaults("pendulum", 2, _task_factory(PendulumSwingup)),  # dt 0.05 s
-    "cartpole": _EnvDefaults("cartpole", 2, _task_factory(CartpoleSwingup)),  # dt 0.04 s
-    "acrobot": _EnvDefaults("acrobot", 2, _task_factory(AcrobotSwingup)),  # dt 0.05 s
-    "arm_reach": _EnvDefaults("arm2", 2, _task_factory(ArmReach)),  # dt 0.05 s
-    # Humanoid-v5 (contacts on): 5 x 0.003 s = 0.015 s per control step
-    "humanoid_stand": _EnvDefaults(humanoid_v5_xml, 5, _humanoid_v5_task(None, "humanoid_stand")),
-    "humanoid_walk": _EnvDefaults(humanoid_v5_xml, 5, _humanoid_v5_task(1.0, "humanoid_walk")),
-    # dm_control's CMU humanoid (contacts on): 15 x 0.002 s = 0.03 s per control step
-    "cmu_track": _EnvDefaults(humanoid_cmu_xml, 15, _cmu_track_task, CMU_TRACK_OPTIONS),
-}
+def _episode_len_task(cls: Callable[..., Task]) -> TaskFactory:
+    """The task factory of a task class whose only option is its episode length."""
+
+    def make(system: System, episode_len: int | None, options: TaskOptions) -> Task:
+        return cls() if episode_len is None else cls(episode_len=episode_len)
+
+    return make
+
+
+# the package's envs; control step = frame_skip x the MJCF's timestep
+register_env("pendulum", "pendulum", 2)(_episode_len_task(PendulumSwingup))  # 0.05 s
+register_env("cartpole", "cartpole", 2)(_episode_len_task(CartpoleSwingup))  # 0.04 s
+register_env("acrobot", "acrobot", 2)(_episode_len_task(AcrobotSwingup))  # 0.05 s
+register_env("arm_reach", "arm2", 2)(_episode_len_task(ArmReach))  # 0.05 s
+# Humanoid-v5 (contacts on): 5 x 0.003 s = 0.015 s per control step
+register_env("humanoid_stand", humanoid_v5_xml, 5)(_humanoid_v5_task(None, "humanoid_stand"))
+register_env("humanoid_walk", humanoid_v5_xml, 5)(_humanoid_v5_task(1.0, "humanoid_walk"))
+# dm_control's CMU humanoid (contacts on): 15 x 0.002 s = 0.03 s per control step
+register_env("cmu_track", humanoid_cmu_xml, 15, CMU_TRACK_OPTIONS)(_cmu_track_task)
 
 
 def _task_options(name: str, options: TaskOptions | None) -> dict[str, Any]:
     """The env's task options with the given ones applied; unknown keys are refused."""
-    accepted = dict(_DEFAULTS[name].options or {})
+    accepted = dict(ENVS[name].build.options or {})
     given = dict(options or {})
     unknown = sorted(set(given) - set(accepted))
     if unknown:
@@ -180,13 +167,13 @@ def make_env_parts(
     `task_options` override the env's task options (only cmu_track has some:
     `CMU_TRACK_OPTIONS`).
     """
-    if name not in _DEFAULTS:
-        raise ValueError(f"unknown env name {name!r}; valid choices: {', '.join(ENV_NAMES)}")
+    if name not in ENVS:
+        raise ValueError(f"unknown env name {name!r}; valid choices: {', '.join(ENVS.names())}")
     if episode_len is not None and episode_len < 1:
         raise ValueError(f"episode_len must be >= 1, got {episode_len}")
-    defaults = _DEFAULTS[name]
+    spec: EnvSpec = ENVS[name].build
     options = _task_options(name, task_options)
-    skip = defaults.frame_skip if frame_skip is None else frame_skip
-    asset = defaults.asset if isinstance(defaults.asset, str) else defaults.asset()
+    skip = spec.frame_skip if frame_skip is None else frame_skip
+    asset = spec.asset() if callable(spec.asset) else spec.asset
     system = load_system(asset, frame_skip=skip)
-    return EnvParts(system=system, task=defaults.make_task(system, episode_len, options))
+    return EnvParts(system=system, task=spec.make_task(system, episode_len, options))

@@ -29,10 +29,12 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from mbrl_delan import keys
+from mbrl_delan.accelerate.compile import FitGraph
 from mbrl_delan.models.base import LossOutput, WorldModel
 from mbrl_delan.models.features import QFeatures, rotation_matrix, skew, unskew_of_rt
 from mbrl_delan.models.integrators import INTEGRATORS, integrate
-from mbrl_delan.models.tangent_mlp import TangentMLP, linear
+from mbrl_delan.models.kernels import cholesky_solve, linear
+from mbrl_delan.models.tangent_mlp import TangentMLP
 from mbrl_delan.systems.posarith import differentiate_pos
 from mbrl_delan.systems.system import BALL, FREE, JointLayout, State
 
@@ -46,47 +48,6 @@ LOSS_INPUTS = {
     "next_q": keys.NEXT_Q,
     "next_qd": keys.NEXT_QD,
 }
-SMALL_SOLVE = 6  # compiled forward dynamics solve M x = b by unrolled substitution up to this n
-
-
-def compile_dynamics(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """`torch.compile` for the model's hot path: static shapes (one specialised graph per
-    input shape: a graph with a dynamic batch size ran up to 10x slower on CPU), a C++
-    wrapper (less Python per call), and no guards on module attributes (DeLaN resets its
-    compiled step when it is moved with `.to()`; weights updated in place are read at each
-    call). The C++ kernels may contract a multiply and an add into one fused multiply-add
-    (one rounding instead of two: the softplus polynomial and the layer products are chains
-    of them)."""
-    options = {
-        "cpp_wrapper": True,
-        "cpp.enable_floating_point_contract_flag": "fast",
-        "guard_filter_fn": torch.compiler.skip_guard_on_all_nn_modules_unsafe,
-    }
-    return torch.compile(fn, dynamic=False, options=options)
-
-
-class FitGraph:
-    """A training function through `torch.compile` (forward and backward graphs) for the
-    first batch shape met under autograd. Other shapes (an epoch's last, partial batch) and
-    calls without autograd run eagerly, so a fit compiles once."""
-
-    def __init__(self) -> None:
-        self.reset()
-
-    def reset(self) -> None:
-        """Drop the graph (it is specific to a device and dtype)."""
-        self.graph: Callable[..., Any] | None = None
-        self.shape: torch.Size | None = None
-
-    def choose(
-        self, fn: Callable[..., Any], shape: torch.Size, enabled: bool
-    ) -> Callable[..., Any]:
-        """`fn`, or its compiled copy for a batch of `shape` when `enabled`."""
-        if not (enabled and torch.is_grad_enabled()):
-            return fn
-        if self.graph is None:
-            self.graph, self.shape = torch.compile(fn, dynamic=False), shape
-        return self.graph if shape == self.shape else fn
 
 
 @dataclass
@@ -539,49 +500,12 @@ class LagrangianDynamics(nn.Module):
         if self.field.upper:  # M = U U^T: U y = rhs, then U^T x = y
             y = torch.linalg.solve_triangular(L, rhs, upper=True)
             return torch.linalg.solve_triangular(L.transpose(-1, -2), y, upper=False).squeeze(-1)
-        if torch.compiler.is_compiling() and L.shape[-1] <= SMALL_SOLVE:
-            return unrolled_cholesky_solve(L, b)
         return cholesky_solve(L, b)
 
     def generalized_force(self, action: Tensor) -> Tensor:
         """tau = B a: (..., nu) -> (..., n). Compiled with few actuators: broadcast products
         (`linear`), which fuse into the next kernel."""
         return linear(action, self.actuation)
-
-
-def cholesky_solve(L: Tensor, b: Tensor) -> Tensor:
-    """x with L L^T x = b, L lower triangular: (..., n, n), (..., n) -> (..., n).
-
-    On CUDA by two triangular solves (cuBLAS): a batched `torch.cholesky_solve` runs MAGMA
-    there, which allocates device memory per call, so a CUDA graph cannot capture it.
-    """
-    rhs = b.unsqueeze(-1)  # (..., n, 1)
-    if not L.is_cuda:
-        return torch.cholesky_solve(rhs, L).squeeze(-1)
-    y = torch.linalg.solve_triangular(L, rhs, upper=False)
-    return torch.linalg.solve_triangular(L.transpose(-1, -2), y, upper=True).squeeze(-1)
-
-
-def unrolled_cholesky_solve(L: Tensor, b: Tensor) -> Tensor:
-    """x with L L^T x = b by substitution written out per entry: (..., n, n), (..., n) -> (..., n).
-
-    For small n under compilation, where it fuses into elementwise kernels (a batched
-    LAPACK call costs about 10 us per 1,000 matrices of any size).
-    """
-    n = L.shape[-1]
-    y: list[Tensor] = []
-    for i in range(n):  # L y = b
-        acc = b[..., i]
-        for j in range(i):
-            acc = acc - L[..., i, j] * y[j]
-        y.append(acc / L[..., i, i])
-    x: list[Tensor] = [y[0]] * n
-    for i in reversed(range(n)):  # L^T x = y
-        acc = y[i]
-        for j in range(i + 1, n):
-            acc = acc - L[..., j, i] * x[j]
-        x[i] = acc / L[..., i, i]
-    return torch.stack(x, dim=-1)
 
 
 class ResidualForce(nn.Module):
@@ -739,8 +663,9 @@ class DeLaN(WorldModel):
     M = L L^T + diag(armature). It bounds M's eigenvalues from below where the data do not
     (joints motion capture holds still); forward dynamics then factors M whole.
 
-    `compile_step` / `compile_fit`: planning steps (no autograd) / training losses and their
-    backward pass run through `torch.compile` (`step`, `_losses_for`).
+    `compile_fit`: training losses and their backward pass run through `torch.compile`
+    (`_losses_for`). Planning compiles at the call site (`mbrl_delan.accelerate`): `step` is
+    the plain maths.
     """
 
     deterministic = True
@@ -762,7 +687,6 @@ class DeLaN(WorldModel):
         unactuated_torque_scale: float = 1.0,
         velocity_margin: float = 3.0,
         max_velocity: float = 100.0,
-        compile_step: bool = False,
         compile_fit: bool = False,
         inertia_scaling: bool = False,
         diagonal_init: bool = False,
@@ -789,8 +713,7 @@ class DeLaN(WorldModel):
             )
         self.unactuated_torque_scale = unactuated_torque_scale
         self.velocity_margin = velocity_margin
-        self.compile_step, self.inertia_scaling = compile_step, inertia_scaling
-        self._compiled_step: Callable[[Tensor, Tensor, Tensor], State] | None = None
+        self.inertia_scaling = inertia_scaling
         self.compile_fit = compile_fit
         self._fit_graph = FitGraph()  # `_losses_for`
         n = layout.nv
@@ -839,8 +762,7 @@ class DeLaN(WorldModel):
         self.register_buffer("mechanics_loaded", torch.zeros((), dtype=torch.bool))
 
     def _apply(self, fn: Callable[..., Any], recurse: bool = True) -> DeLaN:
-        self._compiled_step = None  # a compiled step is specific to a device and dtype
-        self._fit_graph.reset()
+        self._fit_graph.reset()  # a compiled loss is specific to a device and dtype
         return super()._apply(fn, recurse)
 
     def terms(self, q: Tensor, qd: Tensor) -> LagrangianTerms:
@@ -868,15 +790,7 @@ class DeLaN(WorldModel):
     def step(
         self, q: Tensor, qd: Tensor, action: Tensor, generator: torch.Generator | None = None
     ) -> State:
-        """One control step. With `compile_step`, calls without autograd (planning) run a
-        `torch.compile`d copy of the step (compiled on first use, again per new shape)."""
-        if self.compile_step and not (torch.is_grad_enabled() or torch.compiler.is_compiling()):
-            if self._compiled_step is None:
-                self._compiled_step = compile_dynamics(self._step)
-            return self._compiled_step(q, qd, action)
-        return self._step(q, qd, action)
-
-    def _step(self, q: Tensor, qd: Tensor, action: Tensor) -> State:
+        """One control step: (..., nq), (..., nv), (..., nu) -> State((..., nq), (..., nv))."""
         tau = self.dynamics.generalized_force(action)  # B a: once per step, not per stage
 
         def accel(q_: Tensor, qd_: Tensor) -> Tensor:

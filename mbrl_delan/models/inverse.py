@@ -54,8 +54,9 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from mbrl_delan import keys
+from mbrl_delan.accelerate.compile import FitGraph
 from mbrl_delan.models.base import LossOutput
-from mbrl_delan.models.delan import DeLaN, FitGraph, LagrangianDynamics, LagrangianNetwork
+from mbrl_delan.models.delan import DeLaN, LagrangianDynamics, LagrangianNetwork
 from mbrl_delan.models.features import QFeatures
 from mbrl_delan.systems.system import JointLayout
 

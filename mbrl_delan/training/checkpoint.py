@@ -25,6 +25,7 @@ import torch
 
 log = logging.getLogger(__name__)
 
+CHECKPOINT_FILE = "checkpoint.pt"  # a training run's checkpoint in its run dir
 PREV_SUFFIX = ".prev"
 
 # What torch.load raises on a truncated or otherwise damaged file.

@@ -47,15 +47,16 @@ class FitConfig:
             (a multi-step loss against compounding error; models with `trains_on_windows`).
     """
 
-    batch_size: int = 256
-    max_epochs: int = 100
-    val_fraction: float = 0.1
-    min_val_size: int = 1
-    patience: int | None = 10
-    min_delta: float = 0.0
-    max_grad_norm: float | None = 10.0
-    max_batches_per_epoch: int | None = None
-    rollout_steps: int = 1
+    # metadata: the valid range, as the config checks read it (`mbrl_delan.schema.rule`)
+    batch_size: int = field(default=256, metadata={"low": 1})
+    max_epochs: int = field(default=100, metadata={"low": 1})
+    val_fraction: float = field(default=0.1, metadata={"low": 0, "high": 1, "below": True})
+    min_val_size: int = field(default=1, metadata={"low": 0})
+    patience: int | None = field(default=10, metadata={"low": 1})
+    min_delta: float = field(default=0.0, metadata={"low": 0})
+    max_grad_norm: float | None = field(default=10.0, metadata={"low": 0, "above": True})
+    max_batches_per_epoch: int | None = field(default=None, metadata={"low": 1})
+    rollout_steps: int = field(default=1, metadata={"low": 1})
 
     def __post_init__(self) -> None:
         if self.rollout_steps < 1:

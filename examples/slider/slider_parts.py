@@ -1,0 +1,96 @@
+"""A worked example of a user's own parts, registered from outside the package.
+
+A slider (one slide joint with a motor) whose task is to reach x = 1, a linear world model and
+random shooting. Run them through the loop from the repository's root:
+
+    python -m mbrl_delan.train plugins=[examples.slider.slider_parts] \\
+        'hydra.searchpath=[file://examples/slider/conf]' env=slider model=linear planner=shooting
+
+See docs/architecture.md, "How to add an env / a task / a model / a planner".
+"""
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from mbrl_delan.models.base import LossOutput, WorldModel
+from mbrl_delan.planners.base import SamplingDistribution, SamplingPlanner
+from mbrl_delan.registry import register_env, register_model, register_planner
+from mbrl_delan.schema import ModelConfig, PlannerConfig, rule
+from mbrl_delan.systems.system import State
+from mbrl_delan.tasks.base import Task
+
+
+class ReachOne(Task):
+    name = "reach_one"
+
+    def __init__(self, episode_len=20):
+        self.episode_len = episode_len
+
+    def reward(self, q, qd, action):
+        return torch.exp(-((q[..., 0] - 1.0) ** 2))
+
+    def initial_state(self, batch_shape, generator):
+        q = 0.1 * torch.randn((*batch_shape, 1), generator=generator, dtype=torch.float64)
+        return State(q, torch.zeros_like(q))
+
+
+@register_env("slider", asset=Path(__file__).with_name("slider.xml"), frame_skip=2)
+def make_task(system, episode_len, options):
+    return ReachOne() if episode_len is None else ReachOne(episode_len)
+
+
+class LinearModel(WorldModel):
+    """Next state = state + a linear function of (q, qd, action)."""
+
+    deterministic = True
+
+    def __init__(self, nq, nu):
+        super().__init__()
+        self.nq = nq
+        self.delta = nn.Linear(2 * nq + nu, 2 * nq)
+
+    def step(self, q, qd, action, generator=None):
+        d = self.delta(torch.cat([q, qd, action], -1))
+        return State(q + d[..., : self.nq], qd + d[..., self.nq :])
+
+    def loss(self, batch):
+        pred = self.step(batch["q"], batch["qd"], batch["action"])
+        err = (pred.q - batch["next", "q"]).pow(2).mean() + (
+            pred.qd - batch["next", "qd"]
+        ).pow(2).mean()
+        return LossOutput(err, {"mse": float(err)})
+
+
+@dataclass
+class LinearConfig(ModelConfig):
+    lr: float = rule(0.01, low=0, above=True)
+
+
+@register_model("linear", schema=LinearConfig)
+def build_linear(cfg, system):
+    return LinearModel(system.nq, system.nu)
+
+
+class RandomShooting(SamplingPlanner):
+    """Keeps the best of N random sequences around the last mean."""
+
+    def _initial_distribution(self, mean):
+        return SamplingDistribution(mean, self.init_std.to(mean).expand_as(mean).clone())
+
+    def _update(self, dist, samples, returns):
+        return SamplingDistribution(samples[returns.argmax()], dist.std)
+
+
+@dataclass
+class ShootingConfig(PlannerConfig):
+    init_std: float = rule(0.5, low=0, above=True)
+
+
+@register_planner("shooting", schema=ShootingConfig)
+def build_shooting(cfg, system, dtype):
+    return RandomShooting(
+        cfg.horizon, system.ctrl_low, system.ctrl_high, cfg.num_samples, cfg.iterations,
+        init_std=cfg.init_std, dtype=dtype,
+    )

@@ -1,0 +1,293 @@
+"""Typed schemas of the training config, one dataclass per config group.
+
+The YAML files under ``configs/`` hold the values (with a comment each); these dataclasses hold
+the types and the valid ranges. Each is stored in Hydra's ConfigStore (``base_train``,
+``env/base_env``, ``model/base_delan``, ``planner/base_mppi``, ...) and each YAML file extends
+its schema in its defaults list, so a value of the wrong type (``budget.iterations=1.5``) or a
+key that does not exist fails when Hydra composes the config, naming the key. Ranges and the
+rules that tie keys together are checked by `mbrl_delan.config.validate_train_config`, which
+reads the ``low`` / ``high`` / ``choices`` metadata of these fields (`field_rule`).
+
+A user's model or planner brings its own schema (`mbrl_delan.registry.register_model(name,
+schema=...)`), an env YAML of their own extends ``base_env``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING
+
+from mbrl_delan.training.fit import FitConfig
+
+
+def rule(
+    default: Any = MISSING,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    above: bool = False,
+    below: bool = False,
+    choices: tuple[str, ...] | None = None,
+) -> Any:
+    """A dataclass field with its valid range: low <= value <= high (strict with `above` /
+    `below`) or a value among `choices`; None is always allowed for an Optional field."""
+    meta = {"low": low, "high": high, "above": above, "below": below, "choices": choices}
+    return field(
+        default=default,
+        metadata={k: v for k, v in meta.items() if v is not None and v is not False},
+    )
+
+
+@dataclass
+class FieldRule:
+    """The range of one field, read from its metadata (see `rule`)."""
+
+    low: float = -math.inf
+    high: float = math.inf
+    above: bool = False
+    below: bool = False
+    choices: tuple[str, ...] | None = None
+
+    def describe(self, value: Any = 0.0) -> str:
+        """What a valid value is, in words (`value`: an int is described as a whole number)."""
+        if self.choices:
+            return "choose one of: " + ", ".join(self.choices)
+        parts = []
+        if self.low > -math.inf:
+            parts.append(f"{'>' if self.above else '>='} {self.low:g}")
+        if self.high < math.inf:
+            parts.append(f"{'<' if self.below else '<='} {self.high:g}")
+        kind = "a whole number" if isinstance(value, int) else "a finite number"
+        return f"it must be {kind}" + (" " + " and ".join(parts) if parts else "")
+
+    def allows(self, value: Any) -> bool:
+        if self.choices:
+            return value in self.choices
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return True  # strings, lists, mappings: typed by the schema only
+        if not math.isfinite(value):
+            return False
+        low_ok = value > self.low if self.above else value >= self.low
+        high_ok = value < self.high if self.below else value <= self.high
+        return low_ok and high_ok
+
+
+def field_rule(metadata: Any) -> FieldRule:
+    return FieldRule(**dict(metadata))
+
+
+INTEGRATORS = ("euler", "rk4")
+PROPAGATIONS = ("tsinf", "ts1", "mean")
+
+
+@dataclass
+class EnvConfig:
+    """``env``: which registered env, its episode and the defaults it gives other groups."""
+
+    name: str = MISSING
+    frame_skip: int | None = rule(None, low=1)  # null: the env's registered frame_skip
+    episode_len: int | None = rule(None, low=1)  # null: the task's default
+    horizon: int = rule(low=1)  # the planners' horizon (planner.horizon)
+    random_episodes: int = rule(1, low=1)
+    iterations: int = rule(low=1)
+    eval_every: int = rule(1, low=1)
+    model_integrator: str = rule("euler", choices=INTEGRATORS)
+    model_substeps: int = rule(1, low=1)
+    model_residual: bool = False
+    model_inertia_scaling: bool = False
+    mppi_temperature: float = rule(0.5, low=0, above=True)
+    mppi_noise_std: float = rule(0.5, low=0, above=True)
+    mppi_smoothing: float = rule(0.8, low=0, high=1, below=True)
+    oracle_planner: str = rule("same", choices=("same", "ilqr"))
+    task: dict[str, Any] | None = None  # task options (cmu_track: the clip)
+
+
+@dataclass
+class ModelConfig:
+    """What every model group has (the optimiser and the planning objective read it); a
+    user's model schema extends it."""
+
+    name: str = MISSING
+    lr: float = rule(low=0, above=True)
+    weight_decay: float = rule(0.0, low=0)
+    particles: int = rule(1, low=1)  # rollouts per action sequence (deterministic model: 1)
+
+
+@dataclass
+class _LagrangianConfig(ModelConfig):
+    """The settings a DeLaN and the members of a DeLaN ensemble share."""
+
+    hidden: int = rule(low=1)
+    layers: int = rule(low=1)
+    activation: str = rule(choices=("softplus", "tanh"))
+    diag_shift: float = rule(low=0)
+    integrator: str = rule(choices=INTEGRATORS)
+    substeps: int = rule(low=1)
+    loss: str = rule(choices=("forward", "inverse", "both"))
+    dissipation: bool = MISSING
+    coulomb: bool = MISSING
+    velocity_margin: float = rule(low=1)
+    residual: bool = MISSING
+    inertia_scaling: bool = MISSING
+    translation_invariant: bool = MISSING
+    yaw_invariant: bool = MISSING
+    tree_sparse: bool = MISSING
+    still_first_order: bool = MISSING
+    armature: bool = MISSING
+
+
+@dataclass
+class DeLaNConfig(_LagrangianConfig):
+    """``model=delan``."""
+
+    init_from: str | None = None
+    compile: bool = MISSING
+    cuda_graph: bool = MISSING
+    rollout_threads: int | None = rule(None, low=1)
+    compile_fit: bool = MISSING
+
+
+@dataclass
+class DeLaNEnsembleConfig(_LagrangianConfig):
+    """``model=delan_ensemble``."""
+
+    ensemble_size: int = rule(low=1)
+    propagation: str = rule(choices=PROPAGATIONS)
+    bootstrap: bool = MISSING
+
+
+@dataclass
+class EnsembleConfig(ModelConfig):
+    """``model=ensemble``: the PETS-style ensemble of MLPs."""
+
+    ensemble_size: int = rule(low=1)
+    hidden: int = rule(low=1)
+    layers: int = rule(low=1)
+    activation: str = MISSING
+    propagation: str = rule(choices=PROPAGATIONS)
+
+
+@dataclass
+class PlannerConfig:
+    """What every planner group has (the receding-horizon policy and the objective read it);
+    a user's planner schema extends it."""
+
+    name: str = MISSING
+    horizon: int = rule(low=1)
+    num_samples: int = rule(low=1)
+    iterations: int = rule(low=1)
+    replan_every: int = rule(1, low=1)
+    discount: float = rule(1.0, low=0, above=True, high=1)
+    risk: float = rule(0.0)  # ensembles: mean - risk * std of the particles' returns
+
+
+@dataclass
+class CEMConfig(PlannerConfig):
+    """``planner=cem``."""
+
+    num_elites: int = rule(low=1)
+    init_std: float = rule(low=0, above=True)
+    min_std: float = rule(low=0)
+    momentum: float = rule(low=0, high=1)
+
+
+@dataclass
+class ICEMConfig(CEMConfig):
+    """``planner=icem``."""
+
+    beta: float = rule(low=0)
+    decay: float = rule(low=1)
+    min_samples: int | None = rule(None, low=1)
+    keep_elites: float = rule(low=0, high=1)
+    return_best: bool = MISSING
+
+
+@dataclass
+class MPPIConfig(PlannerConfig):
+    """``planner=mppi``."""
+
+    temperature: float = rule(low=0, above=True)
+    noise_std: float = rule(low=0, above=True)
+    smoothing: float = rule(low=0, high=1, below=True)
+
+
+@dataclass
+class LoggerConfig:
+    """``logger``: wandb (offline unless the user logs in) or none."""
+
+    wandb: bool = MISSING
+    project: str = "mbrl_delan"
+    group: str | None = None
+
+
+@dataclass
+class BudgetConfig:
+    """``budget``: episodes and rounds of a run."""
+
+    random_episodes: int = rule(low=1)  # the first fit needs data
+    iterations: int = rule(low=1)
+    eval_every: int = rule(low=1)
+    eval_episodes: int = rule(low=0)
+    final_eval_episodes: int = rule(low=0)
+    oracle_episodes: int = rule(low=0)
+    oracle_planner: str = rule(choices=("same", "ilqr"))
+
+
+@dataclass
+class BufferConfig:
+    """``buffer``: the replay buffer."""
+
+    capacity: int = rule(low=1)
+    memmap: bool = MISSING
+    device: str = "auto"
+    device_fraction: float = rule(0.5, low=0, above=True, high=1)
+
+
+@dataclass
+class TrainConfig:
+    """The whole config of ``python -m mbrl_delan.train``."""
+
+    env: EnvConfig = MISSING
+    model: Any = MISSING  # typed by the model's own schema
+    planner: Any = MISSING  # typed by the planner's own schema
+    logger: LoggerConfig = MISSING
+    budget: BudgetConfig = MISSING
+    buffer: BufferConfig = MISSING
+    fit: FitConfig = MISSING
+    seed: int = rule(0, low=0)
+    device: str = "cpu"
+    dtype: str = rule("float32", choices=("float32", "float64"))
+    threads: int | None = rule(None, low=1)
+    resume: str | None = None
+    plugins: list[str] = field(default_factory=list)  # modules that register envs, models...
+    video: bool = False
+    video_width: int = rule(320, low=2)
+    video_height: int = rule(240, low=2)
+    video_episodes: int = rule(1, low=1)
+    video_every_eval: bool = False
+    video_backend: str | None = rule(None, choices=("egl", "osmesa", "glfw"))
+
+
+MODEL_SCHEMAS = {
+    "delan": DeLaNConfig,
+    "delan_ensemble": DeLaNEnsembleConfig,
+    "ensemble": EnsembleConfig,
+}
+PLANNER_SCHEMAS = {"cem": CEMConfig, "icem": ICEMConfig, "mppi": MPPIConfig}
+
+
+def store_schemas(store: ConfigStore) -> None:
+    """Put the schemas in Hydra's ConfigStore, where the YAML files' defaults lists find them."""
+    store.store(name="base_train", node=TrainConfig)
+    store.store(group="env", name="base_env", node=EnvConfig)
+    for name, schema in MODEL_SCHEMAS.items():
+        store.store(group="model", name=f"base_{name}", node=schema)
+    for name, schema in PLANNER_SCHEMAS.items():
+        store.store(group="planner", name=f"base_{name}", node=schema)
+
+
+store_schemas(ConfigStore.instance())

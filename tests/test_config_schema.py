@@ -1,0 +1,131 @@
+"""The typed config: every bad value fails at start naming its key, in-process.
+
+`config_error` composes and checks a config as ``python -m mbrl_delan.train`` does (Hydra's
+composition against the schemas, then `validate_train_config`) and returns the one line the
+command prints; `test_the_command_exits_2_and_writes_nothing` runs the command's own `main`.
+"""
+
+from __future__ import annotations
+
+import typing
+from dataclasses import fields, is_dataclass
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig, OmegaConf
+
+from mbrl_delan import train as train_module
+from mbrl_delan.config import (
+    COMPOSE_ERRORS,
+    ConfigError,
+    config_error_line,
+    migrate,
+    validate_train_config,
+)
+from mbrl_delan.schema import MODEL_SCHEMAS, PLANNER_SCHEMAS, TrainConfig
+
+CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
+
+
+def compose_train(*overrides: str) -> DictConfig:
+    with initialize_config_dir(config_dir=CONFIGS, version_base=None):
+        return compose("config", overrides=list(overrides))
+
+
+def config_error(*overrides: str) -> str | None:
+    """The config error line of these overrides, or None when the config is valid."""
+    try:
+        validate_train_config(compose_train(*overrides))
+    except (ConfigError, *COMPOSE_ERRORS) as err:
+        return config_error_line(err)
+    return None
+
+
+def integer_keys(node: DictConfig, prefix: str = "") -> list[str]:
+    """The full keys of the integer fields of a typed config, recursively."""
+    schema = OmegaConf.get_type(node)
+    hints = typing.get_type_hints(schema) if is_dataclass(schema) else {}
+    keys = []
+    for f in fields(schema) if is_dataclass(schema) else []:
+        value = node.get(f.name)
+        if isinstance(value, DictConfig):
+            keys += integer_keys(value, f"{prefix}{f.name}.")
+        elif int in typing.get_args(hints[f.name]) or hints[f.name] is int:
+            keys.append(f"{prefix}{f.name}")
+    return keys
+
+
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [
+        ("budget.iterations=1.5", "budget.iterations: Value '1.5' of type 'float'"),
+        ("planner.num_samples=2.5", "planner.num_samples: Value '2.5' of type 'float'"),
+        ("env.horizon=0", "env.horizon=0 is not valid; it must be a whole number >= 1"),
+        ("budget.iteratons=3", "budget.iteratons is not a config key; did you mean iterations?"),
+        ("+model.hiden=3", "model.hiden is not a config key; did you mean hidden?"),
+        ("model.diag_shift=nan", "model.diag_shift=nan is not valid; it must be a finite"),
+        ("planner.temperature=inf", "planner.temperature=inf is not valid"),
+        ("planner=random", "Could not find 'planner/random'; choose one of: cem, icem, mppi"),
+        ("model.integrator=rk5", "model.integrator='rk5' is not valid; choose one of: euler, rk4"),
+        ("planner.discount=0", "planner.discount=0.0 is not valid; it must be a finite number > 0"),
+        ("env.name=cheetah", "env.name='cheetah' is not valid; choose one of: pendulum,"),
+    ],
+)
+def test_a_bad_value_names_its_key(override: str, expected: str) -> None:
+    line = config_error(override)
+    assert line is not None and expected in line, line
+    assert "\n" not in line
+
+
+@pytest.mark.parametrize(
+    ("group", "option"),
+    [(None, None)]
+    + [("model", name) for name in sorted(MODEL_SCHEMAS)]
+    + [("planner", name) for name in sorted(PLANNER_SCHEMAS)],
+)
+def test_a_float_for_any_integer_key_is_refused(group: str | None, option: str | None) -> None:
+    """Every integer key of the schemas (of each model's and planner's group; of the rest with
+    the defaults) given 2.5: one line naming that key."""
+    chosen = [f"{group}={option}"] if group else []
+    keys = integer_keys(validate_train_config(compose_train(*chosen)))
+    if group:
+        keys = [k for k in keys if k.startswith(f"{group}.")]
+    else:
+        keys = [k for k in keys if not k.startswith(("model.", "planner."))]
+        assert {"budget.iterations", "env.horizon", "fit.batch_size", "seed"} <= set(keys)
+    assert keys
+    for key in keys:
+        line = config_error(*chosen, f"{key}=2.5")
+        assert line is not None and line.startswith(f"{key}:"), (key, line)
+
+
+def test_the_defaults_and_every_group_option_are_valid() -> None:
+    for model in MODEL_SCHEMAS:
+        for planner in PLANNER_SCHEMAS:
+            assert config_error(f"model={model}", f"planner={planner}") is None
+
+
+def test_migrate_fills_keys_an_old_run_config_lacks() -> None:
+    """A run saved before the keys existed resumes with the values it ran with."""
+    cfg = compose_train("planner=mppi")
+    saved = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    for key in ("smoothing", "risk"):
+        del saved.planner[key]
+    del saved.model["rollout_threads"], saved["plugins"], saved.buffer["device"]
+    typed = validate_train_config(migrate(saved))
+    assert typed.planner.smoothing == 0.0 and typed.planner.risk == 0.0
+    assert typed.model.rollout_threads is None and typed.buffer.device == "auto"
+    assert list(typed.plugins) == []
+    assert OmegaConf.get_type(typed) is TrainConfig
+
+
+@pytest.mark.parametrize(
+    "override", ["budget.iterations=1.5", "planner.num_samples=2.5", "env.horizon=0"]
+)
+def test_the_command_exits_2_and_writes_nothing(override: str, tmp_path: Path, run_main) -> None:
+    run_dir = tmp_path / "run"
+    code, text = run_main(train_module.main, override, f"hydra.run.dir={run_dir}")
+    assert code == 2, text
+    assert f"config error: {override.split('=')[0]}" in text and "Traceback" not in text
+    assert not run_dir.exists()  # no run folder, no crash.json

@@ -1,0 +1,113 @@
+"""A user's own env, model and planner, registered from a module outside the package.
+
+The worked example `examples/slider` (its module, MJCF and YAML files) is copied to a
+temporary folder, as a user's project would hold it, and used as docs/architecture.md tells
+("How to add an env / a task / a model / a planner"): ``plugins=[...]`` imports the module,
+``hydra.searchpath`` finds its YAML files.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from mbrl_delan.config import ConfigError, build_model, build_planner, validate_train_config
+from mbrl_delan.envs import make_env_parts, make_real_env
+from mbrl_delan.registry import ENVS, MODELS, PLANNERS, load_plugins
+
+CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "slider"
+PLUGIN = "examples.slider.slider_parts"  # the module, as its `plugins=[...]` entry names it
+PARTS = ["env=slider", "model=linear", "planner=shooting"]
+
+
+@pytest.fixture(scope="module")
+def user_project(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A user's project in a temporary folder: the worked example's module, MJCF and YAML
+    files (`examples/slider`), importable from it as `examples.slider.slider_parts`."""
+    root = tmp_path_factory.mktemp("user_project")
+    shutil.copytree(EXAMPLE, root / "examples" / "slider")
+    sys.path.insert(0, str(root))
+    yield root
+    sys.path.remove(str(root))
+
+
+def _conf(root: Path) -> str:
+    return f"hydra.searchpath=[file://{root / 'examples' / 'slider' / 'conf'}]"
+
+
+def _compose(root: Path, *overrides: str):
+    with initialize_config_dir(config_dir=CONFIGS, version_base=None):
+        return compose("config", overrides=[_conf(root), *overrides])
+
+
+def test_a_plugin_registers_an_env_a_model_and_a_planner(user_project: Path) -> None:
+    load_plugins([PLUGIN])
+    assert "slider" in ENVS and "linear" in MODELS and "shooting" in PLANNERS
+    parts = make_env_parts("slider", episode_len=7)
+    assert parts.system.nq == parts.system.nv == parts.system.nu == 1
+    assert parts.task.episode_len == 7
+    cfg = validate_train_config(_compose(user_project, f"plugins=[{PLUGIN}]", *PARTS))
+    assert OmegaConf.get_type(cfg.model).__name__ == "LinearConfig"
+    model = build_model(cfg.model, parts.system)
+    planner = build_planner(cfg.planner, parts.system, torch.float32)
+    assert type(model).__name__ == "LinearModel" and type(planner).__name__ == "RandomShooting"
+    env = make_real_env("slider", seed=0, episode_len=5)
+    assert env.rollout(5).shape == (5,)
+
+
+def test_a_plugin_schema_types_its_group(user_project: Path) -> None:
+    """The model's own schema checks its group: a type, a range, an unknown key."""
+    base = [f"plugins=[{PLUGIN}]", *PARTS]
+    for override, expected in (
+        ("model.lr=-1", "model.lr=-1.0 is not valid; it must be a finite number > 0"),
+        ("planner.init_std=abc", "planner.init_std: Value 'abc' of type 'str' could not"),
+        ("+model.hiden=3", "model.hiden is not a config key"),
+    ):
+        with pytest.raises(ConfigError, match=expected):
+            validate_train_config(_compose(user_project, *base, override))
+
+
+def test_a_plugin_name_already_taken_is_refused(user_project: Path) -> None:
+    load_plugins([PLUGIN])
+    with pytest.raises(ValueError, match="model 'delan' is already registered"):
+        MODELS.add("delan", lambda cfg, system: None)
+
+
+def test_a_missing_plugin_module_is_a_config_error(user_project: Path) -> None:
+    with pytest.raises(ConfigError, match="plugins: cannot import 'no_such_plugin'"):
+        validate_train_config(_compose(user_project, "plugins=[no_such_plugin]"))
+
+
+@pytest.mark.slow
+def test_train_runs_a_loop_with_the_users_env_model_and_planner(
+    user_project: Path, tmp_path: Path
+) -> None:
+    """The command a user runs: their env, model and planner through one round of the loop."""
+    run_dir = tmp_path / "run"
+    cmd = [
+        sys.executable, "-m", "mbrl_delan.train", f"plugins=[{PLUGIN}]", _conf(user_project),
+        *PARTS, "logger=none", "threads=1", "budget.oracle_episodes=1",
+        "budget.final_eval_episodes=1", "fit.max_epochs=3", f"hydra.run.dir={run_dir}",
+    ]  # fmt: skip
+    env = {**os.environ, "WANDB_MODE": "disabled"}
+    # run from the project's folder, as its user would: `python -m` imports from there
+    out = subprocess.run(
+        cmd, capture_output=True, text=True, env=env, timeout=300, cwd=user_project
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert (summary["env"], summary["model"], summary["planner"]) == (
+        "slider", "linear", "shooting",
+    )  # fmt: skip
+    assert summary["iterations"] == 1 and summary["env_steps"] == 2 * 12
+    assert 0.0 <= summary["eval_return_mean"] <= 12.0  # rewards lie in [0, 1]
