@@ -162,6 +162,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         torchrl=bool(values["torchrl"]),
         paired=bool(values["paired"]),
         rollout_threads=_optional_positive_int("rollout_threads", values["rollout_threads"]),
+        compile_loop=bool(values["compile_loop"]),
         transitions=_optional_positive_ints("transitions", values["transitions"]),
         rollout_steps=_optional_positive_int("rollout_steps", values["rollout_steps"]),
         oracle_tasks=_optional_choices(

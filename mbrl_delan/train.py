@@ -61,7 +61,7 @@ from mbrl_delan.training.checkpoint import (
     set_rng_state,
 )
 from mbrl_delan.training.fit import TrainingDivergedError
-from mbrl_delan.training.loop import MBRLLoop
+from mbrl_delan.training.loop import LoopHooks, MBRLLoop, Schedule
 from mbrl_delan.training.plots import plot_run
 from mbrl_delan.training.recorder import (
     METRICS_FILE,
@@ -227,8 +227,13 @@ def _replay_buffer(
     return make_replay_buffer(cfg.buffer.capacity, device=place.device)
 
 
-def _save(run_dir: Path, loop: MBRLLoop, extra: dict[str, Any]) -> None:
-    state = {"loop": loop.state_dict(), "rng": rng_state(), **extra}
+def _save(run_dir: Path, loop: MBRLLoop) -> None:
+    state = {
+        "loop": loop.state_dict(),
+        "rng": rng_state(),
+        "oracle_returns": loop.oracle_returns,
+        "warmup_done": loop.warmup_done,
+    }
     save_checkpoint(run_dir / CHECKPOINT, state)
 
 
@@ -358,11 +363,10 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     loop, oracle = build_loop(cfg, run_dir)
     if state is None and cfg.model.get("init_from") is not None:
         _start_mechanics(cfg.model, loop.model)
-    extra: dict[str, Any] = {"oracle_returns": None, "warmup_done": False}
     if state is not None:
         loop.load_state_dict(state["loop"])
         set_rng_state(state["rng"])
-        extra = {k: state[k] for k in extra}
+        loop.oracle_returns, loop.warmup_done = state["oracle_returns"], state["warmup_done"]
         log.info(
             "resumed %s at iteration %d (%d env steps)",
             run_dir,
@@ -378,14 +382,27 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         resume_iteration=loop.counters.iteration if state else None,
     )
     try:
-        _run(cfg, run_dir, loop, oracle, recorder, extra)
+        _run(cfg, run_dir, loop, oracle, recorder)
     finally:
         recorder.finish()
-    summary = _summary(cfg, run_dir, loop, extra)
+    summary = _summary(cfg, run_dir, loop)
     recorder.write_summary(summary)
     plot_run(run_dir)
     _print_summary(run_dir, summary)
     return summary
+
+
+def schedule_of(cfg: DictConfig) -> Schedule:
+    """The run's `Schedule` from ``cfg.budget``."""
+    b = cfg.budget
+    return Schedule(
+        oracle_episodes=b.oracle_episodes,
+        random_episodes=b.random_episodes,
+        iterations=b.iterations,
+        eval_every=b.eval_every,
+        eval_episodes=b.eval_episodes,
+        final_eval_episodes=b.final_eval_episodes,
+    )
 
 
 def _run(
@@ -394,59 +411,42 @@ def _run(
     loop: MBRLLoop,
     oracle: PlannerPolicy | ILQRPolicy,
     recorder: Recorder,
-    extra: dict[str, Any],
 ) -> None:
-    budget = cfg.budget
-    if extra["oracle_returns"] is None:
-        log.info(
-            "evaluating the oracle planner on MuJoCo's dynamics (%d episodes)",
-            budget.oracle_episodes,
-        )
-        with loop.timed():
-            extra["oracle_returns"] = loop.evaluate(oracle, budget.oracle_episodes).returns
-        _save(run_dir, loop, extra)
-    oracle_mean = _mean(extra["oracle_returns"])
-    if not extra["warmup_done"]:
-        with loop.timed():
-            loop.collect_random(budget.random_episodes)
-            loop.fit()
-        extra["warmup_done"] = True
-        _save(run_dir, loop, extra)
+    """`loop.run` with the entry point's hooks: metrics to the recorder, an atomic checkpoint
+    after each stage, videos and a progress bar after each round."""
     bar = tqdm(
-        total=budget.iterations,
+        total=cfg.budget.iterations,
         initial=loop.counters.iteration,
         desc="mbrl",
         unit="iter",
         disable=None,
     )
-    while loop.counters.iteration < budget.iterations:
-        k = loop.counters.iteration + 1
-        episodes = budget.eval_episodes if k % budget.eval_every == 0 else 0
-        metrics = loop.iterate(budget.final_eval_episodes if k == budget.iterations else episodes)
-        metrics["oracle_return_mean"] = oracle_mean
-        recorder.log(metrics, loop.counters.iteration)
-        _save(run_dir, loop, extra)
+
+    def after_round(metrics: dict[str, Any]) -> None:
         _write_videos(cfg, run_dir, loop, recorder)
         bar.update(1)
         bar.set_postfix(
             steps=metrics["env_steps"],
             ret=f"{metrics['train_return']:.1f}",
-            oracle=f"{oracle_mean:.1f}",
+            oracle=f"{metrics['oracle_return_mean']:.1f}",
         )
-    bar.close()
+
+    hooks = LoopHooks(
+        log_round=lambda metrics: recorder.log(metrics, loop.counters.iteration),
+        checkpoint=lambda: _save(run_dir, loop),
+        after_round=after_round,
+    )
+    try:
+        loop.run(schedule_of(cfg), oracle, hooks)
+    finally:
+        bar.close()
 
 
-def _mean(values: list[float]) -> float:
-    return float(torch.tensor(values, dtype=torch.float64).mean()) if values else float("nan")
-
-
-def _summary(
-    cfg: DictConfig, run_dir: Path, loop: MBRLLoop, extra: dict[str, Any]
-) -> dict[str, Any]:
+def _summary(cfg: DictConfig, run_dir: Path, loop: MBRLLoop) -> dict[str, Any]:
     records = [r for r in read_metrics(run_dir / METRICS_FILE) if "eval_return_mean" in r]
     last = records[-1] if records else {}
-    oracle = extra["oracle_returns"] or []
-    oracle_mean = _mean(oracle)
+    oracle = loop.oracle_returns or []
+    oracle_mean = loop.oracle_mean
     eval_mean = last.get("eval_return_mean", float("nan"))
     return {
         "env": cfg.env.name,

@@ -136,6 +136,7 @@ class SuiteOptions:
     torchrl: bool = True  # also time TorchRL's MPPIPlanner / CEMPlanner where they apply
     paired: bool = False  # also their latency ratio, ours and TorchRL's timed in alternation
     rollout_threads: int | None = None  # compiled cases on CPU (None: torch's thread count)
+    compile_loop: bool = True  # compiled cases on CPU: the horizon as one loop (False: per step)
     # suite humanoid (None: the suite's default, or its quick size under `quick`)
     transitions: tuple[int, ...] | None = None  # training-set sizes
     rollout_steps: int | None = None  # K of the K-step rollout loss of models that take it

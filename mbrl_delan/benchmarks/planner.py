@@ -434,10 +434,12 @@ def latency_records(
     yield BenchRecord(SUITE, case_name, "realtime_factor", factor, "x", str(device), extra)
 
 
-def _threads_field(factory: ObjectiveFactory) -> dict[str, int]:
-    """{"rollout_threads": shares} for a model's factory (`ModelObjectiveFactory`)."""
-    shares = getattr(factory, "rollout_threads", None)
-    return {} if shares is None else {"rollout_threads": shares}
+def _threads_field(factory: ObjectiveFactory) -> dict[str, Any]:
+    """{"rollout_threads": shares, "compile_loop": bool} for a model's compiling factory
+    (`ModelObjectiveFactory`); {} for others."""
+    if not getattr(factory, "compile", False):
+        return {}
+    return {"rollout_threads": factory.rollout_threads, "compile_loop": factory.whole_loop}
 
 
 def _fields(case: Case, setting: Setting, planner: str, dtype: torch.dtype) -> dict[str, Any]:
@@ -457,7 +459,10 @@ def _fields(case: Case, setting: Setting, planner: str, dtype: torch.dtype) -> d
 
 
 def _objective_factory(
-    case: Case, device: torch.device, rollout_threads: int | None = None
+    case: Case,
+    device: torch.device,
+    rollout_threads: int | None = None,
+    compile_loop: bool = True,
 ) -> ObjectiveFactory:
     if case.model is None:
         return mujoco_objective_factory(case.system, case.task, nthread=torch.get_num_threads())
@@ -470,6 +475,7 @@ def _objective_factory(
         compile=case.compile,
         cuda_graph=case.cuda_graph,
         rollout_threads=rollout_threads,
+        compile_loop=compile_loop,
     )
 
 
@@ -488,7 +494,7 @@ def our_records(
     oracle = case.model is None
     device = torch.device("cpu") if oracle else opts.device
     dtype = torch.float64 if oracle else DTYPE
-    factory = _objective_factory(case, device, opts.rollout_threads)
+    factory = _objective_factory(case, device, opts.rollout_threads, opts.compile_loop)
     q0, qd0 = case.q0.to(device, dtype), case.qd0.to(device, dtype)
     sync, predictor = synchronizer(device), LatencyPredictor()
     for setting in grid.settings():
@@ -645,7 +651,7 @@ def paired_records(
     device = opts.device
     eager = make_case(case.name.removesuffix(COMPILED_SUFFIX), device) if case.compile else case
     env = ModelEnv(eager.model, eager.task, eager.system, device=device, dtype=DTYPE)
-    factory = _objective_factory(case, device, opts.rollout_threads)
+    factory = _objective_factory(case, device, opts.rollout_threads, opts.compile_loop)
     start = _start_tensordict(eager, env)
     q0, qd0 = case.q0.to(device, DTYPE), case.qd0.to(device, DTYPE)
     sync = synchronizer(device)

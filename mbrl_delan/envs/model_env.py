@@ -116,6 +116,7 @@ class ModelObjectiveFactory:
         compile: bool = False,
         cuda_graph: bool = False,
         rollout_threads: int | None = None,
+        compile_loop: bool = True,
     ) -> None:
         if particles < 1:
             raise ValueError(f"particles must be >= 1, got {particles}")
@@ -133,7 +134,8 @@ class ModelObjectiveFactory:
         self.compile = compile
         self._compiled: Callable[[Tensor, Tensor, Tensor, Tensor], Transition] | None = None
         self._compiled_loop: CompiledLoop | None = None
-        self._loop_compiles = model.loops_compile  # False once compiling it failed
+        # the whole horizon as one compiled loop where the model allows (False once it failed)
+        self._loop_compiles = model.loops_compile and compile_loop
         self.cuda_graph = cuda_graph
         threads = torch.get_num_threads() if rollout_threads is None else rollout_threads
         if threads < 1:
@@ -208,6 +210,13 @@ class ModelObjectiveFactory:
         its parallel kernels, spins for milliseconds on a core the workers need), else None
         (leave them as they are). See `PlannerPolicy`."""
         return 1 if self._in_shares() else None
+
+    @property
+    def whole_loop(self) -> bool:
+        """Whether the rollouts run as one compiled loop over the horizon (`compile` on the
+        CPU, a model that allows it, `compile_loop`, and the compiler has not failed it)."""
+        cpu = self.placement(torch.device("cpu")).device.type == "cpu"
+        return self.compile and self._loop_compiles and cpu
 
     def _in_shares(self) -> bool:
         """Whether the rollouts run in shares: the compiled loop, on the CPU."""
@@ -310,6 +319,7 @@ def model_objective_factory(
     compile: bool = False,
     cuda_graph: bool = False,
     rollout_threads: int | None = None,
+    compile_loop: bool = True,
 ) -> ModelObjectiveFactory:
     """Objectives over (N, H, nu) action sequences rolled out in the learned world model.
 
@@ -334,6 +344,8 @@ def model_objective_factory(
             compiled loop runs on this many shares of the samples at once, each in its own
             worker thread with one intra-op thread (`RolloutThreads`); 1 runs the whole batch
             on torch's intra-op threads. None: torch's thread count at construction.
+        compile_loop: with `compile` on CPU, the H steps as one compiled loop where the model
+            allows it (`WorldModel.loops_compile`); False: one compiled call per step.
     """
     return ModelObjectiveFactory(
         model,
@@ -346,6 +358,7 @@ def model_objective_factory(
         compile=compile,
         cuda_graph=cuda_graph,
         rollout_threads=rollout_threads,
+        compile_loop=compile_loop,
     )
 
 

@@ -1,18 +1,21 @@
 """The model-based RL loop: collect with the planner, refit the world model, evaluate.
 
 Everything here takes built parts (envs, model, policies, buffer); only `train.py` reads
-configs. Episode resets are seeded from the episode index, so a resumed run draws the same
+configs. `MBRLLoop.run` owns a run's schedule (the oracle, the warm-up, the rounds and when
+they evaluate, `Schedule`) and calls the entry point back (`LoopHooks`) to log, checkpoint and
+render. Episode resets are seeded from the episode index, so a resumed run draws the same
 initial states as an uninterrupted one.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -30,8 +33,6 @@ from mbrl_delan.data.buffer import (
     load_buffer_state,
 )
 from mbrl_delan.models.base import WorldModel
-from mbrl_delan.planners.ilqr import ILQRPolicy
-from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.posarith import differentiate_pos
 from mbrl_delan.systems.system import System
 from mbrl_delan.training.fit import FitConfig, FitReport, fit_model
@@ -56,12 +57,20 @@ class UniformPolicy(TensorDictModuleBase):
         return tensordict.set(keys.ACTION, action.to(tensordict.get(keys.Q).dtype))
 
 
+@runtime_checkable
+class RecedingHorizonPolicy(Protocol):
+    """A policy that keeps a plan between control steps (`PlannerPolicy` over a sampling
+    planner, `ILQRPolicy`): `reset()` forgets it at an episode's start."""
+
+    def reset(self) -> None: ...
+
+
 def run_episode(
     env: EnvBase, policy: TensorDictModuleBase, seed: int, max_steps: int
 ) -> TensorDict:
     """One episode from a reset seeded with `seed`. -> rollout TensorDict (T,)."""
     env.set_seed(seed)
-    if isinstance(policy, PlannerPolicy | ILQRPolicy):
+    if isinstance(policy, RecedingHorizonPolicy):
         policy.reset()
     with torch.inference_mode():
         return env.rollout(max_steps, policy=policy, break_when_any_done=True)
@@ -128,6 +137,44 @@ def model_error(
     )
 
 
+@dataclass(frozen=True)
+class Schedule:
+    """What a run does, in order: the oracle's evaluation, the warm-up (random episodes, then
+    the first fit), then `iterations` rounds; round k evaluates `eval_episodes` episodes when
+    `eval_every` divides k, and the last round `final_eval_episodes`."""
+
+    oracle_episodes: int
+    random_episodes: int
+    iterations: int
+    eval_every: int
+    eval_episodes: int
+    final_eval_episodes: int
+
+    def evaluations_at(self, k: int) -> int:
+        """Evaluation episodes of round k (1-based)."""
+        if k == self.iterations:
+            return self.final_eval_episodes
+        return self.eval_episodes if k % self.eval_every == 0 else 0
+
+
+def _nothing(*_: Any) -> None:
+    return None
+
+
+@dataclass
+class LoopHooks:
+    """What the entry point does at the points of a run (each a no-op by default).
+
+    log_round(metrics): a round's metrics, before its checkpoint. checkpoint(): after the
+    oracle, after the warm-up and after each round (the loop's state is then complete).
+    after_round(metrics): once the round is checkpointed (videos, progress).
+    """
+
+    log_round: Callable[[dict[str, Any]], None] = _nothing
+    checkpoint: Callable[[], None] = _nothing
+    after_round: Callable[[dict[str, Any]], None] = _nothing
+
+
 @dataclass
 class LoopCounters:
     iteration: int = 0
@@ -163,7 +210,7 @@ class MBRLLoop:
         episode_len: int,
         model: WorldModel,
         optimizer: torch.optim.Optimizer,
-        policy: PlannerPolicy,
+        policy: TensorDictModuleBase,
         buffer: TensorDictReplayBuffer,
         fit_config: FitConfig,
         seed: int,
@@ -181,6 +228,41 @@ class MBRLLoop:
         self.counters = LoopCounters()
         self.keep_eval_rollouts = keep_eval_rollouts  # e.g. for videos of evaluation episodes
         self.last_evaluation: Evaluation | None = None  # of the last `iterate`, if it evaluated
+        self.oracle_returns: list[float] | None = None  # once `run` has evaluated the oracle
+        self.warmup_done = False  # once `run` has collected the random episodes and fitted
+
+    def run(
+        self, schedule: Schedule, oracle: TensorDictModuleBase, hooks: LoopHooks | None = None
+    ) -> None:
+        """The run of `schedule` from wherever this loop stands (a resumed loop skips what its
+        state says is done): the oracle's returns, the warm-up, then the rounds left."""
+        hooks = hooks or LoopHooks()
+        if self.oracle_returns is None:
+            log.info(
+                "evaluating the oracle planner on MuJoCo's dynamics (%d episodes)",
+                schedule.oracle_episodes,
+            )
+            with self.timed():
+                self.oracle_returns = self.evaluate(oracle, schedule.oracle_episodes).returns
+            hooks.checkpoint()
+        if not self.warmup_done:
+            with self.timed():
+                self.collect_random(schedule.random_episodes)
+                self.fit()
+            self.warmup_done = True
+            hooks.checkpoint()
+        while self.counters.iteration < schedule.iterations:
+            metrics = self.iterate(schedule.evaluations_at(self.counters.iteration + 1))
+            metrics["oracle_return_mean"] = self.oracle_mean
+            hooks.log_round(metrics)
+            hooks.checkpoint()
+            hooks.after_round(metrics)
+
+    @property
+    def oracle_mean(self) -> float:
+        """The mean of the oracle's returns (nan before `run` evaluated it)."""
+        returns = self.oracle_returns or []
+        return float(torch.tensor(returns, dtype=torch.float64).mean()) if returns else math.nan
 
     @contextmanager
     def timed(self) -> Iterator[None]:
