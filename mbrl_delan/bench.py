@@ -29,7 +29,7 @@ from mbrl_delan.benchmarks import (
     get_suite,
 )
 from mbrl_delan.benchmarks.records import RecordWriter, format_table
-from mbrl_delan.config import ConfigError, check_device
+from mbrl_delan.config import ConfigError, check_device, exit_on_config_errors
 from mbrl_delan.schema import PLANNER_SCHEMAS
 
 log = logging.getLogger("mbrl_delan.bench")
@@ -200,12 +200,17 @@ def run(cfg: DictConfig) -> RecordWriter:
 
 
 @hydra.main(version_base="1.3", config_path="../configs", config_name="bench")
-def main(cfg: DictConfig) -> None:
+def hydra_main(cfg: DictConfig) -> None:
     try:
         run(cfg)
     except (ConfigError, UnknownSuiteError) as err:
         log.error("config error: %s", err)
         sys.exit(2)
+
+
+def main() -> None:
+    """``python -m mbrl_delan.bench``: a config error, Hydra's included, exits 2 naming it."""
+    exit_on_config_errors(hydra_main)
 
 
 if __name__ == "__main__":

@@ -282,9 +282,7 @@ def check_ranges(cfg: DictConfig, prefix: str = "") -> None:
     """Every field of a typed node within its `rule` (`mbrl_delan.schema`), every float finite,
     recursively; the first that is not is a `ConfigError` naming its full key."""
     schema = OmegaConf.get_type(cfg)
-    rules = (
-        {f.name: field_rule(f.metadata) for f in fields(schema)} if is_dataclass(schema) else {}
-    )
+    rules = {f.name: field_rule(f.metadata) for f in fields(schema)} if is_dataclass(schema) else {}
     if rules:  # a key added with `+` to a typed group (Hydra lets it in)
         _refuse_unknown_keys(cfg, rules, prefix)
     for key in cfg:
@@ -308,7 +306,7 @@ def _refuse_unknown_keys(cfg: DictConfig, known: Sequence[str], prefix: str) -> 
 
 
 def _nearest(key: str, known: Sequence[str]) -> str:
-    """"; did you mean a, b?" with the known keys nearest to `key`, or ""."""
+    """The hint "; did you mean a, b?" with the known keys nearest to `key`, or ""."""
     near = difflib.get_close_matches(key, list(known), n=3)
     return f"; did you mean {', '.join(near)}?" if near else ""
 
@@ -338,7 +336,7 @@ def _check_rules(cfg: DictConfig) -> None:
 def _check_buffer(cfg: DictConfig) -> None:
     """buffer.device: auto or a device; a memmap lives on disk (auto or cpu)."""
     buffer = cfg.buffer
-    device = str(buffer.get("device", "auto"))
+    device = str(buffer.device)
     if device != "auto":
         try:
             check_device(device)
@@ -349,9 +347,6 @@ def _check_buffer(cfg: DictConfig) -> None:
                 f"buffer.device={device!r} is not valid with buffer.memmap=true: a memmap "
                 "lives on disk (use auto or cpu)"
             )
-    fraction = buffer.get("device_fraction", 0.5)
-    if not isinstance(fraction, int | float) or isinstance(fraction, bool) or not 0 < fraction <= 1:
-        raise ConfigError(f"buffer.device_fraction={fraction!r} is not valid; use (0, 1]")
 
 
 def _check_rollout_steps(cfg: DictConfig) -> None:
@@ -368,13 +363,6 @@ def _check_rollout_steps(cfg: DictConfig) -> None:
             f"fit.rollout_steps={cfg.fit.rollout_steps} is not valid with model.loss=inverse: "
             "a rollout loss needs the forward term (model.loss=forward or both)"
         )
-
-
-def _get(cfg: DictConfig, path: str) -> Any:
-    node: Any = cfg
-    for part in path.split("."):
-        node = node[part]
-    return node
 
 
 def _delan_arguments(cfg: DictConfig, system: System) -> dict[str, Any]:

@@ -40,6 +40,7 @@ from mbrl_delan.config import (
     check_device,
     check_number,
     check_whole,
+    exit_on_config_errors,
     refuse_used_run_dir,
 )
 from mbrl_delan.data.buffer import NonFiniteDataError, check_finite
@@ -444,7 +445,7 @@ def _log_summary(run_dir: Path, s: dict[str, Any]) -> None:
 
 
 @hydra.main(version_base="1.3", config_path="../configs/fit", config_name="config")
-def main(cfg: DictConfig) -> float | None:
+def hydra_main(cfg: DictConfig) -> float | None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         refuse_used_run_dir(run_dir, RUN_FILES, "start the new fit in another hydra.run.dir")
@@ -462,6 +463,11 @@ def main(cfg: DictConfig) -> float | None:
         log.error("training diverged: %s", err)
         sys.exit(1)
     return summary.get("val_clip_mse")
+
+
+def main() -> float | None:
+    """``python -m mbrl_delan.fit``: a config error, Hydra's included, exits 2 naming it."""
+    return exit_on_config_errors(hydra_main)
 
 
 if __name__ == "__main__":

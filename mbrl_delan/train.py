@@ -39,13 +39,13 @@ from mbrl_delan.data.buffer import (
     place_buffer,
     transition_nbytes,
 )
-from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import EnvParts, make_env_parts
 from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.objectives.model import model_objective_factory
+from mbrl_delan.objectives.mujoco import available_cpus, mujoco_objective_factory
 from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.ilqr import ILQRPolicy
-from mbrl_delan.planners.oracle import available_cpus, mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, tracking_ilqr_policy
 from mbrl_delan.sweep import exit_or_raise, marks_crash, with_sweep_group
@@ -80,7 +80,6 @@ from mbrl_delan.training.video import (
 
 log = logging.getLogger("mbrl_delan.train")
 
-CHECKPOINT = CHECKPOINT_FILE
 
 OmegaConf.register_new_resolver(
     "run_dir_or", lambda resume, default: resume or default, replace=True
@@ -234,7 +233,7 @@ def _save(run_dir: Path, loop: MBRLLoop) -> None:
         "oracle_returns": loop.oracle_returns,
         "warmup_done": loop.warmup_done,
     }
-    save_checkpoint(run_dir / CHECKPOINT, state)
+    save_checkpoint(run_dir / CHECKPOINT_FILE, state)
 
 
 VIDEO_DIR = "videos"
@@ -340,7 +339,7 @@ def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | No
         )
     run_cfg = migrate(OmegaConf.load(saved))
     run_cfg.resume = str(run_dir)
-    ckpt = run_dir / CHECKPOINT
+    ckpt = run_dir / CHECKPOINT_FILE
     state = load_checkpoint(ckpt, weights_only=False) if ckpt.exists() else None
     return run_cfg, run_dir, state
 

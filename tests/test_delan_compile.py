@@ -10,12 +10,12 @@ from torch.nn import functional as F
 
 from mbrl_delan import keys
 from mbrl_delan.accelerate import CompiledLoop, CompiledStep
-from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.inverse import DeLaNInverse
 from mbrl_delan.models.kernels import SMALL_SOLVE, activate, log1p_unit, unrolled_cholesky_solve
 from mbrl_delan.models.tangent_mlp import TangentMLP
+from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.policy import PlannerPolicy, intra_op_threads
 from mbrl_delan.systems.external import humanoid_v5_xml

@@ -20,9 +20,9 @@ from mbrl_delan import keys
 from mbrl_delan.config import ConfigError, build_model, validate_train_config
 from mbrl_delan.data.synthetic import dynamics_dataset
 from mbrl_delan.envs import make_env_parts
-from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
+from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.systems.posarith import differentiate_pos, integrate_pos
 from mbrl_delan.systems.system import FREE, HINGE, SLIDE, JointLayout
 from mbrl_delan.training.fit import FitConfig, fit_model

@@ -9,8 +9,9 @@ from torch import Tensor, nn
 from torchrl.envs.utils import check_env_specs
 
 from mbrl_delan import keys
-from mbrl_delan.envs.model_env import ModelEnv, model_objective_factory
+from mbrl_delan.envs.model_env import ModelEnv
 from mbrl_delan.models.base import LossOutput, WorldModel
+from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.planners import CEMPlanner, MPPIPlanner
 from mbrl_delan.systems.system import State, load_system
 from mbrl_delan.tasks.base import Task

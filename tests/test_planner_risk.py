@@ -11,9 +11,10 @@ from tensordict import TensorDictBase
 from torch import Tensor
 
 from mbrl_delan.config import ConfigError, validate_train_config
-from mbrl_delan.envs.model_env import model_objective_factory
 from mbrl_delan.models.base import LossOutput, WorldModel
-from mbrl_delan.planners import CEMPlanner, risk_adjusted_return
+from mbrl_delan.objectives.base import risk_adjusted_return
+from mbrl_delan.objectives.model import model_objective_factory
+from mbrl_delan.planners import CEMPlanner
 from mbrl_delan.systems.system import State
 from mbrl_delan.tasks.base import Task
 

@@ -14,11 +14,11 @@ from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.envs import make_env_parts, make_real_env
-from mbrl_delan.envs.model_env import model_objective_factory
+from mbrl_delan.objectives.base import discounted_masked_return
+from mbrl_delan.objectives.model import model_objective_factory
+from mbrl_delan.objectives.mujoco import mujoco_objective_factory
 from mbrl_delan.planners import CEMPlanner, MPPIPlanner, PlannerPolicy, mppi_weights
-from mbrl_delan.planners.base import discounted_masked_return
 from mbrl_delan.planners.mppi import ar1_filter
-from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.tasks import PendulumSwingup
 
 H, NU = 6, 2

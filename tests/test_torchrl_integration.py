@@ -7,10 +7,11 @@ from torchrl.collectors import Collector  # torchrl 0.14 name of SyncDataCollect
 from torchrl.envs import InitTracker, TransformedEnv
 
 from mbrl_delan import keys
-from mbrl_delan.envs import ModelEnv, make_env_parts, make_real_env, model_objective_factory
+from mbrl_delan.envs import ModelEnv, make_env_parts, make_real_env
 from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.objectives.model import model_objective_factory
+from mbrl_delan.objectives.mujoco import mujoco_objective_factory
 from mbrl_delan.planners import MPPIPlanner
-from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
 
 

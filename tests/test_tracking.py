@@ -13,11 +13,12 @@ from torch import Tensor
 from torchrl.envs import StepCounter, TransformedEnv
 
 from mbrl_delan import keys
-from mbrl_delan.envs.model_env import ModelEnv, model_objective_factory
+from mbrl_delan.envs.model_env import ModelEnv
 from mbrl_delan.envs.real import env_parts_of, make_real_env
 from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.objectives.model import model_objective_factory
+from mbrl_delan.objectives.mujoco import mujoco_objective_factory
 from mbrl_delan.planners import MPPIPlanner
-from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.posarith import integrate_pos
 from mbrl_delan.systems.system import State

@@ -233,4 +233,3 @@ def test_new_run_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was(
     assert f"resume={run_dir}" in text and "Traceback" not in text
     assert run_files(run_dir) == before  # no crash.json either
     assert "metrics.jsonl" in before and "checkpoint.pt" in before
-

@@ -8,6 +8,7 @@ random shooting. Run them through the loop from the repository's root:
 
 See docs/architecture.md, "How to add an env / a task / a model / a planner".
 """
+
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -57,9 +58,9 @@ class LinearModel(WorldModel):
 
     def loss(self, batch):
         pred = self.step(batch["q"], batch["qd"], batch["action"])
-        err = (pred.q - batch["next", "q"]).pow(2).mean() + (
-            pred.qd - batch["next", "qd"]
-        ).pow(2).mean()
+        err = (pred.q - batch["next", "q"]).pow(2).mean() + (pred.qd - batch["next", "qd"]).pow(
+            2
+        ).mean()
         return LossOutput(err, {"mse": float(err)})
 
 
@@ -91,6 +92,11 @@ class ShootingConfig(PlannerConfig):
 @register_planner("shooting", schema=ShootingConfig)
 def build_shooting(cfg, system, dtype):
     return RandomShooting(
-        cfg.horizon, system.ctrl_low, system.ctrl_high, cfg.num_samples, cfg.iterations,
-        init_std=cfg.init_std, dtype=dtype,
+        cfg.horizon,
+        system.ctrl_low,
+        system.ctrl_high,
+        cfg.num_samples,
+        cfg.iterations,
+        init_std=cfg.init_std,
+        dtype=dtype,
     )

@@ -9,7 +9,7 @@ The models and tasks are plain maths; this package alone decides how they run:
 - `RolloutThreads`: a batch rolled out in shares on worker threads (`threads.py`).
 - `GraphedCalls`: whole rollouts replayed from CUDA graphs (`cuda_graphs.py`).
 
-`ModelObjectiveFactory` (`objectives` of the planners, `envs/model_env.py`) picks among them
+`ModelObjectiveFactory` (`mbrl_delan/objectives/model.py`) picks among them
 from its `compile`, `cuda_graph` and `rollout_threads` settings. The maths in the forms a
 compiled rollout runs fastest is in `mbrl_delan.models.kernels`.
 """
@@ -20,4 +20,9 @@ from mbrl_delan.accelerate.threads import RolloutThreads
 
 __all__ = [
     "CompiledLoop",
-    "CompiledStep", "FitGraph", "GraphedCalls", "RolloutThreads", "compile_dynamics"]
+    "CompiledStep",
+    "FitGraph",
+    "GraphedCalls",
+    "RolloutThreads",
+    "compile_dynamics",
+]

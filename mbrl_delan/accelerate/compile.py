@@ -7,20 +7,21 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
+from tensordict import TensorDictBase
 from torch import Tensor
 
-from mbrl_delan.models.base import WorldModel
+from mbrl_delan.models.base import LossOutput, WorldModel
 from mbrl_delan.systems.system import State
 
 
 def compile_dynamics(fn: Callable[..., Any]) -> Callable[..., Any]:
     """`torch.compile` for the model's hot path: static shapes (one specialised graph per
     input shape: a graph with a dynamic batch size ran up to 10x slower on CPU), a C++
-    wrapper (less Python per call), and no guards on module attributes (a compiled
-    callable is made again after the model moves; weights updated in place are read at each
-    call). The C++ kernels may contract a multiply and an add into one fused multiply-add
-    (one rounding instead of two: the softplus polynomial and the layer products are chains
-    of them)."""
+    wrapper (less Python per call), and no guards on module attributes (weights updated in
+    place are read at each call; inputs of another dtype or device compile another graph).
+    The C++ kernels may contract a multiply and an add into one fused multiply-add (one
+    rounding instead of two: the softplus polynomial and the layer products are chains of
+    them)."""
     options = {
         "cpp_wrapper": True,
         "cpp.enable_floating_point_contract_flag": "fast",
@@ -51,8 +52,6 @@ class FitGraph:
         if self.graph is None:
             self.graph, self.shape = torch.compile(fn, dynamic=False), shape
         return self.graph if shape == self.shape else fn
-
-
 
 
 class CompiledLoop:
@@ -97,5 +96,5 @@ class CompiledStep(WorldModel):
             return self.model.step(q, qd, action, generator)
         return self._compiled(q, qd, action)
 
-    def loss(self, batch: Any) -> Any:
+    def loss(self, batch: TensorDictBase) -> LossOutput:
         return self.model.loss(batch)

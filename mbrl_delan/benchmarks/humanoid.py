@@ -68,8 +68,8 @@ from mbrl_delan.config import build_model, build_planner, compose_train_config
 from mbrl_delan.envs.real import env_parts_of, make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.base import WorldModel
+from mbrl_delan.objectives.mujoco import mujoco_objective_factory
 from mbrl_delan.planners.ilqr import ILQRPolicy, ILQRSettings
-from mbrl_delan.planners.oracle import mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import (
     TRACKING_ILQR,
@@ -86,6 +86,7 @@ log = logging.getLogger(__name__)
 
 SUITE = "humanoid"
 MODEL_CASES = HUMANOID_MODELS
+
 
 @dataclass(frozen=True)
 class HumanoidBenchConfig:
@@ -134,7 +135,9 @@ class HumanoidBenchConfig:
             oracle_tasks=("humanoid_stand",),
             oracle_steps=3,
             oracle_overrides=(
-                "planner.num_samples=16", "planner.horizon=3", "planner.iterations=1"
+                "planner.num_samples=16",
+                "planner.horizon=3",
+                "planner.iterations=1",
             ),
         )
 

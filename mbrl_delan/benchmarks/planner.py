@@ -31,7 +31,7 @@ float32, built as ``python -m mbrl_delan.train env=pendulum model=delan`` (or
   (frame skip 5 of 0.003 s), task `StandTask` (a stand-in: reward root height - 0.1 |a|^2,
   terminated outside heights [1, 2] m, Humanoid-v5's healthy range).
 - `pendulum_ensemble`: the MLP ensemble on the pendulum, 5 particles per sequence (TSinf).
-- `pendulum_oracle`: MuJoCo's true pendulum dynamics (`planners/oracle.py`, `mujoco.rollout` on
+- `pendulum_oracle`: MuJoCo's true pendulum dynamics (`objectives/mujoco.py`, `mujoco.rollout` on
   torch's thread count), planners in float64 on the CPU as `train.py` builds the oracle.
 - `_compiled`: the case with `model.compile=true`; on CPU, where the rollout compiles as one
   loop, its samples are rolled out in `rollout_threads` shares on worker threads (None:
@@ -81,14 +81,16 @@ from mbrl_delan.benchmarks import (
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.config import build_model, compose_train_config
 from mbrl_delan.config import build_planner as config_build_planner
-from mbrl_delan.envs.model_env import ModelEnv, model_objective_factory
+from mbrl_delan.envs.model_env import ModelEnv
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.ensemble import GaussianEnsemble
-from mbrl_delan.planners.base import ObjectiveFactory, SamplingPlanner
+from mbrl_delan.objectives.base import ObjectiveFactory
+from mbrl_delan.objectives.model import model_objective_factory
+from mbrl_delan.objectives.mujoco import MujocoObjectiveFactory, mujoco_objective_factory
+from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
-from mbrl_delan.planners.oracle import MujocoObjectiveFactory, mujoco_objective_factory
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.external import humanoid_v5_xml
 from mbrl_delan.systems.system import State, System, load_system

@@ -4,7 +4,7 @@ Importing this package registers a gymnasium id for every registered env (`gym_i
 mbrl_delan/Pendulum-v0); `make_real_env` registers those of envs added later.
 """
 
-from mbrl_delan.envs.model_env import ModelEnv, model_objective_factory
+from mbrl_delan.envs.model_env import ModelEnv
 from mbrl_delan.envs.real import (
     MujocoTaskEnv,
     env_parts_of,
@@ -24,6 +24,5 @@ __all__ = [
     "gym_id",
     "make_env_parts",
     "make_real_env",
-    "model_objective_factory",
     "register_envs",
 ]

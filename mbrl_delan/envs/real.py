@@ -22,7 +22,6 @@ from mbrl_delan.systems.system import State
 log = logging.getLogger(__name__)
 
 
-
 def gym_id(name: str) -> str:
     """The gymnasium id of a registered env: ``mbrl_delan/<Name>-v0`` (arm_reach: ArmReach)."""
     return "mbrl_delan/" + "".join(part.capitalize() for part in name.split("_")) + "-v0"

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import abc
+import contextlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import torch
@@ -54,3 +56,35 @@ class WorldModel(nn.Module, abc.ABC):
 
     def fit_normalization(self, data: TensorDictBase) -> None:  # noqa: B027
         """Set input/output statistics from the training data (before each refit)."""
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Device and dtype a world model computes in."""
+
+    device: torch.device
+    dtype: torch.dtype
+
+
+def model_placement(
+    model: nn.Module,
+    fallback_device: torch.device | str = "cpu",
+    fallback_dtype: torch.dtype = torch.float64,
+) -> Placement:
+    """Device and dtype of the model's first floating parameter or buffer, else the fallback."""
+    tensors = [*model.parameters(), *model.buffers()]
+    first = next((t for t in tensors if t.is_floating_point()), None)
+    if first is None:
+        return Placement(torch.device(fallback_device), fallback_dtype)
+    return Placement(first.device, first.dtype)
+
+
+@contextlib.contextmanager
+def eval_mode(model: nn.Module) -> Iterator[None]:
+    """Run the model in eval mode and restore its previous mode afterwards."""
+    was_training = model.training
+    model.eval()
+    try:
+        yield
+    finally:
+        model.train(was_training)

@@ -1,21 +1,12 @@
-"""Sampling planners (CEM, iCEM, MPPI), their TorchRL policy wrapper and the oracle."""
+"""Sampling planners (CEM, iCEM, MPPI) over an objective, and their TorchRL policy wrapper.
 
-from mbrl_delan.planners.base import (
-    Objective,
-    ObjectiveFactory,
-    PlanResult,
-    SamplingDistribution,
-    SamplingPlanner,
-    risk_adjusted_return,
-)
+The objectives they optimise (the learned model's, MuJoCo's) are in `mbrl_delan.objectives`.
+"""
+
+from mbrl_delan.planners.base import PlanResult, SamplingDistribution, SamplingPlanner
 from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner, ICEMPlanResult, colored_noise
 from mbrl_delan.planners.mppi import MPPIPlanner, mppi_weights
-from mbrl_delan.planners.oracle import (
-    MujocoObjective,
-    MujocoObjectiveFactory,
-    mujoco_objective_factory,
-)
 from mbrl_delan.planners.policy import PlannerPolicy
 
 __all__ = [
@@ -23,16 +14,10 @@ __all__ = [
     "ICEMPlanResult",
     "ICEMPlanner",
     "MPPIPlanner",
-    "MujocoObjective",
-    "MujocoObjectiveFactory",
-    "Objective",
-    "ObjectiveFactory",
     "PlanResult",
     "PlannerPolicy",
     "SamplingDistribution",
     "SamplingPlanner",
     "colored_noise",
     "mppi_weights",
-    "mujoco_objective_factory",
-    "risk_adjusted_return",
 ]

@@ -12,16 +12,13 @@ from __future__ import annotations
 
 import abc
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
 
-Objective = Callable[[Tensor], Tensor]  # actions (N, H, nu) -> returns (N,)
-# (q0 (nq,), qd0 (nv,)) -> Objective; factories of time-indexed tasks (`time_indexed` true)
-# also take the episode step of the first action: factory(q0, qd0, step=t)
-ObjectiveFactory = Callable[..., Objective]
+from mbrl_delan.objectives.base import Objective
 
 SHIFT_FILLS = ("repeat", "zero")
 
@@ -99,40 +96,6 @@ def clean_returns(returns: Tensor, num_samples: int) -> Tensor:
         returns = returns.double()
     big = torch.finfo(returns.dtype).max
     return torch.nan_to_num(returns, nan=-math.inf, posinf=big, neginf=-math.inf)
-
-
-def discounted_masked_return(rewards: Tensor, terminated: Tensor, discount: float = 1.0) -> Tensor:
-    """sum_t discount^t r_t, with rewards after the first terminated step set to zero.
-
-    The reward of the step that reaches a terminal state counts; later ones do not.
-    rewards: (..., H), terminated: (..., H) bool of the reached states -> (...).
-    """
-    horizon = rewards.shape[-1]
-    # ended_before_t: an earlier step already reached a terminal state (exclusive cumsum)
-    term = terminated.to(torch.int32)
-    ended_before = (torch.cumsum(term, dim=-1) - term) > 0
-    rewards = torch.where(ended_before, torch.zeros_like(rewards), rewards)
-    powers = discount ** torch.arange(horizon, device=rewards.device, dtype=rewards.dtype)
-    return (rewards * powers).sum(dim=-1)
-
-
-def risk_adjusted_return(particle_returns: Tensor, risk: float = 0.0) -> Tensor:
-    """Score of each action sequence from its particles' returns: mean - risk * std.
-
-    particle_returns: (N, P) returns of the P particles (ensemble rollouts) of each of N
-    sequences -> (N,). The std is over particles with divisor P (population std), so one
-    particle scores its plain return whatever `risk`. risk 0 is the plain mean over
-    particles; risk > 0 prefers sequences the particles agree on (pessimism under model
-    uncertainty); risk < 0 is optimistic.
-    """
-    if particle_returns.ndim != 2:
-        raise ValueError(
-            f"particle_returns must be (N, P), got shape {tuple(particle_returns.shape)}"
-        )
-    mean = particle_returns.mean(dim=1)  # (N,)
-    if risk == 0.0 or particle_returns.shape[1] == 1:
-        return mean
-    return mean - risk * particle_returns.std(dim=1, correction=0)
 
 
 class SamplingPlanner(abc.ABC):

@@ -36,7 +36,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from mbrl_delan import keys
-from mbrl_delan.planners.oracle import FULLPHYSICS, HeldControlRollout
+from mbrl_delan.objectives.mujoco import FULLPHYSICS, HeldControlRollout
 from mbrl_delan.planners.policy import episode_starts, read_state
 
 log = logging.getLogger(__name__)

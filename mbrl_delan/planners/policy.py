@@ -13,7 +13,8 @@ from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 
 from mbrl_delan import keys
-from mbrl_delan.planners.base import ObjectiveFactory, PlanResult, SamplingPlanner
+from mbrl_delan.objectives.base import ObjectiveFactory
+from mbrl_delan.planners.base import PlanResult, SamplingPlanner
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""The oracle objective: returns of action sequences under MuJoCo's true dynamics.
+"""The MuJoCo objective (the oracle): returns of action sequences under MuJoCo's true dynamics.
 
 Rolls out a batch of open-loop action sequences with `mujoco.rollout` (multi-threaded,
 MjData reused across calls), holds each control for `system.frame_skip` MuJoCo steps, and
@@ -17,7 +17,7 @@ import torch
 from mujoco import rollout as mj_rollout
 from torch import Tensor
 
-from mbrl_delan.planners.base import discounted_masked_return
+from mbrl_delan.objectives.base import discounted_masked_return
 from mbrl_delan.systems.system import State, System
 from mbrl_delan.tasks.base import Task
 
