@@ -162,20 +162,25 @@ def check_device(device: str) -> torch.device:
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"  # the entry points' YAML files
 
 
-def compose_train_config(overrides: Sequence[str] = ()) -> DictConfig:
-    """The training config Hydra composes from ``configs/`` with `overrides` (as on the
-    command line), typed and checked (`validate_train_config`). For code that builds parts as
-    ``python -m mbrl_delan.train`` would (the benchmarks), also inside a running Hydra app."""
+def compose_config(config_dir: Path, overrides: Sequence[str] = ()) -> DictConfig:
+    """The config Hydra composes from ``config_dir/config.yaml`` with `overrides` (as on the
+    command line), also inside a running Hydra app (its own Hydra is put back after)."""
     running = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
     GlobalHydra.instance().clear()
     try:
-        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-            cfg = compose("config", overrides=list(overrides))
+        with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
+            return compose("config", overrides=list(overrides))
     finally:  # the running app's Hydra back (the context set a new GlobalHydra instance)
         GlobalHydra.instance().clear()
         if running is not None:
             GlobalHydra.instance().initialize(running)
-    return validate_train_config(cfg)
+
+
+def compose_train_config(overrides: Sequence[str] = ()) -> DictConfig:
+    """The training config of ``python -m mbrl_delan.train`` with `overrides`, typed and
+    checked (`validate_train_config`): for code that builds parts as the loop does (the
+    benchmarks)."""
+    return validate_train_config(compose_config(CONFIG_DIR, overrides))
 
 
 # keys added after runs were first saved, with the value a run saved without them used

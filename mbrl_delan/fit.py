@@ -35,6 +35,7 @@ from tensordict import TensorDict, TensorDictBase
 
 from mbrl_delan import keys
 from mbrl_delan.config import (
+    CONFIG_DIR,
     DTYPES,
     ConfigError,
     check_device,
@@ -95,6 +96,7 @@ PROVENANCE_FILE = "dataset_provenance.json"
 MODEL_FILE = "model.pt"
 # what a fit writes into its run dir; a new fit refuses a folder holding any of them
 RUN_FILES = (RUN_CONFIG, PROVENANCE_FILE, MODEL_FILE, METRICS_FILE, SUMMARY_FILE)
+FIT_CONFIG_DIR = CONFIG_DIR / "fit"  # this entry point's YAML files
 SPLITS = tuple(SPLIT_NAMES.values())  # ("train", "val_time", "val_clip")
 TAU_DEFINITION = (
     "all nv generalized forces (humanoid_CMU: 62 = 6 root residual [world-frame force, "

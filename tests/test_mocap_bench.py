@@ -6,19 +6,18 @@ No timed assertions: only that figures exist, are finite and positive.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 
 from mbrl_delan.bench import run
 from mbrl_delan.benchmarks import SUITE_NAMES, SuiteOptions, TimingConfig, get_suite
 from mbrl_delan.benchmarks.mocap import (
     METRICS,
-    MocapBenchConfig,
+    QUICK_OVERRIDES,
+    mocap_config,
     run_mocap,
     run_mocap_suite,
 )
@@ -70,45 +69,21 @@ def test_quick_run_writes_every_metric(humanoid, tmp_path: Path) -> None:
 
 
 def test_missing_clips_give_null_records_with_a_note(humanoid, tmp_path: Path) -> None:
-    cfg = replace(MocapBenchConfig.quick(), clips=("09_77",), folders=(str(tmp_path),))
+    cfg = mocap_config([*QUICK_OVERRIDES, "data.clips=['09_77']", f"data.folders=['{tmp_path}']"])
     records = list(run_mocap(cfg, OPTS))
     assert {r.metric for r in records} == set(METRICS) and len(records) == 2 + len(MODELS)
     for r in records:
         assert r.value is None and "09_77" in r.extra["note"]
 
 
-def test_settings_are_the_fit_configs_defaults() -> None:
-    """The suite builds data and models as configs/fit says (a copy, kept equal here)."""
-    bench = MocapBenchConfig()
-    top = OmegaConf.load(CONFIGS / "fit" / "config.yaml")
-    assert (bench.batch_size, bench.lr, bench.max_grad_norm, bench.std_floor) == (
-        top.batch_size,
-        top.lr,
-        top.max_grad_norm,
-        top.loss.std_floor,
-    )
-    assert bench.translation_invariant == top.translation_invariant
-    assert top.lr_schedule == "constant"  # the timed epoch has no schedule
-    assert str(bench.dtype) == f"torch.{top.dtype}"
-    data = OmegaConf.load(CONFIGS / "fit" / "data" / "cmu_mocap.yaml")
-    assert list(bench.clips) == list(data.clips)
-    assert list(bench.val_clips) == list(data.val_clips)
-    assert list(bench.folders) == list(data.folders)
-    assert bench.samples_per_clip == data.samples_per_clip
-    filt = bench.filter
-    assert (filt.cutoff_hz, filt.order, filt.edge_trim_s) == tuple(
-        data.filter[k] for k in ("cutoff_hz", "order", "edge_trim_s")
-    )
-    assert (bench.val_time_fraction, bench.gap_s, bench.split_seed) == tuple(
-        data.split[k] for k in ("val_time_fraction", "gap_s", "seed")
-    )
-    assert (bench.glitch_deg, bench.glitch_pad_s) == (data.glitch.deg, data.glitch.pad_s)
-    assert bench.passive == data.passive and data.torques == "inverse"
-    for name in MODELS:
-        model = OmegaConf.load(CONFIGS / "fit" / "model" / f"{name}.yaml")
-        prefix = {"delan": "delan_", "mlp": "mlp_", "ensemble": "ensemble_"}[name]
-        for key, value in model.items():
-            if key == "name":
-                continue
-            attr = key if key == "ensemble_size" else prefix + key
-            assert getattr(bench, attr) == value, (name, key)
+def test_the_suite_runs_the_fits_own_settings() -> None:
+    """The suite's data, training and model settings are those ``python -m mbrl_delan.fit``
+    composes (with the quick run's overrides where given), built by the fit's builders."""
+    bench = mocap_config()
+    assert (bench.fit.batch_size, bench.fit.lr, bench.fit.lr_schedule) == (256, 0.001, "constant")
+    assert len(bench.clips) == 15 and bench.dtype == torch.float32
+    assert (bench.models["delan"].hidden, bench.models["ensemble"].ensemble_size) == (128, 5)
+    quick = mocap_config(QUICK_OVERRIDES)
+    assert quick.clips == ["09_06"] and quick.fit.batch_size == 16
+    assert quick.models["mlp"].hidden == 16 and quick.models["ensemble"].ensemble_size == 2
+    assert quick.resolved_folders() == [(Path(__file__).parent / "data").resolve()]

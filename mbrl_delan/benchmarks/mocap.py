@@ -1,7 +1,8 @@
 """Suite `mocap`: how fast the mocap pipeline and the inverse-dynamics fits run (issue 5).
 
-Three kinds of figure, on the settings of ``python -m mbrl_delan.fit`` (`MocapBenchConfig`
-mirrors `configs/fit`; a test keeps the copies equal):
+Three kinds of figure, on the settings of ``python -m mbrl_delan.fit``: the config Hydra
+composes from `configs/fit` (`mocap_config`), its dataset and models built by the fit's own
+builders:
 
 - `retarget_frames_per_s`: AMC frames retargeted onto humanoid_CMU per second: for every clip
   of the dataset, `read_asf`, `read_amc` and `retarget` (filter, spline resampling to the
@@ -17,21 +18,21 @@ mirrors `configs/fit`; a test keeps the copies equal):
   / seconds per epoch.
 
 `SuiteOptions.quick`: the one small clip of tests/data (09_06) and tiny sizes
-(`MocapBenchConfig.quick`). Clips that are not found give `value: null` records with a note.
+(`QUICK_OVERRIDES`). Clips that are not found give `value: null` records with a note.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field, fields, replace
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import mujoco
 import torch
-from omegaconf import OmegaConf
+from omegaconf import DictConfig
 from tensordict import TensorDict
 
 from mbrl_delan import keys
@@ -44,12 +45,12 @@ from mbrl_delan.benchmarks import (
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.config import DTYPES, compose_config
 from mbrl_delan.data.mocap import (
     ClipFiles,
     ClipNotFoundError,
     FilterSettings,
     MocapDataset,
-    build_dataset,
     find_clip,
     humanoid_cmu_xml,
     read_amc,
@@ -58,7 +59,7 @@ from mbrl_delan.data.mocap import (
     split_dataset,
 )
 from mbrl_delan.data.mocap.retarget import joint_layout
-from mbrl_delan.fit import build_inverse_model
+from mbrl_delan.fit import FIT_CONFIG_DIR, build_inverse_model, make_dataset, validate_fit_config
 from mbrl_delan.models.inverse import MODEL_NAMES, InverseDynamicsModel
 from mbrl_delan.systems.system import JointLayout
 from mbrl_delan.training.inverse_fit import InverseFitSettings, train_epoch
@@ -71,80 +72,71 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 TEST_DATA = REPO_ROOT / "tests" / "data"
 QUICK_CLIP = "09_06"
 # configs/fit/data/cmu_mocap.yaml's clips (not data.mocap.DEFAULT_CLIPS, an older list)
-FIT_CLIPS = (
-    "02_01", "02_02", "05_01", "07_03", "07_05", "09_06", "09_12", "05_02", "05_04",
-    "05_07", "55_02", "93_charleston1", "acro_backflip", "131_03", "131_07",
-)  # fmt: skip
-FIT_VAL_CLIPS = ("02_02", "05_07", "131_07")
+QUICK_OVERRIDES = (  # the small clip of tests/data and tiny networks (seconds in all)
+    f"data.clips=['{QUICK_CLIP}']",
+    "data.val_clips=[]",
+    f"data.folders=['{TEST_DATA}']",
+    "data.samples_per_clip=64",
+    "data.split.gap_s=0.1",
+    "batch_size=16",
+    "model.hidden=16",
+    "model.ensemble_size=2",
+)
 BUILD_MAX_REPEATS = 3  # one build takes seconds: at most this many timed builds
 BUILD_MAX_WARMUP = 1
 
 
 @dataclass(frozen=True)
 class MocapBenchConfig:
-    """The fit entry point's data, model and training settings (configs/fit defaults).
+    """The settings of ``python -m mbrl_delan.fit`` the suite runs with: the fit config Hydra
+    composes from ``configs/fit`` (its data and training keys) and each model's own (its
+    ``model`` group), with the same overrides (`mocap_config`)."""
 
-    ``folders`` relative to the repository root (``fit`` resolves the same strings against
-    its working directory, normally the repository root).
-    """
+    fit: DictConfig  # data, training (batch_size, lr, ...), loss, dtype, seed
+    models: dict[str, DictConfig]  # name -> that model's group
 
-    clips: tuple[str, ...] = FIT_CLIPS
-    val_clips: tuple[str, ...] = FIT_VAL_CLIPS
-    folders: tuple[str, ...] = ("../shared/data/cmu_mocap", "data/cmu_mocap")
-    samples_per_clip: int | None = 1000
-    filter: FilterSettings = field(default_factory=FilterSettings)
-    val_time_fraction: float = 0.2
-    gap_s: float = 0.25
-    split_seed: int = 0
-    glitch_deg: float = 60.0
-    glitch_pad_s: float = 0.25
-    passive: bool = True
-    # training (configs/fit/config.yaml)
-    batch_size: int = 256
-    lr: float = 1e-3
-    max_grad_norm: float | None = 100.0
-    std_floor: float = 1e-3
-    translation_invariant: bool = True
-    dtype: torch.dtype = torch.float32
-    seed: int = 0
-    # models (configs/fit/model/*.yaml)
-    models: tuple[str, ...] = MODEL_NAMES
-    delan_hidden: int = 128
-    delan_layers: int = 2
-    delan_activation: str = "softplus"
-    delan_diag_shift: float = 1e-3
-    delan_dissipation: bool = True
-    delan_coulomb: bool = False
-    delan_still_first_order: bool = True
-    delan_tree_sparse: bool = True
-    delan_armature: bool = False
-    delan_compile: bool = False
-    mlp_hidden: int = 256
-    mlp_activation: str = "silu"
-    ensemble_size: int = 5
-    ensemble_hidden: int = 256
-    ensemble_activation: str = "silu"
+    @property
+    def data(self) -> DictConfig:
+        return self.fit.data
 
-    @classmethod
-    def quick(cls) -> MocapBenchConfig:
-        """The small clip of tests/data and tiny networks (seconds in all)."""
-        return cls(
-            clips=(QUICK_CLIP,),
-            val_clips=(),
-            folders=(str(TEST_DATA),),
-            samples_per_clip=64,
-            gap_s=0.1,
-            batch_size=16,
-            delan_hidden=16,
-            mlp_hidden=16,
-            ensemble_size=2,
-            ensemble_hidden=16,
-        )
+    @property
+    def clips(self) -> list[str]:
+        return list(self.data.clips)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return DTYPES[self.fit.dtype]
+
+    @property
+    def filter(self) -> FilterSettings:
+        f = self.data.filter
+        return FilterSettings(cutoff_hz=f.cutoff_hz, order=f.order, edge_trim_s=f.edge_trim_s)
 
     def resolved_folders(self) -> list[Path]:
         """The clip folders, relative ones against the repository root."""
-        paths = map(Path, self.folders)
+        paths = map(Path, self.data.folders)
         return [(p if p.is_absolute() else REPO_ROOT / p).resolve() for p in paths]
+
+
+def mocap_config(
+    overrides: Sequence[str] = (), models: Sequence[str] = MODEL_NAMES
+) -> MocapBenchConfig:
+    """The fit config of ``python -m mbrl_delan.fit <overrides>`` and of each model's
+    ``model=<name> <overrides>`` (an override of a key that model lacks is left out)."""
+    shared = [o for o in overrides if not o.startswith("model.")]
+    groups = {}
+    for name in models:
+        plain = compose_config(FIT_CONFIG_DIR, [f"model={name}"]).model
+        own = [o for o in overrides if o.startswith("model.") and _key(o) in plain]
+        full = compose_config(FIT_CONFIG_DIR, [*shared, f"model={name}", *own])
+        validate_fit_config(full)
+        groups[name] = full.model
+    return MocapBenchConfig(compose_config(FIT_CONFIG_DIR, shared), groups)
+
+
+def _key(override: str) -> str:
+    """`model.hidden=16` -> `hidden`."""
+    return override.split("=", 1)[0].removeprefix("model.")
 
 
 # ----------------------------------------------------------------------------- data
@@ -185,21 +177,10 @@ class DatasetBuilder:
         self.last: MocapDataset | None = None
 
     def __call__(self) -> MocapDataset:
-        cfg = self.cfg
-        self.last = build_dataset(
-            clips=cfg.clips,
-            val_clips=cfg.val_clips,
-            folders=cfg.resolved_folders(),
-            download=False,
-            settings=cfg.filter,
-            samples_per_clip=cfg.samples_per_clip,
-            val_time_fraction=cfg.val_time_fraction,
-            gap_s=cfg.gap_s,
-            glitch_deg=cfg.glitch_deg,
-            glitch_pad_s=cfg.glitch_pad_s,
-            passive=cfg.passive,
-            seed=cfg.split_seed,
-        )
+        data = self.cfg.data.copy()
+        data.folders = [str(p) for p in self.cfg.resolved_folders()]
+        data.download = False
+        self.last = make_dataset(data)
         return self.last
 
 
@@ -219,35 +200,26 @@ def make_inverse_model(
     dof_parents: list[int] | None = None,
     armature: list[float] | None = None,
 ) -> InverseDynamicsModel:
-    """The inverse-dynamics model ``name`` with the config's settings, built by
-    `fit.build_inverse_model` from the ``{name}_*`` fields (``dof_parents``, ``armature``:
-    the MuJoCo model's ``dof_parentid`` and ``dof_armature``, for DeLaN's tree sparsity and
-    known armature)."""
-    if name not in MODEL_NAMES:
-        raise ValueError(f"model must be one of {MODEL_NAMES}, got {name!r}")
-    prefix = f"{name}_"
-    settings = {
-        f.name.removeprefix(prefix): getattr(cfg, f.name)
-        for f in fields(cfg)
-        if f.name.startswith(prefix)
-    }
-    if name == "ensemble":  # the field is ensemble_size, as the config key
-        settings["ensemble_size"] = settings.pop("size")
-    model_cfg = OmegaConf.create({"name": name, **settings})
+    """The inverse-dynamics model ``name`` as ``fit`` builds it (`fit.build_inverse_model`)
+    (``dof_parents``, ``armature``: the MuJoCo model's ``dof_parentid`` and ``dof_armature``,
+    for DeLaN's tree sparsity and known armature)."""
+    fit = cfg.fit
     return build_inverse_model(
-        model_cfg, layout, cfg.std_floor, cfg.translation_invariant, dof_parents, armature
-    )
+        cfg.models[name], layout, fit.loss.std_floor, fit.translation_invariant, dof_parents,
+        armature,
+    )  # fmt: skip
 
 
 def epoch_call(
     model: InverseDynamicsModel, train: TensorDict, cfg: MocapBenchConfig
 ) -> Callable[[], float]:
     """A call that trains ``model`` for one epoch on ``train`` (N,); returns its mean loss."""
-    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    fit = cfg.fit
+    optimizer = torch.optim.Adam(model.parameters(), lr=fit.lr)
     settings = InverseFitSettings(
-        epochs=1, batch_size=cfg.batch_size, max_grad_norm=cfg.max_grad_norm
+        epochs=1, batch_size=fit.batch_size, max_grad_norm=fit.max_grad_norm
     )
-    generator = torch.Generator(device=train.device).manual_seed(cfg.seed)
+    generator = torch.Generator(device=train.device).manual_seed(fit.seed)
     return lambda: train_epoch(model, optimizer, train, settings, generator)
 
 
@@ -283,10 +255,10 @@ def _build_timing(timing: TimingConfig) -> TimingConfig:
 
 def _data_fields(cfg: MocapBenchConfig, host: dict[str, Any]) -> dict[str, Any]:
     return {
-        "clips": list(cfg.clips),
+        "clips": cfg.clips,
         "n_clips": len(cfg.clips),
         "folders": [str(p) for p in cfg.resolved_folders()],
-        "samples_per_clip": cfg.samples_per_clip,
+        "samples_per_clip": cfg.data.samples_per_clip,
         "cutoff_hz": cfg.filter.cutoff_hz,
         **host,
     }
@@ -299,7 +271,7 @@ def _missing_records(
     yield _record(case, "retarget_frames_per_s", "frames/s", "cpu", fields, None, None, note)
     yield _record(case, "dataset_build_s", "s", "cpu", fields, None, None, note)
     for name in cfg.models:
-        fit_case = f"{name}-b{cfg.batch_size}"
+        fit_case = f"{name}-b{cfg.fit.batch_size}"
         yield _record(fit_case, "fit_samples_per_s", "samples/s", device, fields, None, None, note)
 
 
@@ -311,7 +283,7 @@ def _fit_record(
     opts: SuiteOptions,
     host: dict[str, Any],
 ) -> BenchRecord:
-    torch.manual_seed(cfg.seed)
+    torch.manual_seed(cfg.fit.seed)
     layout, parents = joint_layout(mj_model), mj_model.dof_parentid.tolist()
     armature = mj_model.dof_armature.tolist()
     model = make_inverse_model(name, layout, cfg, parents, armature)
@@ -320,17 +292,17 @@ def _fit_record(
     n = int(train.shape[0])
     fields = {
         "model": name,
-        "batch_size": cfg.batch_size,
+        "batch_size": cfg.fit.batch_size,
         "train_samples": n,
-        "steps_per_epoch": math.ceil(n / cfg.batch_size),
+        "steps_per_epoch": math.ceil(n / cfg.fit.batch_size),
         "n_parameters": sum(p.numel() for p in model.parameters()),
         "dtype": str(cfg.dtype).removeprefix("torch."),
-        "lr": cfg.lr,
+        "lr": cfg.fit.lr,
         **host,
     }
     timing = time_call(epoch_call(model, train, cfg), opts.timing, synchronizer(opts.device))
     value = n / timing.seconds_per_call
-    case = f"{name}-b{cfg.batch_size}"
+    case = f"{name}-b{cfg.fit.batch_size}"
     return _record(case, "fit_samples_per_s", "samples/s", str(opts.device), fields, timing, value)
 
 
@@ -367,8 +339,8 @@ def run_mocap(cfg: MocapBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord
 
 
 def suite_config(opts: SuiteOptions) -> MocapBenchConfig:
-    """The suite's settings: `MocapBenchConfig()`, or its quick sizes under ``opts.quick``."""
-    return MocapBenchConfig.quick() if opts.quick else MocapBenchConfig()
+    """The suite's settings: the fit's defaults, or `QUICK_OVERRIDES` under ``opts.quick``."""
+    return mocap_config(QUICK_OVERRIDES if opts.quick else ())
 
 
 def run_mocap_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
