@@ -210,12 +210,9 @@ def test_bad_config_value_fails_at_start_naming_it(
 
 
 def run_files(run_dir: Path) -> dict[str, bytes]:
-    """The run's own files (not Hydra's `.hydra/` record nor its log) by relative path."""
-    return {
-        str(p.relative_to(run_dir)): p.read_bytes()
-        for p in run_dir.rglob("*")
-        if p.is_file() and ".hydra" not in p.parts and p.suffix != ".log"
-    }
+    """Every file of the run dir by relative path: the run's own, Hydra's `.hydra/` record of
+    its launch and its log."""
+    return {str(p.relative_to(run_dir)): p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
 
 
 def test_new_run_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was(
@@ -231,5 +228,6 @@ def test_new_run_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was(
     assert out.returncode == 2, text
     assert "already holds a run (config.yaml, checkpoint.pt, metrics.jsonl" in text
     assert f"resume={run_dir}" in text and "Traceback" not in text
-    assert run_files(run_dir) == before  # no crash.json either
+    assert run_files(run_dir) == before  # no crash.json, and Hydra's record left as it was
     assert "metrics.jsonl" in before and "checkpoint.pt" in before
+    assert ".hydra/overrides.yaml" in before
