@@ -27,6 +27,7 @@ from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
 from mbrl_delan.models.ensemble import GaussianEnsemble
+from mbrl_delan.models.structure import Structure
 from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
@@ -370,29 +371,49 @@ def _check_rollout_steps(cfg: DictConfig) -> None:
         )
 
 
+def delan_structure(cfg: DictConfig, system: System, **fixed: Any) -> Structure:
+    """The `Structure` a DeLaN model config (train's or fit's) describes on `system`.
+
+    ``tree_sparse`` and ``armature`` take the system's ``dof_parentid`` and ``dof_armature``;
+    `fixed` gives fields the config does not hold (the fit's ``translation_invariant``)."""
+    values: dict[str, Any] = {
+        name: cfg[name]
+        for name in ("hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb",
+                     "still_first_order", "translation_invariant", "yaw_invariant",
+                     "inertia_scaling", "residual")
+        if name in cfg
+    }  # fmt: skip
+    values["diagonal_init"] = values.get("inertia_scaling", False)
+    if cfg.get("tree_sparse", False):
+        values["dof_parents"] = system.mj_model().dof_parentid.tolist()
+    if cfg.get("armature", False):
+        values["armature"] = system.mj_model().dof_armature.tolist()
+    return Structure(**(values | fixed))
+
+
+def structure_overrides(structure: Structure, names: Sequence[str]) -> list[str]:
+    """The model-config overrides that give `structure`'s fields `names`."""
+    flags = {"dof_parents": "tree_sparse", "armature": "armature"}
+    overrides = []
+    for name in names:
+        value = getattr(structure, name)
+        if name in flags:
+            name, value = flags[name], value is not None
+        overrides.append(f"model.{name}={str(value).lower() if isinstance(value, bool) else value}")
+    return overrides
+
+
 def _delan_arguments(cfg: DictConfig, system: System) -> dict[str, Any]:
     """The constructor arguments a DeLaN and every member of a DeLaN ensemble share."""
     return dict(
         layout=system.layout,
         actuation=system.actuation.float(),
         control_dt=system.control_dt,
-        hidden=cfg.hidden,
-        layers=cfg.layers,
-        activation=cfg.activation,
-        diag_shift=cfg.diag_shift,
+        structure=delan_structure(cfg, system),
         integrator=cfg.integrator,
         substeps=cfg.substeps,
         loss=cfg.loss,
-        dissipation=cfg.dissipation,
-        coulomb=cfg.coulomb,
         velocity_margin=cfg.velocity_margin,
-        inertia_scaling=cfg.inertia_scaling,
-        diagonal_init=cfg.inertia_scaling,
-        translation_invariant=cfg.translation_invariant,
-        still_first_order=cfg.still_first_order,
-        dof_parents=system.mj_model().dof_parentid.tolist() if cfg.tree_sparse else None,
-        armature=system.mj_model().dof_armature.tolist() if cfg.armature else None,
-        yaw_invariant=cfg.yaw_invariant,
     )
 
 
@@ -408,18 +429,13 @@ def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> Sampli
 
 @MODELS.register("delan", schema=MODEL_SCHEMAS["delan"])
 def _delan(cfg: DictConfig, system: System) -> DeLaN:
-    return DeLaN(
-        **_delan_arguments(cfg, system),
-        compile_fit=cfg.compile_fit,
-        residual=cfg.residual,
-    )
+    return DeLaN(**_delan_arguments(cfg, system))
 
 
 @MODELS.register("delan_ensemble", schema=MODEL_SCHEMAS["delan_ensemble"])
 def _delan_ensemble(cfg: DictConfig, system: System) -> DeLaNEnsemble:
     return DeLaNEnsemble(
         **_delan_arguments(cfg, system),
-        residual=cfg.residual,
         ensemble_size=cfg.ensemble_size,
         propagation=cfg.propagation,
         bootstrap=cfg.bootstrap,

@@ -34,6 +34,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 
 from mbrl_delan import keys
+from mbrl_delan.accelerate.compile import compile_fit
 from mbrl_delan.config import (
     CONFIG_DIR,
     DTYPES,
@@ -70,6 +71,7 @@ from mbrl_delan.models.inverse import (
     MLPEnsembleInverse,
     MLPInverse,
 )
+from mbrl_delan.models.structure import Structure
 from mbrl_delan.models.tangent_mlp import ACTIVATIONS as DELAN_ACTIVATIONS
 from mbrl_delan.systems.system import JointLayout
 from mbrl_delan.training.fit import TrainingDivergedError
@@ -141,6 +143,7 @@ def _validate_model(cfg: DictConfig) -> None:
         _flag("model.still_first_order", cfg.still_first_order)
         _flag("model.tree_sparse", cfg.tree_sparse)
         _flag("model.armature", cfg.get("armature", False))
+        _flag("model.compile_fit", cfg.get("compile_fit", False))
     else:
         _choice("model.activation", cfg.activation, tuple(MLP_ACTIVATIONS))
     if cfg.name == "ensemble":
@@ -251,21 +254,19 @@ def build_inverse_model(
     model's ``dof_armature``, for DeLaN's ``model.armature``."""
     root_height = not translation_invariant
     if cfg.name == "delan":
-        return DeLaNInverse(
-            layout,
+        structure = Structure(
             hidden=cfg.hidden,
             layers=cfg.layers,
             activation=cfg.activation,
             diag_shift=cfg.diag_shift,
             dissipation=cfg.dissipation,
             coulomb=cfg.coulomb,
-            std_floor=std_floor,
             translation_invariant=translation_invariant,
             still_first_order=cfg.still_first_order,
             dof_parents=dof_parents if cfg.tree_sparse else None,
             armature=armature if cfg.get("armature", False) else None,
-            compile_fit=cfg.get("compile", False),
         )
+        return DeLaNInverse(layout, structure, std_floor=std_floor)
     if cfg.name == "mlp":
         return MLPInverse(
             layout,
@@ -323,6 +324,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
         mj_model.dof_armature.tolist(),
     )
     model = model.to(device=device, dtype=dtype)
+    if cfg.model.get("compile_fit", False):
+        compile_fit(model)
     container = OmegaConf.to_container(cfg, resolve=True)
     logger = cfg.logger
     with Recorder(run_dir, logger.wandb, logger.project, logger.group, container) as recorder:

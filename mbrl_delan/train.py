@@ -21,6 +21,7 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 from tqdm import tqdm
 
+from mbrl_delan.accelerate.compile import compile_fit
 from mbrl_delan.config import (
     DTYPES,
     ConfigError,
@@ -28,8 +29,10 @@ from mbrl_delan.config import (
     build_model,
     build_planner,
     check_device,
+    delan_structure,
     exit_on_config_errors,
     migrate,
+    structure_overrides,
     validate_train_config,
 )
 from mbrl_delan.data.buffer import (
@@ -41,11 +44,11 @@ from mbrl_delan.data.buffer import (
 )
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import EnvParts, make_env_parts
+from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.objectives.mujoco import available_cpus, mujoco_objective_factory
 from mbrl_delan.planners.base import SamplingPlanner
-from mbrl_delan.planners.ilqr import ILQRPolicy
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, tracking_ilqr_policy
 from mbrl_delan.sweep import exit_or_raise, marks_crash, with_sweep_group
@@ -122,7 +125,7 @@ def _planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPla
         raise ConfigError(f"planner={cfg.planner.name}: {err}") from err
 
 
-def _oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy | ILQRPolicy:
+def _oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy:
     """The oracle policy of `budget.oracle_planner`: `same` (the loop's planner on MuJoCo) or
     `ilqr` (tracking tasks: iLQR over the planner's horizon, `TRACKING_ILQR` otherwise)."""
     if cfg.budget.oracle_planner == "ilqr":
@@ -146,7 +149,21 @@ def _oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy | ILQR
     )  # fmt: skip
 
 
-def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy | ILQRPolicy]:
+def build_world_model(
+    cfg: DictConfig, system: System, device: torch.device, dtype: torch.dtype
+) -> WorldModel:
+    """The loop's world model on its device and dtype, its refits compiled with
+    ``model.compile_fit``."""
+    try:
+        model = build_model(cfg.model, system).to(device=device, dtype=dtype)
+    except ValueError as err:  # a structure the env's system cannot have (yaw_invariant)
+        raise ConfigError(f"model={cfg.model.name} on env={cfg.env.name}: {err}") from err
+    if cfg.model.get("compile_fit", False):
+        compile_fit(model)
+    return model
+
+
+def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]:
     """The MBRL loop and the oracle policy (the same planner over MuJoCo's true dynamics, or
     iLQR on MuJoCo's derivatives with `budget.oracle_planner=ilqr`)."""
     device, dtype = check_device(cfg.device), DTYPES[cfg.dtype]
@@ -159,10 +176,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy 
     )
     env = make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
     eval_env = make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
-    try:
-        model = build_model(cfg.model, system).to(device=device, dtype=dtype)
-    except ValueError as err:  # a structure the env's system cannot have (yaw_invariant)
-        raise ConfigError(f"model={cfg.model.name} on env={cfg.env.name}: {err}") from err
+    model = build_world_model(cfg, system, device, dtype)
     optimizer = torch.optim.Adam(
         model.parameters(), lr=cfg.model.lr, weight_decay=cfg.model.weight_decay
     )
@@ -283,14 +297,7 @@ def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Reco
         log.warning("no video of iteration %d (%s: %s); the run goes on", k, name, err)
 
 
-# settings a DeLaN must share with the mocap fit it starts from (model.init_from)
-MOCAP_SHARED = (
-    "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb", "tree_sparse",
-    "still_first_order", "armature",
-)  # fmt: skip
-
-
-def _start_mechanics(model_cfg: DictConfig, model: DeLaN) -> None:
+def _start_mechanics(model_cfg: DictConfig, model: DeLaN, system: System) -> None:
     """`model.init_from`: M, V and the friction of a DeLaN fitted on motion capture."""
     from mbrl_delan.fit import read_fit_run  # the mocap stack: only when asked for
 
@@ -304,25 +311,23 @@ def _start_mechanics(model_cfg: DictConfig, model: DeLaN) -> None:
         raise ConfigError(f"{where}: {err}") from err
     if fit_cfg.model.name != "delan":
         raise ConfigError(f"{where}: that fit is model={fit_cfg.model.name}, not a DeLaN")
-    shared = {k: fit_cfg.model.get(k, False) for k in MOCAP_SHARED}
-    shared["translation_invariant"] = fit_cfg.get("translation_invariant", False)
-    shared["yaw_invariant"] = False  # the mocap fit's DeLaN sees the root's heading
-    differ = [f"model.{k}={_yaml(v)}" for k, v in shared.items() if model_cfg.get(k) != v]
+    ours = delan_structure(model_cfg, system)
+    theirs = delan_structure(  # the mocap fit's DeLaN sees the root's heading
+        fit_cfg.model,
+        system,
+        translation_invariant=fit_cfg.get("translation_invariant", False),
+        yaw_invariant=False,
+    )
+    differ = ours.differences(theirs)
     if differ:
-        raise ConfigError(
-            f"{where}: that DeLaN was fitted with other structure settings; add {' '.join(differ)}"
-        )
+        add = " ".join(structure_overrides(theirs, differ))
+        raise ConfigError(f"{where}: that DeLaN was fitted with another structure; add {add}")
     delan_state = {k.removeprefix("delan."): v for k, v in state.items() if k.startswith("delan.")}
     try:
         model.load_mechanics(delan_state)
     except ValueError as err:  # another system (env) than the fit's humanoid
         raise ConfigError(f"{where}: {err}") from err
     log.info("started M, V and the friction from the mocap fit in %s", source)
-
-
-def _yaml(value: Any) -> str:
-    """A value as a command-line override writes it (true, not True)."""
-    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | None]:
@@ -361,7 +366,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         OmegaConf.save(cfg, run_dir / RUN_CONFIG, resolve=True)
     loop, oracle = build_loop(cfg, run_dir)
     if state is None and cfg.model.get("init_from") is not None:
-        _start_mechanics(cfg.model, loop.model)
+        _start_mechanics(cfg.model, loop.model, loop.system)
     if state is not None:
         loop.load_state_dict(state["loop"])
         set_rng_state(state["rng"])
@@ -408,7 +413,7 @@ def _run(
     cfg: DictConfig,
     run_dir: Path,
     loop: MBRLLoop,
-    oracle: PlannerPolicy | ILQRPolicy,
+    oracle: PlannerPolicy,
     recorder: Recorder,
 ) -> None:
     """`loop.run` with the entry point's hooks: metrics to the recorder, an atomic checkpoint

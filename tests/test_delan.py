@@ -5,6 +5,7 @@ import torch
 
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.integrators import integrate
+from mbrl_delan.models.structure import Structure
 from mbrl_delan.systems.system import HINGE, SLIDE, JointLayout
 
 
@@ -30,7 +31,8 @@ def model(
     torch.manual_seed(seed)
     nu = n if nu is None else nu
     B = torch.randn(n, nu)
-    m = DeLaN(layout(n, slide_first=slide_first), B, control_dt=0.01, hidden=32, layers=2, **kw)
+    structure = Structure(hidden=32, layers=2, **kw)
+    m = DeLaN(layout(n, slide_first=slide_first), B, control_dt=0.01, structure=structure)
     with torch.no_grad():  # random biases too, so no symmetry of the initialisation helps
         for layer in m.modules():
             if isinstance(layer, torch.nn.Linear):
@@ -173,7 +175,7 @@ def test_bad_arguments_are_named() -> None:
     with pytest.raises(ValueError, match="integrator"):
         DeLaN(layout(2), torch.eye(2), 0.01, integrator="leapfrog")
     with pytest.raises(ValueError, match="diag_shift"):
-        DeLaN(layout(2), torch.eye(2), 0.01, diag_shift=0.0)
+        DeLaN(layout(2), torch.eye(2), 0.01, Structure(diag_shift=0.0))
 
 
 def test_planner_survives_a_model_that_returns_inf_and_nan() -> None:
@@ -203,11 +205,12 @@ def test_planner_survives_a_model_that_returns_inf_and_nan() -> None:
 def test_load_mechanics_copies_m_v_friction_keeps_b_and_names_misfits() -> None:
     two = layout(2)
     torch.manual_seed(0)
-    source = DeLaN(two, torch.eye(2), 0.01, hidden=8).double()  # action: both torques
+    source = DeLaN(two, torch.eye(2), 0.01, Structure(hidden=8)).double()  # action: both torques
     with torch.no_grad():
         for p in source.parameters():
             p.add_(0.3 * torch.randn_like(p))
-    target = DeLaN(two, torch.tensor([[0.0], [2.0]]), 0.01, hidden=8, residual=True).double()
+    with_residual = Structure(hidden=8, residual=True)
+    target = DeLaN(two, torch.tensor([[0.0], [2.0]]), 0.01, with_residual).double()
     target.load_mechanics(source.state_dict())
     q, qd = torch.randn(5, 2, dtype=torch.float64), torch.randn(5, 2, dtype=torch.float64)
     for name in ("mass_matrix", "coriolis", "gravity", "dissipation"):
@@ -216,7 +219,7 @@ def test_load_mechanics_copies_m_v_friction_keeps_b_and_names_misfits() -> None:
         )
     assert torch.equal(target.dynamics.actuation, torch.tensor([[0.0], [2.0]], dtype=torch.float64))
     assert bool(target.mechanics_loaded) and "mechanics_loaded" in target.state_dict()
-    wider = DeLaN(two, torch.eye(2), 0.01, hidden=16)
+    wider = DeLaN(two, torch.eye(2), 0.01, Structure(hidden=16))
     with pytest.raises(
         ValueError, match=r"other shape: .*hidden\.0\.bias \(8,\) \(this model: \(16,\)\)"
     ):

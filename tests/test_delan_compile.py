@@ -10,10 +10,12 @@ from torch.nn import functional as F
 
 from mbrl_delan import keys
 from mbrl_delan.accelerate import CompiledLoop, CompiledStep
+from mbrl_delan.accelerate.compile import FitGraph, compile_fit
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.inverse import DeLaNInverse
 from mbrl_delan.models.kernels import SMALL_SOLVE, activate, log1p_unit, unrolled_cholesky_solve
+from mbrl_delan.models.structure import Structure
 from mbrl_delan.models.tangent_mlp import TangentMLP
 from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.planners.mppi import MPPIPlanner
@@ -29,7 +31,7 @@ def test_compiled_step_equals_eager_step() -> None:
     compiles only without autograd."""
     system = load_system("acrobot")
     torch.manual_seed(0)
-    model = DeLaN(system.layout, system.actuation.float(), system.control_dt, hidden=16)
+    model = DeLaN(system.layout, system.actuation.float(), system.control_dt, Structure(hidden=16))
     g = torch.Generator().manual_seed(1)
     q, qd, a = (torch.randn(8, k, generator=g) for k in (system.nq, system.nv, system.nu))
     eager = model.step(q, qd, a)
@@ -85,7 +87,9 @@ class _GraphBreak(PendulumSwingup):
 def _pendulum_model() -> DeLaN:
     system = make_env_parts("pendulum").system
     torch.manual_seed(0)
-    return DeLaN(system.layout, system.actuation.float(), system.control_dt, hidden=16).eval()
+    return DeLaN(
+        system.layout, system.actuation.float(), system.control_dt, Structure(hidden=16)
+    ).eval()
 
 
 @pytest.mark.slow
@@ -113,7 +117,10 @@ def test_compiled_loop_of_a_two_dof_model_equals_eager() -> None:
     parts = make_env_parts("acrobot")
     torch.manual_seed(0)
     model = DeLaN(
-        parts.system.layout, parts.system.actuation.float(), parts.system.control_dt, hidden=16
+        parts.system.layout,
+        parts.system.actuation.float(),
+        parts.system.control_dt,
+        Structure(hidden=16),
     ).eval()
     q0, qd0 = torch.tensor([2.5, -0.5]), torch.tensor([1.0, -2.0])
     actions = torch.randn(16, 5, 1, generator=torch.Generator().manual_seed(4))
@@ -209,7 +216,9 @@ def test_intra_op_threads_are_put_back() -> None:
 
 def test_the_loop_is_not_tried_with_quaternion_joints() -> None:
     humanoid = load_system(humanoid_v5_xml(), name="humanoid")
-    model = DeLaN(humanoid.layout, humanoid.actuation.float(), humanoid.control_dt, hidden=8)
+    model = DeLaN(
+        humanoid.layout, humanoid.actuation.float(), humanoid.control_dt, Structure(hidden=8)
+    )
     assert not model.loops_compile
     assert _pendulum_model().loops_compile
 
@@ -255,7 +264,11 @@ def test_compiled_fit_loss_and_gradients_equal_eager() -> None:
     system = load_system("acrobot")
     torch.manual_seed(0)
     model = DeLaN(
-        system.layout, system.actuation.float(), system.control_dt, hidden=16, loss="inverse"
+        system.layout,
+        system.actuation.float(),
+        system.control_dt,
+        Structure(hidden=16),
+        loss="inverse",
     )
     g = torch.Generator().manual_seed(3)
     batch = TensorDict(
@@ -271,25 +284,27 @@ def test_compiled_fit_loss_and_gradients_equal_eager() -> None:
     model.fit_normalization(batch)
 
     eager_metrics, eager_grads = _loss_and_grads(model, batch)
-    model.compile_fit = True
+    partial = _loss_and_grads(model, batch[:5])
+    compile_fit(model)
     metrics, grads = _loss_and_grads(model, batch)
-    assert model._fit_graph.graph is not None and model._fit_graph.shape == (16, system.nq)
+    graph = model.transition_losses
+    assert isinstance(graph, FitGraph) and graph.shape == (16, system.nq)
     assert metrics.keys() == eager_metrics.keys()
     _assert_same_loss_and_grads((metrics, grads), (eager_metrics, eager_grads))
-    compiled_fn = model._fit_graph.graph
-    assert model._losses_for(torch.Size([5, system.nq])) != compiled_fn  # partial batch: eager
-    model.double()  # moving the model drops the compiled loss (it is specific to a dtype)
-    assert model._fit_graph.graph is None
+    counters.clear()
+    partial_compiled = _loss_and_grads(model, batch[:5])  # an epoch's last batch: eager
+    assert counters["stats"]["unique_graphs"] == 0
+    _assert_same_loss_and_grads(partial_compiled, partial, abs=0.0)
 
 
 @pytest.mark.slow
 def test_compiled_inverse_fit_loss_and_gradients_equal_eager() -> None:
-    """`DeLaNInverse(compile_fit=True)` (the mocap fit's model): a full batch's torque loss and
-    its gradient come from the compiled graphs and equal eager autograd's; another batch
-    shape runs eagerly; moving the model drops the compiled graph."""
+    """`compile_fit` on a `DeLaNInverse` (the mocap fit's model): a full batch's torque loss
+    and its gradient come from the compiled graphs and equal eager autograd's; another batch
+    shape and calls without autograd run eagerly."""
     system = load_system("acrobot")
     torch.manual_seed(0)
-    model = DeLaNInverse(system.layout, hidden=16, coulomb=True)
+    model = DeLaNInverse(system.layout, Structure(hidden=16, coulomb=True))
     g = torch.Generator().manual_seed(4)
     batch = TensorDict(
         {
@@ -303,15 +318,16 @@ def test_compiled_inverse_fit_loss_and_gradients_equal_eager() -> None:
     model.fit_normalization(batch)
 
     eager_metrics, eager_grads = _loss_and_grads(model, batch)
-    model.compile_fit = True
+    compile_fit(model)
     metrics, grads = _loss_and_grads(model, batch)
-    assert model._fit_graph.graph is not None and model._fit_graph.shape == (16, system.nv)
+    graph = model.member_predictions
+    assert isinstance(graph, FitGraph) and graph.shape == (16, system.nv)
     _assert_same_loss_and_grads((metrics, grads), (eager_metrics, eager_grads))
-    assert model._predictions_for(torch.Size([5, system.nv])) == model.member_predictions
+    counters.clear()
     with torch.no_grad():  # evaluation: eager
-        assert model._predictions_for(torch.Size([16, system.nv])) == model.member_predictions
-    model.double()
-    assert model._fit_graph.graph is None
+        model.loss(batch)
+    model.loss(batch[:5])  # another batch shape: eager
+    assert counters["stats"]["unique_graphs"] == 0
 
 
 @pytest.mark.slow
@@ -320,26 +336,28 @@ def test_train_config_compile_fit_compiles_the_one_step_loss_as_eager() -> None:
     loss and its gradient from the compiled graph equal eager autograd's."""
     from hydra import compose, initialize_config_dir
 
-    from mbrl_delan.config import build_model
     from mbrl_delan.data.synthetic import dynamics_dataset
+    from mbrl_delan.train import build_world_model
 
     configs = str(Path(__file__).resolve().parents[1] / "configs")
     with initialize_config_dir(config_dir=configs, version_base=None):
         default = compose("config", overrides=["env=pendulum", "model=delan"])
         cfg = compose("config", overrides=["env=pendulum", "model=delan", "model.compile_fit=true"])
     system = make_env_parts("pendulum").system
-    assert not build_model(default.model, system).compile_fit
-    torch.manual_seed(0)
-    model = build_model(cfg.model, system)
-    assert model.compile_fit and model.loss_kind == "forward"
+    models = []
+    for config in (default, cfg):
+        torch.manual_seed(0)
+        models.append(build_world_model(config, system, torch.device("cpu"), torch.float32))
+    eager, model = models
+    assert not isinstance(eager.transition_losses, FitGraph)
+    assert isinstance(model.transition_losses, FitGraph) and model.loss_kind == "forward"
     batch = dynamics_dataset(system, 16, torch.Generator().manual_seed(2)).float()
+    eager.fit_normalization(batch)
     model.fit_normalization(batch)
 
-    model.compile_fit = False
-    eager_metrics, eager_grads = _loss_and_grads(model, batch)
-    model.compile_fit = True
+    eager_metrics, eager_grads = _loss_and_grads(eager, batch)
     metrics, grads = _loss_and_grads(model, batch)
-    assert model._fit_graph.graph is not None  # the compiled path ran
+    assert model.transition_losses.graph is not None  # the compiled path ran
     _assert_same_loss_and_grads((metrics, grads), (eager_metrics, eager_grads), abs=1e-7)
 
 

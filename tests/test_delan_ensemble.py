@@ -22,6 +22,7 @@ from mbrl_delan.data.synthetic import dynamics_dataset
 from mbrl_delan.envs import make_env_parts
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
+from mbrl_delan.models.structure import Structure
 from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.systems.posarith import differentiate_pos, integrate_pos
 from mbrl_delan.systems.system import FREE, HINGE, SLIDE, JointLayout
@@ -34,7 +35,14 @@ MIXED = JointLayout(
 )
 NQ, NV, NU = MIXED.nq, MIXED.nv, 2
 E = 3
-ARCH = dict(hidden=16, layers=2, integrator="rk4", substeps=1)  # small: fast tests
+ARCH = dict(structure=Structure(hidden=16, layers=2), integrator="rk4", substeps=1)  # small: fast
+
+
+def arch(**options: bool) -> dict:
+    """`ARCH` with more structure options."""
+    return ARCH | {"structure": Structure(hidden=16, layers=2, **options)}
+
+
 TOL = dict(atol=1e-10, rtol=1e-10)
 
 
@@ -78,7 +86,7 @@ def reference_members(loss: str = "both", **options) -> list[DeLaN]:
     members = []
     for seed in range(E):
         torch.manual_seed(100 + seed)
-        m = DeLaN(MIXED, actuation(), control_dt=0.02, loss=loss, **ARCH, **options)
+        m = DeLaN(MIXED, actuation(), control_dt=0.02, loss=loss, **arch(**options))
         with torch.no_grad():  # biases and friction off their defaults too (|qdd| < 1e3)
             for p in m.parameters():
                 p.add_(0.1 * torch.randn_like(p))
@@ -89,7 +97,7 @@ def reference_members(loss: str = "both", **options) -> list[DeLaN]:
 
 def ensemble(members: list[DeLaN] | None = None, **kw) -> DeLaNEnsemble:
     kw = {"ensemble_size": E, "loss": "both", **kw}
-    ens = DeLaNEnsemble(MIXED, actuation(), control_dt=0.02, **ARCH, **kw)
+    ens = DeLaNEnsemble(MIXED, actuation(), control_dt=0.02, **(ARCH | kw))
     ens.load_members(reference_members(kw["loss"]) if members is None else members)
     return ens
 
@@ -116,7 +124,7 @@ def test_member_after_a_vectorised_step_is_that_member() -> None:
     anything in it that breaks the copy (the features' buffers, shared by three paths with
     the residual force, once did)."""
     members = reference_members(residual=True)
-    ens = ensemble(members, residual=True)
+    ens = ensemble(members, **arch(residual=True))
     q, qd, action = states(2 * E)
     with torch.no_grad():
         ens.step(q, qd, action)
@@ -134,7 +142,7 @@ def test_members_with_a_residual_and_translation_invariance_equal_a_loop() -> No
     members = reference_members(**options)
     assert members[0].residual is not None
     ens = DeLaNEnsemble(
-        MIXED, actuation(), control_dt=0.02, ensemble_size=E, loss="both", **ARCH, **options
+        MIXED, actuation(), control_dt=0.02, ensemble_size=E, loss="both", **arch(**options)
     )
     ens.load_members(members)
     q, qd, action = states(2 * E)
@@ -297,7 +305,7 @@ def test_tiny_fit_on_pendulum_data_reduces_the_loss() -> None:
         system.layout,
         system.actuation,
         system.control_dt,
-        hidden=16,
+        structure=Structure(hidden=16),
         integrator="euler",
         ensemble_size=E,
         seed=0,

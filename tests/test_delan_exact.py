@@ -22,7 +22,12 @@ from closed_form import (
 )
 from torch import Tensor
 
-from mbrl_delan.models.delan import Dissipation, LagrangianDynamics, MechanicsField, MechanicsJet
+from mbrl_delan.models.lagrangian import (
+    Dissipation,
+    LagrangianDynamics,
+    MechanicsField,
+    MechanicsJet,
+)
 from mbrl_delan.systems.system import load_system
 
 

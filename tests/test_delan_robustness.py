@@ -7,6 +7,7 @@ from tensordict import TensorDict
 from mbrl_delan import keys
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.features import PLAIN_BOUND, QFeatures
+from mbrl_delan.models.structure import Structure
 from mbrl_delan.systems.system import FREE, HINGE, SLIDE, JointLayout
 
 # a cart (slide), a pole (hinge) and a floating body (free joint): every feature kind
@@ -158,7 +159,9 @@ def test_unit_scales_keep_the_equations_exact() -> None:
         layout = JointLayout(
             types=(HINGE,) * 3, qpos_adr=(0, 1, 2), dof_adr=(0, 1, 2), limited=(False,) * 3
         )
-        model = DeLaN(layout, torch.eye(3), control_dt=0.01, hidden=16, dissipation=False)
+        model = DeLaN(
+            layout, torch.eye(3), control_dt=0.01, structure=Structure(hidden=16, dissipation=False)
+        )
         field = model.dynamics.field
         field.row_scale.copy_(torch.tensor([5.0, 0.3, 1.7]))
         field.energy_scale.fill_(40.0)
@@ -188,7 +191,9 @@ def test_unit_scales_keep_the_equations_exact() -> None:
 
 def test_inertia_scaling_sets_units_from_the_data() -> None:
     """D_i^2 = std(tau_i) / std(qdd_i); an unactuated DoF gets the others' geometric mean."""
-    model = DeLaN(MIXED, torch.eye(NV)[:, [0, 2]], control_dt=0.02, inertia_scaling=True).double()
+    model = DeLaN(
+        MIXED, torch.eye(NV)[:, [0, 2]], control_dt=0.02, structure=Structure(inertia_scaling=True)
+    ).double()
     data = _data().to(torch.float64)
     data[keys.QDD] = 3.0 * torch.randn(data.shape[0], NV, dtype=torch.float64)
     model.fit_normalization(data)
@@ -217,7 +222,9 @@ def test_inertia_scaling_treats_round_off_motion_as_held_still() -> None:
     varies gets std(tau) over the others' geometric-mean qdd std as its inertia unit, not
     std(tau) / 1e-14, and the others' geometric-mean viscous unit; the viscous unit uses
     rms(qd)."""
-    model = DeLaN(MIXED, torch.eye(NV), control_dt=0.02, inertia_scaling=True).double()
+    model = DeLaN(
+        MIXED, torch.eye(NV), control_dt=0.02, structure=Structure(inertia_scaling=True)
+    ).double()
     data = _data().to(torch.float64)
     n = data.shape[0]
     g = torch.Generator().manual_seed(5)

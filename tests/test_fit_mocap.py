@@ -13,6 +13,7 @@ import re
 import shutil
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import mujoco
@@ -38,8 +39,13 @@ from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.fit import build_inverse_model, read_fit_run, run, validate_fit_config
 from mbrl_delan.fit_report import main as report_main
 from mbrl_delan.fit_report import seed_table
-from mbrl_delan.models.delan import tree_entries
-from mbrl_delan.models.inverse import DeLaNInverse, MLPEnsembleInverse, MLPInverse
+from mbrl_delan.models.field import tree_entries
+from mbrl_delan.models.inverse import (
+    INVERSE_STRUCTURE,
+    DeLaNInverse,
+    MLPEnsembleInverse,
+    MLPInverse,
+)
 from mbrl_delan.systems.system import FREE, HINGE, JointLayout
 from mbrl_delan.train import _start_mechanics
 from mbrl_delan.training.fit import TrainingDivergedError
@@ -170,6 +176,11 @@ def test_seed_table_means_and_paired_differences() -> None:
 # ---------------------------------------------------------------- models
 
 
+def delan_inverse(layout: JointLayout, **options: object) -> DeLaNInverse:
+    """The fit's DeLaN with its default structure changed by `options`."""
+    return DeLaNInverse(layout, replace(INVERSE_STRUCTURE, **options))
+
+
 def humanoid_layout() -> JointLayout:
     """A free root and 56 limited hinges, as humanoid_CMU."""
     n = 56
@@ -195,7 +206,7 @@ def test_mlp_is_three_linear_layers_and_sees_what_delan_sees() -> None:
     mlp = MLPInverse(layout, hidden=8)
     linear = [m for m in mlp.modules() if isinstance(m, nn.Linear)]
     assert len(linear) == 3
-    delan = DeLaNInverse(layout, hidden=8)
+    delan = delan_inverse(layout, hidden=8)
     n_features = delan.mechanics.features.n_features
     assert n_features == 1 + 9 + 56  # root height, root rotation matrix, hinge angles
     assert linear[0].in_features == n_features + 2 * layout.nv  # phi(q), qd, qdd
@@ -224,7 +235,7 @@ def test_delan_inverse_is_the_lagrangian_equations_in_data_units() -> None:
     """tau = M qdd + c + g + d with M = D L~ L~^T D positive definite, whatever the units."""
     layout = humanoid_layout()
     torch.manual_seed(0)
-    model = DeLaNInverse(layout, hidden=16, coulomb=True).double()
+    model = delan_inverse(layout, hidden=16, coulomb=True).double()
     q, qd, qdd = random_batch(layout, 4)
     field = model.mechanics
     with torch.no_grad():  # leave the zero initialisation: test general weights and units
@@ -249,7 +260,7 @@ def test_delan_inverse_units_come_from_delan(clip_folder) -> None:
         clips=(CLIP,), val_clips=(), folders=[clip_folder], download=False, samples_per_clip=200
     ).data.select(keys.Q, keys.QD, keys.QDD, keys.TAU)
     torch.manual_seed(0)
-    model = DeLaNInverse(humanoid_layout(), hidden=16).double()
+    model = delan_inverse(humanoid_layout(), hidden=16).double()
     model.fit_normalization(data)
     field, friction = model.mechanics, model.dynamics.dissipation
     qdd_std, tau_std = data[keys.QDD].std(0), data[keys.TAU].std(0)
@@ -280,8 +291,8 @@ def test_translation_invariant_models_do_not_see_the_root_position() -> None:
     the height is the constant w; the MLP loses its root-height input."""
     layout = humanoid_layout()
     torch.manual_seed(0)
-    model = DeLaNInverse(layout, hidden=16, translation_invariant=True).double()
-    plain = DeLaNInverse(layout, hidden=16).double()
+    model = delan_inverse(layout, hidden=16, translation_invariant=True).double()
+    plain = delan_inverse(layout, hidden=16).double()
     assert model.mechanics.features.n_features == plain.mechanics.features.n_features - 1
     with torch.no_grad():
         for p in model.parameters():
@@ -311,7 +322,7 @@ def test_height_weight_starts_at_the_bodys_weight(clip_folder) -> None:
     data = build_dataset(
         clips=(CLIP,), val_clips=(), folders=[clip_folder], download=False, samples_per_clip=200
     ).data.select(keys.Q, keys.QD, keys.QDD, keys.TAU)
-    model = DeLaNInverse(humanoid_layout(), hidden=16, translation_invariant=True).double()
+    model = delan_inverse(humanoid_layout(), hidden=16, translation_invariant=True).double()
     model.fit_normalization(data)
     field = model.mechanics
     w = float(field.height_weight.detach() * field.energy_scale)
@@ -342,7 +353,7 @@ def test_tree_sparse_mass_matrix_couples_only_one_branch() -> None:
     assert not (np.abs(true_m) > 1e-12)[~same_branch.numpy()].any()
     assert int(same_branch.sum()) < mj.nv * mj.nv / 2  # a real restriction (hands, feet apart)
     torch.manual_seed(0)
-    model = DeLaNInverse(humanoid_layout(), hidden=16, dof_parents=parents).double()
+    model = delan_inverse(humanoid_layout(), hidden=16, dof_parents=parents).double()
     with torch.no_grad():
         for p in model.parameters():
             p.normal_(0.0, 0.05)
@@ -369,7 +380,7 @@ def test_still_joints_enter_to_first_order() -> None:
     its generalized force s G(q) is what the gravity of a finite difference of V says."""
     layout = humanoid_layout()
     torch.manual_seed(0)
-    model = DeLaNInverse(layout, hidden=16, still_first_order=True).double()
+    model = delan_inverse(layout, hidden=16, still_first_order=True).double()
     field = model.mechanics
     q, qd, qdd = random_batch(layout, 3)
     fit_q = q[:1].repeat(50, 1) + 0.2 * torch.randn(50, layout.nq, dtype=q.dtype)
@@ -402,7 +413,7 @@ def test_evaluation_keeps_no_autograd_graph(clip_folder) -> None:
     data = build_dataset(
         clips=(CLIP,), val_clips=(), folders=[clip_folder], download=False, samples_per_clip=50
     ).data
-    model = DeLaNInverse(humanoid_layout(), hidden=8).double()
+    model = delan_inverse(humanoid_layout(), hidden=8).double()
     model.fit_normalization(data)
     errors = evaluate_torques(model, data.select(keys.Q, keys.QD, keys.QDD, keys.TAU))
     for t in (errors.dof_mse, errors.dof_mse_si, errors.dof_var):
@@ -525,7 +536,7 @@ def test_loop_delan_starts_from_the_mocap_fit_and_keeps_it(fitted, clip_folder) 
     cfg = loop_model_config(*FIT_STRUCTURE, f"model.init_from={fitted['delan']}")
     system = make_env_parts("cmu_track", task_options=TEST_CLIP).system
     model = build_model(cfg.model, system).double()
-    _start_mechanics(cfg.model, model)
+    _start_mechanics(cfg.model, model, system)
     q, qd, _ = random_batch(layout, 16)
     q, qd = q.double(), qd.double()
     expected, got = inverse.delan.double().terms(q, qd), model.terms(q, qd)
@@ -559,4 +570,4 @@ def test_init_from_names_what_does_not_fit(fitted, tmp_path: Path) -> None:
     for overrides, expected in cases:
         cfg = loop_model_config(*overrides)
         with pytest.raises(ConfigError, match=re.escape(expected)):
-            _start_mechanics(cfg.model, build_model(cfg.model, system))
+            _start_mechanics(cfg.model, build_model(cfg.model, system), system)

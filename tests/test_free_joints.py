@@ -14,15 +14,11 @@ import pytest
 import torch
 from torch import Tensor
 
-from mbrl_delan.models.delan import (
-    DeLaN,
-    LagrangianDynamics,
-    MechanicsField,
-    MechanicsJet,
-    rotational_dofs,
-)
+from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.features import QFeatures, rotation_matrix, skew
 from mbrl_delan.models.integrators import integrate
+from mbrl_delan.models.lagrangian import LagrangianDynamics, MechanicsField, MechanicsJet
+from mbrl_delan.models.structure import Structure, rotational_dofs
 from mbrl_delan.systems.posarith import _index_tensors, integrate_pos
 from mbrl_delan.systems.system import FREE, HINGE, JointLayout, load_system
 
@@ -189,7 +185,7 @@ def test_network_coriolis_equals_autograd_on_mixed_joints(tmp_path, yaw_invarian
     system = system_of(MIXED, tmp_path)
     torch.manual_seed(0)
     model = DeLaN(
-        system.layout, system.actuation, 0.01, hidden=32, yaw_invariant=yaw_invariant
+        system.layout, system.actuation, 0.01, Structure(hidden=32, yaw_invariant=yaw_invariant)
     ).double()
     q, qd = random_states(system, 4, seed=2)
     terms = model.terms(q, qd)

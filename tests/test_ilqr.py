@@ -10,7 +10,8 @@ from tensordict import TensorDict
 
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
-from mbrl_delan.planners.ilqr import ILQRPolicy, ILQRSettings, MujocoILQR
+from mbrl_delan.planners.ilqr import ILQRPlanner, ILQRSettings, ILQRStarts, MujocoILQR
+from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import TrackingResidual, tracking_ilqr_policy
 from mbrl_delan.training.loop import run_episode
 from tests.test_tracking import RUN_CLIP
@@ -207,7 +208,7 @@ def test_ilqr_policy_tracks_better_than_zero_torques_on_the_test_clip(track):
         model, system.frame_skip, system.ctrl_low.numpy(), system.ctrl_high.numpy(), cost,
         ILQRSettings(horizon=3, iterations=1), nthread=2,
     )  # fmt: skip
-    policy = ILQRPolicy(ilqr)
+    policy = PlannerPolicy(ILQRPlanner(ilqr), ILQRStarts(ilqr))
     env = make_real_env("cmu_track", seed=0, episode_len=steps, task_options=RUN_CLIP)
     rollout = run_episode(env, policy, seed=0, max_steps=steps)
     assert policy.last_result.cost <= policy.last_result.initial_cost
@@ -224,9 +225,10 @@ def test_ilqr_policy_names_bad_input():
         tracking_ilqr_policy(pendulum.system, pendulum.task)
     model = mujoco.MjModel.from_xml_string(POINT_MASS)
     low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
-    policy = ILQRPolicy(MujocoILQR(model, 1, low, high, Quadratic(np.ones(4))))
+    ilqr = MujocoILQR(model, 1, low, high, Quadratic(np.ones(4)))
+    policy = PlannerPolicy(ILQRPlanner(ilqr), ILQRStarts(ilqr))
     batched = TensorDict({"q": torch.zeros(3, 2), "qd": torch.zeros(3, 2)}, batch_size=[3])
-    with pytest.raises(ValueError, match="ILQRPolicy needs unbatched q"):
+    with pytest.raises(ValueError, match="PlannerPolicy needs unbatched q"):
         policy(batched)
     with pytest.raises(ValueError, match="horizon and iterations must be >= 1"):
         ILQRSettings(horizon=0)

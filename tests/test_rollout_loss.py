@@ -10,6 +10,7 @@ from mbrl_delan import keys
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
 from mbrl_delan.models.ensemble import GaussianEnsemble
+from mbrl_delan.models.structure import Structure
 from mbrl_delan.systems.system import load_system
 from mbrl_delan.training import FitConfig, fit_model
 from mbrl_delan.training.fit import transition_windows
@@ -78,7 +79,7 @@ def pendulum_episode(model: DeLaN, steps: int, seed: int) -> TensorDict:
 def delan(seed: int) -> DeLaN:
     system = load_system("pendulum")
     torch.manual_seed(seed)
-    return DeLaN(system.layout, system.actuation.float(), system.control_dt, hidden=16)
+    return DeLaN(system.layout, system.actuation.float(), system.control_dt, Structure(hidden=16))
 
 
 def test_rollout_loss_is_the_mean_of_the_compounded_errors() -> None:
@@ -151,7 +152,11 @@ def test_delan_ensemble_rollout_loss_is_the_sum_of_its_members() -> None:
     system = load_system("pendulum")
     torch.manual_seed(0)
     ensemble = DeLaNEnsemble(
-        system.layout, system.actuation.float(), system.control_dt, ensemble_size=3, hidden=16
+        system.layout,
+        system.actuation.float(),
+        system.control_dt,
+        ensemble_size=3,
+        structure=Structure(hidden=16),
     )
     assert ensemble.trains_on_windows
     windows = transition_windows(pendulum_episode(delan(0), 8, seed=1), 3)

@@ -9,6 +9,7 @@ from torchrl.envs import InitTracker, TransformedEnv
 from mbrl_delan import keys
 from mbrl_delan.envs import ModelEnv, make_env_parts, make_real_env
 from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.structure import Structure
 from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.objectives.mujoco import mujoco_objective_factory
 from mbrl_delan.planners import MPPIPlanner
@@ -53,7 +54,7 @@ def test_model_env_rollout_with_a_planner_policy() -> None:
     parts = make_env_parts("pendulum", episode_len=10)
     system = parts.system
     torch.manual_seed(0)
-    model = DeLaN(system.layout, system.actuation.float(), system.control_dt, hidden=16)
+    model = DeLaN(system.layout, system.actuation.float(), system.control_dt, Structure(hidden=16))
     env = ModelEnv(model, parts.task, system)
     policy = pendulum_policy(model_objective_factory(model, parts.task))
     with torch.inference_mode():

@@ -107,7 +107,7 @@ def test_ilqr_oracle_option_builds_the_tracking_ilqr() -> None:
     """budget.oracle_planner=ilqr on cmu_track: the oracle is iLQR with the clip's residuals
     (its episodes are tested in test_ilqr.py)."""
     from mbrl_delan.envs.registry import make_env_parts
-    from mbrl_delan.planners.ilqr import ILQRPolicy
+    from mbrl_delan.planners.ilqr import ILQRPlanner
     from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, TrackingResidual
     from mbrl_delan.train import _oracle
 
@@ -118,9 +118,10 @@ def test_ilqr_oracle_option_builds_the_tracking_ilqr() -> None:
     parts = make_env_parts("cmu_track", task_options={"clip": "09_06", "folders": [str(DATA)],
                                                       "download": False})  # fmt: skip
     oracle = _oracle(cfg, parts.system, parts.task)
-    assert isinstance(oracle, ILQRPolicy) and oracle.planner.settings == TRACKING_ILQR
-    assert isinstance(oracle.planner.cost, TrackingResidual)
-    assert oracle.planner.cost.ref_q.shape == tuple(parts.task.ref_q.shape)
+    assert isinstance(oracle.planner, ILQRPlanner)
+    ilqr = oracle.planner.ilqr
+    assert ilqr.settings == TRACKING_ILQR and isinstance(ilqr.cost, TrackingResidual)
+    assert ilqr.cost.ref_q.shape == tuple(parts.task.ref_q.shape)
     oracle.planner.close()
 
 

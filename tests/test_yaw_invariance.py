@@ -1,4 +1,4 @@
-"""`DeLaN(yaw_invariant=True)`: turning a free-floating system about the vertical turns its
+"""`Structure(yaw_invariant=True)`: turning a free-floating system about the vertical turns its
 predicted motion with it, and the equations stay Lagrangian (energy, inverse-forward)."""
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from torch import Tensor
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.features import rotation_matrix
 from mbrl_delan.models.integrators import integrate
+from mbrl_delan.models.structure import Structure
 from mbrl_delan.systems.external import humanoid_v5_xml
 from mbrl_delan.systems.system import load_system
 from tests.test_free_joints import (  # noqa: F401  (float64: an autouse fixture)
@@ -45,7 +46,7 @@ def turn(q: Tensor, qd: Tensor, angle: float) -> tuple[Tensor, Tensor, Tensor]:
 def model_of(system, **kwargs) -> DeLaN:
     torch.manual_seed(0)
     return DeLaN(
-        system.layout, system.actuation, 0.01, hidden=32, yaw_invariant=True, **kwargs
+        system.layout, system.actuation, 0.01, Structure(hidden=32, yaw_invariant=True, **kwargs)
     ).double()
 
 
@@ -67,7 +68,7 @@ def test_turned_state_gives_turned_accelerations(tmp_path, residual) -> None:
     q, qd = random_states(system, 6, seed=5)
     action = torch.randn(6, system.nu, generator=torch.Generator().manual_seed(6))
     qdd = model.acceleration(q, qd, action)
-    plain = DeLaN(system.layout, system.actuation, 0.01, hidden=32).double()
+    plain = DeLaN(system.layout, system.actuation, 0.01, Structure(hidden=32)).double()
     for angle in (0.4, -2.0, math.pi):
         q_t, qd_t, Rz = turn(q, qd, angle)
         expected = torch.cat([qdd[..., :3] @ Rz.T, qdd[..., 3:]], dim=-1)
@@ -163,7 +164,7 @@ def test_mujoco_humanoid_mass_matrix_has_this_form() -> None:
 def test_needs_a_free_root_first() -> None:
     system = load_system("acrobot")
     with pytest.raises(ValueError, match="free root"):
-        DeLaN(system.layout, system.actuation, 0.01, yaw_invariant=True)
+        DeLaN(system.layout, system.actuation, 0.01, Structure(yaw_invariant=True))
 
 
 @pytest.mark.parametrize("name", ["delan", "delan_ensemble"])
@@ -185,7 +186,7 @@ def test_config_builds_yaw_invariant_humanoid_models_that_step_turned(name) -> N
     torch.manual_seed(0)
     model = build_model(cfg.model, system).double()
     members = [model] if name == "delan" else [model.member(i) for i in range(2)]
-    assert all(m.yaw_invariant and m.residual is not None for m in members)
+    assert all(m.structure.yaw_invariant and m.residual is not None for m in members)
     q, qd = random_states(system, 3, seed=10)
     action = 0.3 * torch.randn(3, system.nu, generator=torch.Generator().manual_seed(11))
     with torch.no_grad():

@@ -3,9 +3,9 @@
 The models and tasks are plain maths; this package alone decides how they run:
 
 - `compile_dynamics`: `torch.compile` with static shapes for the rollouts (`compile.py`);
-  `CompiledLoop` for a whole horizon as one compiled loop; `FitGraph` for a fit's loss and
-  its backward pass; `CompiledStep` for code that steps a model itself (TorchRL's planners
-  over `ModelEnv`).
+  `CompiledLoop` for a whole horizon as one compiled loop; `compile_fit` (a `FitGraph`) for
+  a fit's loss and its backward pass; `CompiledStep` for code that steps a model itself
+  (TorchRL's planners over `ModelEnv`).
 - `RolloutThreads`: a batch rolled out in shares on worker threads (`threads.py`).
 - `GraphedCalls`: whole rollouts replayed from CUDA graphs (`cuda_graphs.py`).
 
@@ -14,7 +14,13 @@ from its `compile`, `cuda_graph` and `rollout_threads` settings. The maths in th
 compiled rollout runs fastest is in `mbrl_delan.models.kernels`.
 """
 
-from mbrl_delan.accelerate.compile import CompiledLoop, CompiledStep, FitGraph, compile_dynamics
+from mbrl_delan.accelerate.compile import (
+    CompiledLoop,
+    CompiledStep,
+    FitGraph,
+    compile_dynamics,
+    compile_fit,
+)
 from mbrl_delan.accelerate.cuda_graphs import GraphedCalls
 from mbrl_delan.accelerate.threads import RolloutThreads
 
@@ -25,4 +31,5 @@ __all__ = [
     "GraphedCalls",
     "RolloutThreads",
     "compile_dynamics",
+    "compile_fit",
 ]

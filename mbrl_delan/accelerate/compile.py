@@ -8,7 +8,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from torch import Tensor
+from torch import Tensor, nn
 
 from mbrl_delan.models.base import LossOutput, WorldModel
 from mbrl_delan.systems.system import State
@@ -35,23 +35,30 @@ class FitGraph:
     first batch shape met under autograd. Other shapes (an epoch's last, partial batch) and
     calls without autograd run eagerly, so a fit compiles once."""
 
-    def __init__(self) -> None:
-        self.reset()
-
-    def reset(self) -> None:
-        """Drop the graph (it is specific to a device and dtype)."""
+    def __init__(self, fn: Callable[..., Any]) -> None:
+        self.fn = fn
         self.graph: Callable[..., Any] | None = None
         self.shape: torch.Size | None = None
 
-    def choose(
-        self, fn: Callable[..., Any], shape: torch.Size, enabled: bool
-    ) -> Callable[..., Any]:
-        """`fn`, or its compiled copy for a batch of `shape` when `enabled`."""
-        if not (enabled and torch.is_grad_enabled()):
-            return fn
+    def __call__(self, q: Tensor, *args: Any, **kwargs: Any) -> Any:
+        """`fn(q, ...)`, compiled when `q` has the batch shape of the first call under autograd."""
+        if not torch.is_grad_enabled():
+            return self.fn(q, *args, **kwargs)
         if self.graph is None:
-            self.graph, self.shape = torch.compile(fn, dynamic=False), shape
-        return self.graph if shape == self.shape else fn
+            self.graph, self.shape = torch.compile(self.fn, dynamic=False), q.shape
+        chosen = self.graph if q.shape == self.shape else self.fn
+        return chosen(q, *args, **kwargs)
+
+
+def compile_fit(model: nn.Module) -> None:
+    """Route the fit of `model` through a `FitGraph`: its per-batch training function (the
+    method named by its ``fit_kernel``, first argument the batch's q) is replaced on this
+    instance by the compiled one. Call it where the fit is set up, after the model is on its
+    device and dtype (another device or dtype compiles another graph)."""
+    name = getattr(model, "fit_kernel", None)
+    if name is None:
+        raise ValueError(f"{type(model).__name__} has no fit_kernel to compile")
+    setattr(model, name, FitGraph(getattr(model, name)))
 
 
 class CompiledLoop:

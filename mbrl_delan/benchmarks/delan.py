@@ -54,7 +54,8 @@ from mbrl_delan.benchmarks import (
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
-from mbrl_delan.models.delan import DeLaN, LagrangianNetwork
+from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.field import LagrangianNetwork
 from mbrl_delan.systems.external import humanoid_cmu_xml
 from mbrl_delan.systems.system import HINGE, JointLayout
 

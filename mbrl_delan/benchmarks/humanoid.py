@@ -69,7 +69,7 @@ from mbrl_delan.envs.real import env_parts_of, make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.objectives.mujoco import mujoco_objective_factory
-from mbrl_delan.planners.ilqr import ILQRPolicy, ILQRSettings
+from mbrl_delan.planners.ilqr import ILQRSettings
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import (
     TRACKING_ILQR,
@@ -330,7 +330,7 @@ def ilqr_oracle_episode(
 
 
 def _timed_episode(
-    task_name: str, episode_len: int, seed: int, policy: PlannerPolicy | ILQRPolicy
+    task_name: str, episode_len: int, seed: int, policy: PlannerPolicy
 ) -> OracleEpisode:
     """One episode of `policy` on the real env of `episode_len` control steps, timed."""
     env = make_real_env(task_name, seed=seed, episode_len=episode_len)

@@ -30,6 +30,7 @@ import torch
 from tensordict import TensorDict
 
 from mbrl_delan import keys
+from mbrl_delan.accelerate.compile import compile_fit
 from mbrl_delan.benchmarks import SuiteOptions, host_fields
 from mbrl_delan.benchmarks.identify import (
     IdentifyConfig,
@@ -41,6 +42,7 @@ from mbrl_delan.benchmarks.identify import (
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.data.synthetic import inverse_dynamics_dataset, reference_terms
 from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.structure import Structure
 from mbrl_delan.systems.external import humanoid_cmu_xml, humanoid_v5_xml
 from mbrl_delan.systems.system import System, load_system
 
@@ -71,7 +73,7 @@ class HumanoidIdentifyConfig:
         max_epochs=100, batch_size=256, patience=30, dtype=torch.float32, n_test=16
     )
     systems: tuple[str, ...] = tuple(MODELS)
-    compile: bool = True  # fit through the compiled loss (`DeLaN.compile_fit`)
+    compile: bool = True  # fit through the compiled loss (`mbrl_delan.accelerate.compile_fit`)
 
     @classmethod
     def quick(cls) -> HumanoidIdentifyConfig:
@@ -105,15 +107,18 @@ def make_model(system: System, cfg: HumanoidIdentifyConfig) -> DeLaN:
         system.layout,
         torch.eye(system.nv, dtype=torch.float64),
         control_dt=system.control_dt,
-        hidden=cfg.hidden,
-        layers=cfg.layers,
+        structure=Structure(
+            hidden=cfg.hidden,
+            layers=cfg.layers,
+            coulomb=False,
+            inertia_scaling=True,
+            diagonal_init=True,
+        ),
         loss="inverse",
-        coulomb=False,
-        inertia_scaling=True,
-        diagonal_init=True,
-        compile_fit=cfg.compile,
-    )
-    return model.to(cfg.fit.dtype)
+    ).to(cfg.fit.dtype)
+    if cfg.compile:
+        compile_fit(model)
+    return model
 
 
 def _data(system: System, n: int, seed: int, cfg: HumanoidIdentifyConfig) -> TensorDict:

@@ -46,8 +46,10 @@ from mbrl_delan import keys
 from mbrl_delan.benchmarks import SuiteOptions, host_fields
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.data.synthetic import F64, PassiveMuJoCo, dynamics_dataset, reference_terms
-from mbrl_delan.models.delan import DeLaN, LagrangianDynamics
+from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.integrators import integrate
+from mbrl_delan.models.lagrangian import LagrangianDynamics
+from mbrl_delan.models.structure import Structure
 from mbrl_delan.systems.system import JointLayout, System, load_system
 from mbrl_delan.training.fit import FitConfig, FitReport, fit_model
 
@@ -152,8 +154,8 @@ def make_model(system: System, cfg: IdentifyConfig) -> DeLaN:
         system.layout,
         system.actuation,
         control_dt=system.control_dt,
+        structure=Structure(coulomb=cfg.coulomb),
         loss="inverse",
-        coulomb=cfg.coulomb,
         unactuated_torque_scale=cfg.unactuated_scale(0),
     )
     return model.to(cfg.dtype)

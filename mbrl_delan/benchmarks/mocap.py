@@ -36,6 +36,7 @@ from omegaconf import DictConfig
 from tensordict import TensorDict
 
 from mbrl_delan import keys
+from mbrl_delan.accelerate.compile import compile_fit
 from mbrl_delan.benchmarks import (
     SuiteOptions,
     Timing,
@@ -288,6 +289,8 @@ def _fit_record(
     armature = mj_model.dof_armature.tolist()
     model = make_inverse_model(name, layout, cfg, parents, armature)
     model = model.to(device=opts.device, dtype=cfg.dtype)
+    if cfg.models[name].get("compile_fit", False):
+        compile_fit(model)
     model.fit_normalization(train)
     n = int(train.shape[0])
     fields = {

@@ -45,8 +45,8 @@ from __future__ import annotations
 
 import abc
 import math
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Callable
+from dataclasses import replace
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -54,10 +54,12 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from mbrl_delan import keys
-from mbrl_delan.accelerate.compile import FitGraph
 from mbrl_delan.models.base import LossOutput
-from mbrl_delan.models.delan import DeLaN, LagrangianDynamics, LagrangianNetwork
+from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.features import QFeatures
+from mbrl_delan.models.field import LagrangianNetwork
+from mbrl_delan.models.lagrangian import LagrangianDynamics
+from mbrl_delan.models.structure import Structure
 from mbrl_delan.systems.system import JointLayout
 
 MODEL_NAMES = ("delan", "mlp", "ensemble")
@@ -90,22 +92,16 @@ class InverseDynamicsModel(nn.Module, abc.ABC):
     Args:
         nv: number of generalized velocities (and forces).
         std_floor: floor of the per-DoF torque std, relative to the largest, in (0, 1).
-        compile_fit: under autograd, the predictions of a batch and their backward pass run
-            through `torch.compile`, for the first batch shape met (`_predictions_for`).
     """
 
-    def __init__(self, nv: int, std_floor: float, compile_fit: bool = False) -> None:
+    fit_kernel = "member_predictions"  # what `mbrl_delan.accelerate.compile_fit` compiles
+
+    def __init__(self, nv: int, std_floor: float) -> None:
         super().__init__()
         if not 0.0 < std_floor < 1.0:
             raise ValueError(f"std_floor must be in (0, 1), got {std_floor}")
         self.nv, self.std_floor = nv, std_floor
-        self.compile_fit = compile_fit
-        self._fit_graph = FitGraph()  # `_predictions_for`
         self.register_buffer("tau_scale", torch.ones(nv))
-
-    def _apply(self, fn: Callable[..., Any], recurse: bool = True) -> InverseDynamicsModel:
-        self._fit_graph.reset()
-        return super()._apply(fn, recurse)
 
     @abc.abstractmethod
     def predict_torque(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
@@ -124,8 +120,8 @@ class InverseDynamicsModel(nn.Module, abc.ABC):
     def loss(self, batch: TensorDictBase) -> LossOutput:
         """Normalised torque MSE on a batch with keys q, qd, qdd, tau."""
         tau = batch[keys.TAU]  # (B, nv)
-        predict = self._predictions_for(tau.shape)
-        members = predict(batch[keys.Q], batch[keys.QD], batch[keys.QDD])  # (M, B, nv)
+        q, qd, qdd = batch[keys.Q], batch[keys.QD], batch[keys.QDD]
+        members = self.member_predictions(q, qd, qdd)  # (M, B, nv)
         loss = ((members - tau) / self.tau_scale).pow(2).mean()
         with torch.no_grad():
             error = members.mean(0) - tau  # (B, nv)
@@ -135,11 +131,6 @@ class InverseDynamicsModel(nn.Module, abc.ABC):
                 "mse_si": float(error.pow(2).mean()),
             }
         return LossOutput(loss=loss, metrics=metrics)
-
-    def _predictions_for(self, shape: torch.Size) -> Callable[[Tensor, Tensor, Tensor], Tensor]:
-        """`member_predictions`, compiled for the fit's batch shape with `compile_fit`
-        (`FitGraph`)."""
-        return self._fit_graph.choose(self.member_predictions, shape, self.compile_fit)
 
 
 # ---------------------------------------------------------------- feed-forward baselines
@@ -256,67 +247,38 @@ class MLPEnsembleInverse(_FeedForwardInverse):
 # ---------------------------------------------------------------- DeLaN
 
 
+# the inverse fit's defaults: a wider network, no Coulomb friction
+INVERSE_STRUCTURE = Structure(hidden=128, coulomb=False)
+
+
 class DeLaNInverse(InverseDynamicsModel):
     """DeLaN's inverse dynamics tau = M qdd + c + g + d, in data units (module docstring).
 
     The mechanics is a `DeLaN` with actuation B = I (its action is tau), ``loss="inverse"``,
-    ``inertia_scaling`` and ``diagonal_init``; the loss is `InverseDynamicsModel`'s.
+    and its `structure` with ``inertia_scaling`` and ``diagonal_init`` on; the loss is
+    `InverseDynamicsModel`'s.
 
     Args:
         layout: joint layout (a free root gets the Euler-Poincare term).
-        hidden: width of the `LagrangianNetwork`'s hidden layers.
-        layers: hidden layers of its trunk.
-        activation: its activation.
-        diag_shift: > 0, bounds diag(L) from below, in each DoF's inertia unit.
-        dissipation: learn viscous friction.
-        coulomb: also learn Coulomb friction.
+        structure: what the mechanics are made of (`Structure`); `INVERSE_STRUCTURE` when None.
         std_floor: see `InverseDynamicsModel`.
         control_dt: DeLaN's step (s); only used for finite-difference accelerations when the
             data lack ``qdd`` (humanoid_CMU's timestep by default).
-        translation_invariant: the root's height enters only gravity's potential w z (see
-            `DeLaN`); the feed-forward models' counterpart is ``root_height=False``.
-        still_first_order: joints held still in the data (fingers, clavicles) to first order:
-            M does not depend on them, V is linear in them (see `DeLaN`).
-        dof_parents: MuJoCo's ``dof_parentid``: M gets the kinematic tree's sparsity.
-        armature: MuJoCo's ``dof_armature``: M = L L^T + diag(armature) (see `DeLaN`).
-        compile_fit: see `InverseDynamicsModel`.
     """
 
     def __init__(
         self,
         layout: JointLayout,
-        hidden: int = 128,
-        layers: int = 2,
-        activation: str = "softplus",
-        diag_shift: float = 1e-3,
-        dissipation: bool = True,
-        coulomb: bool = False,
+        structure: Structure | None = None,
         std_floor: float = 1e-3,
         control_dt: float = 0.002,
-        translation_invariant: bool = False,
-        still_first_order: bool = False,
-        dof_parents: Sequence[int] | None = None,
-        armature: Sequence[float] | None = None,
-        compile_fit: bool = False,
     ) -> None:
-        super().__init__(layout.nv, std_floor, compile_fit)
+        super().__init__(layout.nv, std_floor)
+        structure = replace(
+            structure or INVERSE_STRUCTURE, inertia_scaling=True, diagonal_init=True
+        )
         self.delan = DeLaN(
-            layout,
-            torch.eye(layout.nv),
-            control_dt=control_dt,
-            hidden=hidden,
-            layers=layers,
-            activation=activation,
-            diag_shift=diag_shift,
-            loss="inverse",
-            dissipation=dissipation,
-            coulomb=coulomb,
-            inertia_scaling=True,
-            diagonal_init=True,
-            translation_invariant=translation_invariant,
-            still_first_order=still_first_order,
-            dof_parents=dof_parents,
-            armature=armature,
+            layout, torch.eye(layout.nv), control_dt=control_dt, structure=structure, loss="inverse"
         )
 
     @property

@@ -14,6 +14,7 @@ import abc
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 import torch
 from torch import Tensor
@@ -96,6 +97,29 @@ def clean_returns(returns: Tensor, num_samples: int) -> Tensor:
         returns = returns.double()
     big = torch.finfo(returns.dtype).max
     return torch.nan_to_num(returns, nan=-math.inf, posinf=big, neginf=-math.inf)
+
+
+class Planner(Protocol):
+    """What `PlannerPolicy` runs: a planner over plans (H, nu), warm-started by shifting.
+
+    `plan(problem, init, generator, **warm)` returns a result whose `mean` (H, nu) is the plan
+    to execute and whose `best_return` is logged. `problem` is what the policy's factory made
+    for the current state: an objective over (N, H, nu) for the sampling planners
+    (`SamplingPlanner`), a start state for iLQR (`ILQRPlanner`)."""
+
+    horizon: int
+
+    def initial_mean(self, device: torch.device | str | None = None) -> Tensor: ...
+
+    def shift(self, mean: Tensor, steps: int) -> Tensor: ...
+
+    def carry(self, result: Any) -> dict[str, Tensor]: ...
+
+    def warm_start(self, carried: dict[str, Tensor], steps: int) -> dict[str, Any]: ...
+
+    def plan(
+        self, problem: Any, init_mean: Tensor, generator: torch.Generator, **warm: Any
+    ) -> Any: ...
 
 
 class SamplingPlanner(abc.ABC):

@@ -18,7 +18,8 @@ u_0 and c the control weight. Each iteration (Gauss-Newton iLQR):
    `line_search` until the cost falls; mu shrinks after an accepted step and grows when none is
    (the next iteration then reuses the derivatives: the trajectory has not moved).
 
-The plan is warm-started from the previous one shifted by a step, as the sampling planners are.
+`ILQRPlanner` runs it under `PlannerPolicy`, warm-started from the previous plan shifted by the
+steps executed since, as the sampling planners are.
 Everything runs in float64 numpy on the CPU (MuJoCo's side of the oracle).
 """
 
@@ -32,12 +33,9 @@ import mujoco
 import numpy as np
 import torch
 from scipy.linalg import cho_factor, cho_solve
-from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
+from torch import Tensor
 
-from mbrl_delan import keys
 from mbrl_delan.objectives.mujoco import FULLPHYSICS, HeldControlRollout
-from mbrl_delan.planners.policy import episode_starts, read_state
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +86,15 @@ class ILQRResult:
     cost: float  # its cost J(U)
     initial_cost: float  # J of the warm start
     accepted: int  # iterations whose line search lowered the cost
+
+    @property
+    def mean(self) -> Tensor:
+        """The plan as `PlannerPolicy` executes it. (H, nu) float64"""
+        return torch.from_numpy(self.actions)
+
+    @property
+    def best_return(self) -> float:
+        return -self.cost
 
 
 class MujocoILQR:
@@ -245,54 +252,64 @@ class MujocoILQR:
         return ILQRResult(actions=actions, cost=cost, initial_cost=initial, accepted=accepted)
 
 
-class ILQRPolicy(TensorDictModuleBase):
-    """Receding-horizon iLQR as a TorchRL policy: q, qd in, action out, one plan per step.
+@dataclass
+class ILQRStart:
+    """Where an iLQR plan starts: MuJoCo's FULLPHYSICS state (nstate,) at episode `step`."""
 
-    The plan is warm-started from the previous one shifted by one step (the last action
-    repeated); zeros at the start of an episode. Call `reset()` at an episode's start (also
-    done when the input carries `is_init` or `step_count` 0).
-    """
+    state: np.ndarray
+    step: int
 
-    def __init__(self, planner: MujocoILQR, action_dtype: torch.dtype = torch.float32) -> None:
-        super().__init__()
-        self.in_keys, self.out_keys = [keys.Q, keys.QD], [keys.ACTION]
-        self.planner, self.action_dtype = planner, action_dtype
-        self.last_result: ILQRResult | None = None
-        self._plan: np.ndarray | None = None  # (H, nu)
-        self._episode_step = 0
 
-    def reset(self) -> None:
-        self._plan, self._episode_step, self.last_result = None, 0, None
+class ILQRStarts:
+    """What `PlannerPolicy` asks of its objective factory, for `ILQRPlanner`: the state and
+    episode step a plan starts from (the cost is the planner's `ResidualCost`)."""
 
-    def act(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
-        """The action (nu,) for state (q (nq,), qd (nv,))."""
-        p = self.planner
-        if self._plan is None:
-            warm = np.zeros((p.settings.horizon, p.nu))
-        else:
-            warm = np.concatenate([self._plan[1:], self._plan[-1:]])
-        result = p.plan(p.full_state(q, qd), warm, self._episode_step)
-        log.debug(
-            "iLQR step %d: cost %.4g -> %.4g (%d of %d iterations accepted)", self._episode_step,
-            result.initial_cost, result.cost, result.accepted, p.settings.iterations,
-        )  # fmt: skip
-        self.last_result, self._plan = result, result.actions
-        self._episode_step += 1
-        return self._plan[0]
+    time_indexed = True  # the tracking residuals follow the reference in time
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        q, qd = read_state(tensordict, "ILQRPolicy")
-        if episode_starts(tensordict):
-            self.reset()
+    def __init__(self, ilqr: MujocoILQR) -> None:
+        self.ilqr = ilqr
+
+    def __call__(self, q: Tensor, qd: Tensor, step: int = 0) -> ILQRStart:
         as_np = lambda x: x.detach().to("cpu", torch.float64).numpy()  # noqa: E731
-        action = torch.from_numpy(self.act(as_np(q), as_np(qd)).copy())
-        device = tensordict.device if tensordict.device is not None else q.device
-        tensordict.set(keys.ACTION, action.to(device=device, dtype=self.action_dtype))
-        return tensordict
+        return ILQRStart(self.ilqr.full_state(as_np(q), as_np(qd)), step)
 
-    def get_extra_state(self) -> dict[str, Any]:
-        return {"plan": None if self._plan is None else self._plan.copy(),
-                "episode_step": self._episode_step}  # fmt: skip
+    def close(self) -> None:
+        self.ilqr.close()
 
-    def set_extra_state(self, state: dict[str, Any]) -> None:
-        self._plan, self._episode_step = state["plan"], int(state["episode_step"])
+
+class ILQRPlanner:
+    """`MujocoILQR` as a planner of `PlannerPolicy`: plans (H, nu) in float64 on the CPU,
+    the first one from zeros, each next from the previous one shifted by the steps executed
+    since (its last action repeated). Nothing else is carried between plans."""
+
+    def __init__(self, ilqr: MujocoILQR) -> None:
+        self.ilqr = ilqr
+        self.horizon = ilqr.settings.horizon
+
+    def initial_mean(self, device: torch.device | str | None = None) -> Tensor:
+        """Zeros (H, nu)."""
+        return torch.zeros(self.horizon, self.ilqr.nu, dtype=torch.float64, device=device)
+
+    def shift(self, plan: Tensor, steps: int) -> Tensor:
+        """plan[steps:] followed by its last action `steps` times. (H, nu)"""
+        return torch.cat([plan[steps:], plan[-1:].expand(steps, -1)])
+
+    def warm_start(self, carried: dict[str, Tensor], steps: int) -> dict[str, Any]:
+        return {}
+
+    def carry(self, result: ILQRResult) -> dict[str, Tensor]:
+        return {}
+
+    def plan(
+        self, start: ILQRStart, init: Tensor, generator: torch.Generator | None = None
+    ) -> ILQRResult:
+        """Improve `init` (H, nu) from `start` (`ILQRStarts`); `generator` is unused."""
+        result = self.ilqr.plan(start.state, init.cpu().numpy(), start.step)
+        log.debug(
+            "iLQR step %d: cost %.4g -> %.4g (%d of %d iterations accepted)", start.step,
+            result.initial_cost, result.cost, result.accepted, self.ilqr.settings.iterations,
+        )  # fmt: skip
+        return result
+
+    def close(self) -> None:
+        self.ilqr.close()

@@ -1,10 +1,10 @@
-"""A sampling planner as a TorchRL policy: TensorDict with q, qd in, action out."""
+"""A planner as a receding-horizon TorchRL policy: TensorDict with q, qd in, action out."""
 
 from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import torch
@@ -14,7 +14,7 @@ from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.objectives.base import ObjectiveFactory
-from mbrl_delan.planners.base import PlanResult, SamplingPlanner
+from mbrl_delan.planners.base import Planner
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,8 @@ def intra_op_threads(threads: int | None) -> Iterator[None]:
 
 
 class PlannerPolicy(TensorDictModuleBase):
-    """Receding-horizon control with a sampling planner.
+    """Receding-horizon control with a planner: a sampling planner (CEM, iCEM, MPPI) over a
+    model or MuJoCo objective, or iLQR on MuJoCo (`ILQRPlanner` with `ILQRStarts`).
 
     Every `replan_every` control steps it builds an objective for the current state with
     `objective_factory(q, qd)` (`objective_factory(q, qd, step=t)`, t the episode step, when
@@ -71,8 +72,9 @@ class PlannerPolicy(TensorDictModuleBase):
     on that many intra-op threads (`intra_op_threads`).
 
     Args:
-        planner: the optimiser (CEM, MPPI, ...).
-        objective_factory: (q0 (nq,), qd0 (nv,)) -> objective over (N, H, nu) actions.
+        planner: the optimiser (`Planner`: CEM, MPPI, ..., iLQR).
+        objective_factory: (q0 (nq,), qd0 (nv,)) -> what the planner plans on: an objective
+            over (N, H, nu) actions for a sampling planner.
         replan_every: control steps between plans (1 = MPC), 1 <= replan_every <= horizon.
         seed: seed of the policy's own generator.
         device: where plans are sampled (the objective receives actions there).
@@ -81,8 +83,8 @@ class PlannerPolicy(TensorDictModuleBase):
 
     def __init__(
         self,
-        planner: SamplingPlanner,
-        objective_factory: ObjectiveFactory,
+        planner: Planner,
+        objective_factory: ObjectiveFactory | Callable[..., Any],
         replan_every: int = 1,
         seed: int = 0,
         device: torch.device | str = "cpu",
@@ -106,7 +108,7 @@ class PlannerPolicy(TensorDictModuleBase):
         self._steps_since_plan = 0
         self._episode_step = 0  # control steps since `reset`
         self._carried: dict[str, Tensor] = {}  # planner state for the next warm start
-        self.last_result: PlanResult | None = None
+        self.last_result: Any = None  # what the last `plan` call returned
 
     def reset(self) -> None:
         """Forget the plan (start of an episode); the generator keeps its stream."""

@@ -26,8 +26,10 @@ from dataclasses import dataclass
 
 import mujoco
 import numpy as np
+import torch
 
-from mbrl_delan.planners.ilqr import ILQRPolicy, ILQRSettings, MujocoILQR
+from mbrl_delan.planners.ilqr import ILQRPlanner, ILQRSettings, ILQRStarts, MujocoILQR
+from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.tracking import MotionTracking
 
@@ -167,7 +169,7 @@ def tracking_ilqr_policy(
     nthread: int = 1,
     settings: ILQRSettings = TRACKING_ILQR,
     weights: TrackingCostWeights = TrackingCostWeights(),
-) -> ILQRPolicy:
+) -> PlannerPolicy:
     """Receding-horizon iLQR on `system`'s MuJoCo model with `task`'s tracking residuals.
     Close it with `policy.planner.close()` (or leave it to the garbage collector)."""
     if not isinstance(task, MotionTracking):
@@ -178,5 +180,5 @@ def tracking_ilqr_policy(
         point_velocity_weight=weights.point_velocity,
     )  # fmt: skip
     low, high = system.ctrl_low.numpy(), system.ctrl_high.numpy()
-    planner = MujocoILQR(model, system.frame_skip, low, high, cost, settings, nthread=nthread)
-    return ILQRPolicy(planner)
+    ilqr = MujocoILQR(model, system.frame_skip, low, high, cost, settings, nthread=nthread)
+    return PlannerPolicy(ILQRPlanner(ilqr), ILQRStarts(ilqr), action_dtype=torch.float32)

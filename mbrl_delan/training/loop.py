@@ -15,7 +15,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -56,22 +56,23 @@ class UniformPolicy(TensorDictModuleBase):
         action = self.low + (self.high - self.low) * u
         return tensordict.set(keys.ACTION, action.to(tensordict.get(keys.Q).dtype))
 
+    def reset(self) -> None:
+        """Nothing to forget between episodes (the generator keeps its stream)."""
 
-@runtime_checkable
-class RecedingHorizonPolicy(Protocol):
-    """A policy that keeps a plan between control steps (`PlannerPolicy` over a sampling
-    planner, `ILQRPolicy`): `reset()` forgets it at an episode's start."""
+
+class EpisodePolicy(Protocol):
+    """A TorchRL policy the loop runs episodes with (`PlannerPolicy`, `UniformPolicy`):
+    `reset()` forgets what it kept from the last episode (a plan)."""
+
+    def __call__(self, tensordict: TensorDictBase) -> TensorDictBase: ...
 
     def reset(self) -> None: ...
 
 
-def run_episode(
-    env: EnvBase, policy: TensorDictModuleBase, seed: int, max_steps: int
-) -> TensorDict:
+def run_episode(env: EnvBase, policy: EpisodePolicy, seed: int, max_steps: int) -> TensorDict:
     """One episode from a reset seeded with `seed`. -> rollout TensorDict (T,)."""
     env.set_seed(seed)
-    if isinstance(policy, RecedingHorizonPolicy):
-        policy.reset()
+    policy.reset()
     with torch.inference_mode():
         return env.rollout(max_steps, policy=policy, break_when_any_done=True)
 
@@ -210,7 +211,7 @@ class MBRLLoop:
         episode_len: int,
         model: WorldModel,
         optimizer: torch.optim.Optimizer,
-        policy: TensorDictModuleBase,
+        policy: EpisodePolicy,
         buffer: TensorDictReplayBuffer,
         fit_config: FitConfig,
         seed: int,
@@ -232,7 +233,7 @@ class MBRLLoop:
         self.warmup_done = False  # once `run` has collected the random episodes and fitted
 
     def run(
-        self, schedule: Schedule, oracle: TensorDictModuleBase, hooks: LoopHooks | None = None
+        self, schedule: Schedule, oracle: EpisodePolicy, hooks: LoopHooks | None = None
     ) -> None:
         """The run of `schedule` from wherever this loop stands (a resumed loop skips what its
         state says is done): the oracle's returns, the warm-up, then the rounds left."""
@@ -273,7 +274,7 @@ class MBRLLoop:
         finally:
             self.counters.wall_time_s += time.perf_counter() - start
 
-    def _collect(self, policy: TensorDictModuleBase) -> TensorDict:
+    def _collect(self, policy: EpisodePolicy) -> TensorDict:
         rollout = run_episode(
             self.env, policy, self.seed * 10_000 + self.counters.episodes, self.episode_len
         )
@@ -295,7 +296,7 @@ class MBRLLoop:
         )
 
     def evaluate(
-        self, policy: TensorDictModuleBase, episodes: int, keep_rollouts: int = 0
+        self, policy: EpisodePolicy, episodes: int, keep_rollouts: int = 0
     ) -> Evaluation:
         """Returns of `episodes` seeded episodes; the first `keep_rollouts` rollouts are kept."""
         seeds = [EVAL_SEED_OFFSET + self.seed * 100 + i for i in range(episodes)]

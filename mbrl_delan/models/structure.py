@@ -1,0 +1,155 @@
+"""What a DeLaN is made of, fixed when it is built: one frozen record, `Structure`.
+
+`Structure.build(layout, actuation)` turns it into the mechanics (`LagrangianDynamics` over a
+`LagrangianNetwork`) and the optional residual force. Two DeLaNs can share M, V and the
+friction (`DeLaN.load_mechanics`) when their `Structure`s agree on `Structure.MECHANICS`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, fields
+from typing import ClassVar
+
+import torch
+from torch import Tensor
+
+from mbrl_delan.models.features import QFeatures
+from mbrl_delan.models.field import LagrangianNetwork, ResidualForce
+from mbrl_delan.models.lagrangian import Dissipation, LagrangianDynamics
+from mbrl_delan.systems.system import BALL, FREE, JointLayout
+
+
+@dataclass(frozen=True)
+class Structure:
+    """The networks' shape and every structural option of a DeLaN.
+
+    hidden, layers, activation: the trunk of `LagrangianNetwork` (and of the residual).
+    diag_shift: added to L's softplus diagonal (> 0), so M stays positive definite.
+    dissipation, coulomb: viscous friction, and Coulomb friction beside it (`Dissipation`).
+    translation_invariant: M and V's network do not see a free root's height; V gains an
+        exact gravity term w z in it (`LagrangianNetwork`, ``heights``).
+    yaw_invariant: a free root's heading and horizontal position enter nothing; M turns with
+        the body about the vertical (`root_frame_jet`). Needs a free root first.
+    still_first_order: coordinates held still in the data enter to first order about their
+        held value (`LagrangianNetwork`, ``still_potential``).
+    dof_parents: each DoF's parent DoF (MuJoCo's ``dof_parentid``): L gets the kinematic
+        tree's sparsity. None: a dense L.
+    armature: a known constant inertia per DoF in SI units (MuJoCo's ``dof_armature``),
+        M = L L^T + diag(armature). None: none.
+    inertia_scaling: M, V and the friction get units from the data (`DeLaN.fit_normalization`).
+    diagonal_init: L's off-diagonal and V heads start at zero, the friction at 0.69 of its unit.
+    residual: a learned unstructured generalized force r(q, qd, a) beside B a (`ResidualForce`).
+    """
+
+    hidden: int = 64
+    layers: int = 2
+    activation: str = "softplus"
+    diag_shift: float = 1e-3
+    dissipation: bool = True
+    coulomb: bool = True
+    translation_invariant: bool = False
+    yaw_invariant: bool = False
+    still_first_order: bool = False
+    dof_parents: tuple[int, ...] | None = None
+    armature: tuple[float, ...] | None = None
+    inertia_scaling: bool = False
+    diagonal_init: bool = False
+    residual: bool = False
+
+    # what M, V and the friction are made of: `load_mechanics` needs these equal
+    MECHANICS: ClassVar[tuple[str, ...]] = (
+        "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb",
+        "translation_invariant", "yaw_invariant", "still_first_order", "dof_parents", "armature",
+    )  # fmt: skip
+
+    def __post_init__(self) -> None:
+        if self.dof_parents is not None:
+            object.__setattr__(self, "dof_parents", tuple(int(p) for p in self.dof_parents))
+        if self.armature is not None:
+            values = torch.as_tensor(self.armature, dtype=torch.float64).reshape(-1).tolist()
+            object.__setattr__(self, "armature", tuple(values))
+
+    def differences(self, other: Structure, names: Sequence[str] = MECHANICS) -> list[str]:
+        """The fields among `names` on which `other` differs from this one."""
+        return [name for name in names if getattr(self, name) != getattr(other, name)]
+
+    def as_dict(self) -> dict[str, object]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def build(
+        self, layout: JointLayout, actuation: Tensor
+    ) -> tuple[LagrangianDynamics, ResidualForce | None]:
+        """The mechanics and the residual force (None without) of a system with `layout`
+        and actuation B (nv, nu)."""
+        if self.yaw_invariant and not (layout.types and layout.types[0] == FREE):
+            raise ValueError("yaw_invariant needs a model whose first joint is a free root")
+        n = layout.nv
+        features = QFeatures(layout, yaw_invariant=self.yaw_invariant)
+        heights = free_root_heights(layout) if self.translation_invariant else []
+        own_features = bool(heights) or self.still_first_order
+        network = LagrangianNetwork(
+            QFeatures(
+                layout,
+                root_height=not heights,
+                freeze_still=self.still_first_order,
+                yaw_invariant=self.yaw_invariant,
+            )
+            if own_features
+            else features,
+            n,
+            self.hidden,
+            self.layers,
+            self.activation,
+            self.diag_shift,
+            heights=heights,
+            still_potential=self.still_first_order,
+            dof_parents=self.dof_parents,
+            root_frame=self.yaw_invariant,
+        )
+        raw_init = 0.0 if self.diagonal_init else -4.0
+        dissipation = (
+            Dissipation(n, coulomb=self.coulomb, raw_init=raw_init) if self.dissipation else None
+        )
+        dynamics = LagrangianDynamics(
+            field=network,
+            dissipation=dissipation,
+            actuation=actuation.to(torch.get_default_dtype()),
+            rotational_dofs=rotational_dofs(layout),
+            armature=_armature(self.armature, n),
+        )
+        if self.diagonal_init:
+            network.start_diagonal()
+        if not self.residual:
+            return dynamics, None
+        nu = actuation.shape[-1]
+        return dynamics, ResidualForce(features, n, nu, self.hidden, self.layers)
+
+
+def free_root_heights(layout: JointLayout) -> list[tuple[int, int]]:
+    """(q index, v index) of each free joint's height z (its world-frame z velocity)."""
+    return [
+        (qa + 2, va + 2)
+        for jtype, qa, va in zip(layout.types, layout.qpos_adr, layout.dof_adr, strict=True)
+        if jtype == FREE
+    ]
+
+
+def rotational_dofs(layout: JointLayout) -> Tensor:
+    """(K, 3) velocity indices of the angular velocity of each ball and free joint."""
+    rows = [
+        [adr + (3 if jtype == FREE else 0) + k for k in range(3)]
+        for jtype, adr in zip(layout.types, layout.dof_adr, strict=True)
+        if jtype in (BALL, FREE)
+    ]
+    return torch.tensor(rows, dtype=torch.long) if rows else torch.zeros(0, 3, dtype=torch.long)
+
+
+def _armature(armature: Sequence[float] | Tensor | None, n: int) -> Tensor | None:
+    """A known inertia per DoF as a tensor (n,), >= 0; None stays None."""
+    if armature is None:
+        return None
+    value = torch.as_tensor(armature, dtype=torch.get_default_dtype()).reshape(-1)
+    if value.shape != (n,) or not bool(torch.isfinite(value).all()) or bool((value < 0).any()):
+        raise ValueError(f"armature must be {n} finite values >= 0, got {armature!r}")
+    return value
