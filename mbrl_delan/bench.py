@@ -108,6 +108,15 @@ def _oracle_planner(value: Any, tasks: Any) -> str | None:
     return str(value)
 
 
+def _overrides(name: str, values: Any) -> tuple[str, ...]:
+    """Planner overrides ("planner.KEY=VALUE"), checked when the suite composes them."""
+    items = [] if values is None else list(values)
+    bad = [v for v in items if not (isinstance(v, str) and v.startswith("planner.") and "=" in v)]
+    if bad:
+        raise ConfigError(f"{name}={values!r} is not valid; give a list like ['planner.knots=3']")
+    return tuple(items)
+
+
 def _positive(name: str, value: Any) -> float:
     if not isinstance(value, int | float) or isinstance(value, bool) or value <= 0:
         raise ConfigError(f"{name}={value!r} is not valid; it must be a number > 0")
@@ -170,6 +179,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         ),
         oracle_steps=_optional_positive_int("oracle_steps", values["oracle_steps"]),
         oracle_planner=_oracle_planner(values["oracle_planner"], values["oracle_tasks"]),
+        oracle_overrides=_overrides("oracle_overrides", values["oracle_overrides"]),
         seed=_optional_int("seed", values["seed"], 0),
     )
 

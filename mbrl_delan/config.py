@@ -32,6 +32,7 @@ from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.mppi import MPPIPlanner
+from mbrl_delan.planners.predictive import PredictiveSampling
 from mbrl_delan.registry import ENVS, MODELS, PLANNERS, PluginError, load_plugins
 from mbrl_delan.schema import (
     MODEL_SCHEMAS,
@@ -195,6 +196,8 @@ MIGRATIONS: dict[str, Any] = {
     "planner.smoothing": 0.0,  # MPPI without it: white noise
     "planner.min_samples": None,
     "planner.return_best": False,
+    "planner.knots": None,
+    "planner.interpolation": "linear",
     "model.init_from": None,
     "model.cuda_graph": False,
     "model.rollout_threads": None,
@@ -465,6 +468,8 @@ def _planner_arguments(cfg: DictConfig, system: System, dtype: torch.dtype) -> d
         num_samples=cfg.num_samples,
         iterations=cfg.iterations,
         dtype=dtype,
+        knots=cfg.knots,
+        interpolation=cfg.interpolation,
     )
 
 
@@ -493,6 +498,11 @@ def _icem(cfg: DictConfig, system: System, dtype: torch.dtype) -> ICEMPlanner:
         return_best=cfg.return_best,
         **_planner_arguments(cfg, system, dtype),
     )
+
+
+@PLANNERS.register("predictive", schema=PLANNER_SCHEMAS["predictive"])
+def _predictive(cfg: DictConfig, system: System, dtype: torch.dtype) -> PredictiveSampling:
+    return PredictiveSampling(noise_std=cfg.noise_std, **_planner_arguments(cfg, system, dtype))
 
 
 @PLANNERS.register("mppi", schema=PLANNER_SCHEMAS["mppi"])

@@ -21,6 +21,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
+from mbrl_delan.planners.spline import INTERPOLATIONS
 from mbrl_delan.training.fit import FitConfig
 
 
@@ -183,6 +184,8 @@ class PlannerConfig:
     replan_every: int = rule(1, low=1)
     discount: float = rule(1.0, low=0, above=True, high=1)
     risk: float = rule(0.0)  # ensembles: mean - risk * std of the particles' returns
+    knots: int | None = rule(None, low=1)  # spline knots over the horizon (None: every step)
+    interpolation: str = rule("linear", choices=INTERPOLATIONS)
 
 
 @dataclass
@@ -213,6 +216,13 @@ class MPPIConfig(PlannerConfig):
     temperature: float = rule(low=0, above=True)
     noise_std: float = rule(low=0, above=True)
     smoothing: float = rule(low=0, high=1, below=True)
+
+
+@dataclass
+class PredictiveConfig(PlannerConfig):
+    """``planner=predictive``: predictive sampling."""
+
+    noise_std: float = rule(low=0, above=True)
 
 
 @dataclass
@@ -277,7 +287,12 @@ MODEL_SCHEMAS = {
     "delan_ensemble": DeLaNEnsembleConfig,
     "ensemble": EnsembleConfig,
 }
-PLANNER_SCHEMAS = {"cem": CEMConfig, "icem": ICEMConfig, "mppi": MPPIConfig}
+PLANNER_SCHEMAS = {
+    "cem": CEMConfig,
+    "icem": ICEMConfig,
+    "mppi": MPPIConfig,
+    "predictive": PredictiveConfig,
+}
 
 
 def store_schemas(store: ConfigStore) -> None:

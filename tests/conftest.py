@@ -11,6 +11,11 @@ import torch
 from hydra.core.global_hydra import GlobalHydra
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The tests marked heavy first: a worker starts on them while the other runs the rest."""
+    items.sort(key=lambda item: item.get_closest_marker("heavy") is None)
+
+
 @pytest.fixture(autouse=True, scope="session")
 def one_torch_thread():
     """Tiny tensors: one intra-op thread is faster, and immune to a busy machine's other cores."""

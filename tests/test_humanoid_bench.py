@@ -200,6 +200,13 @@ def test_oracle_options() -> None:
         options("oracle_planner=ilqr")  # all three tasks; standing has no residuals
     with pytest.raises(ConfigError, match="oracle_planner"):
         options("oracle_planner=lqr")
+    overrides = "oracle_overrides=['planner.knots=4','planner.horizon=23']"
+    spline = suite_config(options("oracle_planner=predictive", overrides))
+    planner = oracle_planner_config("humanoid_stand", spline)
+    assert planner.name == "predictive" and (planner.knots, planner.horizon) == (4, 23)
+    assert planner.interpolation == "cubic" and planner.num_samples == 10
+    with pytest.raises(ConfigError, match="oracle_overrides"):
+        options("oracle_overrides=['knots=4']")
     assert default.seed == 0 and suite_config(options("seed=3")).seed == 3
     with pytest.raises(ConfigError, match="seed"):
         options("seed=-1")

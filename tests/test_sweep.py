@@ -43,6 +43,7 @@ def report_rows(sweep_dir: Path) -> list[dict[str, str]]:
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_submitit_local_sweep_runs_each_job_in_its_own_folder(tmp_path: Path) -> None:
     sweep_dir = tmp_path / "multirun" / "sweep"
     out = sweep(sweep_dir, "seed=0,1", "hydra/launcher=submitit_local")
@@ -60,6 +61,7 @@ def test_submitit_local_sweep_runs_each_job_in_its_own_folder(tmp_path: Path) ->
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_joblib_sweep_goes_on_past_a_failed_job(tmp_path: Path) -> None:
     sweep_dir = tmp_path / "sweep"
     out = sweep(

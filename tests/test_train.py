@@ -86,6 +86,7 @@ def test_tiny_humanoid_stand_run_with_the_residual_delan(tmp_path: Path) -> None
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_tiny_cmu_track_run_follows_the_clip_in_time(tmp_path: Path) -> None:
     """A time-indexed task through the whole loop: the CMU humanoid (56 actuators, contacts)
     following the test clip, every reward scored against the reference frame of its step; the
@@ -125,6 +126,7 @@ def test_ilqr_oracle_option_builds_the_tracking_ilqr() -> None:
     oracle.planner.close()
 
 
+@pytest.mark.heavy
 @pytest.mark.parametrize("memmap", [False, True])
 def test_sigkill_then_resume_continues_identically(
     finished_run: Path, tmp_path: Path, memmap: bool

@@ -54,7 +54,7 @@ GRAPH_SUFFIX = "_graph"
 HUMANOID_MODELS = ("delan", "delan_ensemble", "ensemble")
 # tasks on which suite humanoid runs the oracle planner for one episode
 HUMANOID_ORACLE_TASKS = ("humanoid_stand", "humanoid_walk", "cmu_track")
-ORACLE_PLANNERS = ("mppi", "ilqr")  # suite humanoid's oracle planners
+ORACLE_PLANNERS = ("mppi", "cem", "icem", "predictive", "ilqr")  # suite humanoid's oracles
 ILQR_TASKS = ("cmu_track",)  # tasks with residuals for the iLQR oracle
 
 
@@ -142,7 +142,8 @@ class SuiteOptions:
     rollout_steps: int | None = None  # K of the K-step rollout loss of models that take it
     oracle_tasks: tuple[str, ...] | None = None  # tasks of the oracle's episodes (() for none)
     oracle_steps: int | None = None  # control steps of each oracle episode at most
-    oracle_planner: str | None = None  # "mppi" or "ilqr" (tracking tasks only)
+    oracle_planner: str | None = None  # a sampling planner's name or "ilqr" (tracking tasks)
+    oracle_overrides: tuple[str, ...] = ()  # planner overrides of the sampling oracle
     seed: int | None = None  # data, fits and oracle starts (test episodes: seed + 1000)
 
 

@@ -110,12 +110,12 @@ class HumanoidBenchConfig:
     seed: int = 0
     oracle_tasks: tuple[str, ...] = HUMANOID_ORACLE_TASKS
     oracle_steps: int | None = None  # control steps per oracle episode (None: the task's own)
-    # the loop's MPPI on each oracle task's env (configs/, `oracle_planner_config`), with these
-    # overrides
+    # the loop's planner `oracle_method` on each oracle task's env (configs/,
+    # `oracle_planner_config`), with these overrides
     oracle_overrides: tuple[str, ...] = ()
-    # oracle_method "ilqr": iLQR on MuJoCo's derivatives (tracking tasks: their residuals, the
-    # task's w k plus body points' positions and velocities in the world frame;
-    # planners/tracking_residual.py)
+    # oracle_method: a sampling planner's name (mppi, cem, icem, predictive) or "ilqr": iLQR
+    # on MuJoCo's derivatives (tracking tasks: their residuals, the task's w k plus body
+    # points' positions and velocities in the world frame; planners/tracking_residual.py)
     oracle_method: str = "mppi"
     oracle_ilqr: ILQRSettings = TRACKING_ILQR
     oracle_tracking_weights: TrackingCostWeights = TrackingCostWeights()
@@ -232,9 +232,10 @@ def model_config(name: str, cfg: HumanoidBenchConfig) -> DictConfig:
 
 
 def oracle_planner_config(task_name: str, cfg: HumanoidBenchConfig) -> DictConfig:
-    """The planner group of ``python -m mbrl_delan.train env=<task_name> planner=mppi``, with
-    the suite's `oracle_overrides`."""
-    return compose_train_config([f"env={task_name}", "planner=mppi", *cfg.oracle_overrides]).planner
+    """The planner group of ``python -m mbrl_delan.train env=<task_name>
+    planner=<oracle_method>``, with the suite's `oracle_overrides`."""
+    overrides = [f"env={task_name}", f"planner={cfg.oracle_method}", *cfg.oracle_overrides]
+    return compose_train_config(overrides).planner
 
 
 def fit_world_model(
@@ -376,10 +377,9 @@ def _oracle_run(cfg: HumanoidBenchConfig, name: str) -> tuple[OracleEpisode, dic
         )  # fmt: skip
     p = oracle_planner_config(name, cfg)
     ep = oracle_episode(name, cfg.oracle_steps, p, cfg.seed)
-    return ep, dict(
-        num_samples=p.num_samples, horizon=p.horizon, iterations=p.iterations,
-        temperature=p.temperature, noise_std=p.noise_std,
-    )  # fmt: skip
+    settings = ("num_samples", "horizon", "iterations", "knots", "interpolation", "temperature",
+                "noise_std", "smoothing")  # fmt: skip
+    return ep, {k: p[k] for k in settings if k in p}
 
 
 def run_humanoid(cfg: HumanoidBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord]:
@@ -429,6 +429,8 @@ def suite_config(opts: SuiteOptions) -> HumanoidBenchConfig:
         cfg = replace(cfg, oracle_steps=opts.oracle_steps)
     if opts.oracle_planner is not None:
         cfg = replace(cfg, oracle_method=opts.oracle_planner)
+    if opts.oracle_overrides:
+        cfg = replace(cfg, oracle_overrides=(*cfg.oracle_overrides, *opts.oracle_overrides))
     if opts.seed is not None:
         cfg = replace(cfg, seed=opts.seed)
     return cfg

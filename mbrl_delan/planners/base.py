@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from mbrl_delan.objectives.base import Objective
+from mbrl_delan.planners.spline import KnotSpline
 
 SHIFT_FILLS = ("repeat", "zero")
 
@@ -44,8 +45,8 @@ class PlanResult:
 class SamplingDistribution:
     """State of the sampling distribution between iterations."""
 
-    mean: Tensor  # (H, nu)
-    std: Tensor  # (H, nu)
+    mean: Tensor  # (K, nu) knots (K = H without a spline)
+    std: Tensor  # (K, nu)
 
 
 @dataclass
@@ -137,6 +138,11 @@ class SamplingPlanner(abc.ABC):
         shift_fill: how `shift` fills the freed last step: "repeat" the last action or
             "zero" (zero clamped into the bounds).
         dtype: floating dtype of the plans `initial_mean` makes.
+        knots: the planner searches K knots (K, nu) of a spline over the horizon instead of
+            every step's action (`KnotSpline`); the objective still gets (N, H, nu) and the
+            plans are (H, nu). None: every step is a knot.
+        interpolation: how the actions between knots follow from them: "zero", "linear" or
+            "cubic" (`INTERPOLATIONS`).
     """
 
     def __init__(
@@ -149,6 +155,8 @@ class SamplingPlanner(abc.ABC):
         init_std: float | Sequence[float] | None = None,
         shift_fill: str = "repeat",
         dtype: torch.dtype = torch.float32,
+        knots: int | None = None,
+        interpolation: str = "linear",
     ) -> None:
         require(horizon >= 1, f"horizon must be >= 1, got {horizon}")
         require(num_samples >= 1, f"num_samples must be >= 1, got {num_samples}")
@@ -176,6 +184,7 @@ class SamplingPlanner(abc.ABC):
         self.action_low = low  # (nu,) float64 CPU
         self.action_high = high  # (nu,)
         self.init_std = self._make_init_std(init_std)  # (nu,)
+        self.spline = KnotSpline(horizon, knots, interpolation)
         self._bounds_cache: dict[tuple[torch.device, torch.dtype], tuple[Tensor, Tensor]] = {}
 
     @property
@@ -275,15 +284,23 @@ class SamplingPlanner(abc.ABC):
                 device = generator.device if generator is not None else None
                 init_mean = self.initial_mean(device=device)
             self._check_mean(init_mean)
-            dist = self._initial_distribution(self.clamp(init_mean))
+            knots = self.spline.knots_of(self.clamp(init_mean))  # (K, nu)
+            dist = self._initial_distribution(knots)
             dist = self._warm_distribution(dist, **warm)
-            trace = PlanTrace(best_actions=dist.mean)
+            trace = PlanTrace(best_actions=self.spline.actions(dist.mean))
             for _ in range(self.iterations):
-                samples = self.clamp(self._sample(dist, generator))  # (N_i, H, nu)
-                returns = clean_returns(objective(samples), samples.shape[0])  # (N_i,)
+                samples = self.clamp(self._sample(dist, generator))  # (N_i, K, nu)
+                actions = self._actions(samples)  # (N_i, H, nu)
+                returns = clean_returns(objective(actions), samples.shape[0])  # (N_i,)
                 dist = self._update(dist, samples, returns)
-                trace.record(samples, returns)
+                trace.record(actions, returns)
             return self._result(dist, trace)
+
+    def _actions(self, knots: Tensor) -> Tensor:
+        """Every step's actions of knots (..., K, nu), within the bounds. (..., H, nu)"""
+        if self.spline.identity:
+            return knots  # clamped already
+        return self.clamp(self.spline.actions(knots))
 
     def _warm_distribution(self, dist: SamplingDistribution) -> SamplingDistribution:
         """The first iteration's distribution given the warm-start state of `plan(**warm)`.
@@ -296,8 +313,8 @@ class SamplingPlanner(abc.ABC):
     def _result(self, dist: SamplingDistribution, trace: PlanTrace) -> PlanResult:
         """What `plan` returns from the final distribution and the iterations' trace."""
         return PlanResult(
-            mean=self.clamp(dist.mean),
-            std=dist.std,
+            mean=self._actions(self.clamp(dist.mean)),
+            std=self.spline.actions(dist.std),
             best_actions=trace.best_actions,
             best_return=trace.best_return,
             iteration_best=torch.stack(trace.iteration_best),
@@ -306,7 +323,7 @@ class SamplingPlanner(abc.ABC):
     def _noise(
         self, dist: SamplingDistribution, generator: torch.Generator | None, num: int
     ) -> Tensor:
-        """White Gaussian noise (num, H, nu) on the distribution's device. iCEM overrides."""
+        """White Gaussian noise (num, K, nu) on the distribution's device. iCEM overrides."""
         return torch.randn(
             (num, *dist.mean.shape),
             generator=generator,
@@ -315,15 +332,15 @@ class SamplingPlanner(abc.ABC):
         )
 
     def _sample(self, dist: SamplingDistribution, generator: torch.Generator | None) -> Tensor:
-        """Draw N sequences (N, H, nu) around the distribution; the loop clamps them."""
+        """Draw N knot sequences (N, K, nu) around the distribution; the loop clamps them."""
         return dist.mean + dist.std * self._noise(dist, generator, self.num_samples)
 
     @abc.abstractmethod
     def _initial_distribution(self, mean: Tensor) -> SamplingDistribution:
-        """Sampling distribution of the first iteration around `mean` (H, nu)."""
+        """Sampling distribution of the first iteration around the knots `mean` (K, nu)."""
 
     @abc.abstractmethod
     def _update(
         self, dist: SamplingDistribution, samples: Tensor, returns: Tensor
     ) -> SamplingDistribution:
-        """New distribution from samples (N, H, nu) and their cleaned returns (N,)."""
+        """New distribution from knot samples (N, K, nu) and their cleaned returns (N,)."""

@@ -33,6 +33,8 @@ class CEMPlanner(SamplingPlanner):
         momentum: float = 0.1,
         shift_fill: str = "repeat",
         dtype: torch.dtype = torch.float32,
+        knots: int | None = None,
+        interpolation: str = "linear",
     ) -> None:
         super().__init__(
             horizon,
@@ -43,6 +45,8 @@ class CEMPlanner(SamplingPlanner):
             init_std=init_std,
             shift_fill=shift_fill,
             dtype=dtype,
+            knots=knots,
+            interpolation=interpolation,
         )
         require(
             1 <= num_elites <= num_samples,

@@ -155,6 +155,8 @@ class ICEMPlanner(SamplingPlanner):
         return_best: bool = False,
         shift_fill: str = "repeat",
         dtype: torch.dtype = torch.float32,
+        knots: int | None = None,
+        interpolation: str = "linear",
     ) -> None:
         super().__init__(
             horizon,
@@ -165,6 +167,8 @@ class ICEMPlanner(SamplingPlanner):
             init_std=init_std,
             shift_fill=shift_fill,
             dtype=dtype,
+            knots=knots,
+            interpolation=interpolation,
         )
         if min_samples is None:
             min_samples = min(num_samples, 2 * num_elites)
@@ -250,27 +254,29 @@ class ICEMPlanner(SamplingPlanner):
 
     def _result(self, dist: ICEMDistribution, trace: PlanTrace) -> ICEMPlanResult:
         """`PlanResult` plus the distribution mean, the kept elites and the populations."""
-        dist_mean = self.clamp(dist.mean)
+        dist_mean = self._actions(self.clamp(dist.mean))
         return ICEMPlanResult(
             mean=trace.best_actions if self.return_best else dist_mean,
-            std=dist.std,
+            std=self.spline.actions(dist.std),
             best_actions=trace.best_actions,
             best_return=trace.best_return,
             iteration_best=torch.stack(trace.iteration_best),
             dist_mean=dist_mean,
-            elites=dist.kept,
+            elites=self._actions(dist.kept),
             population=tuple(trace.population),
         )
 
     def _warm_elites(self, elites: Tensor, like: Tensor) -> Tensor:
-        """The first `num_kept` of the given elites, checked and clamped. -> (k, H, nu)"""
+        """The knots of the first `num_kept` of the given elites (k, H, nu), checked and
+        clamped. -> (k, K, nu)"""
         expected = (self.horizon, self.action_dim)
         require(
             elites.ndim == 3 and tuple(elites.shape[1:]) == expected,
             f"init_elites must have shape (K, {expected[0]}, {expected[1]}), got "
             f"{tuple(elites.shape)}",
         )
-        return self.clamp(elites[: self.num_kept].to(like.device, like.dtype))
+        kept = self.clamp(elites[: self.num_kept].to(like.device, like.dtype))
+        return self.spline.knots_of(kept)
 
     def _initial_distribution(self, mean: Tensor) -> ICEMDistribution:
         std = self.init_std.to(mean.device, mean.dtype).expand_as(mean).clone()

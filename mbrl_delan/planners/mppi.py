@@ -65,6 +65,8 @@ class MPPIPlanner(SamplingPlanner):
         smoothing: float = 0.0,
         shift_fill: str = "repeat",
         dtype: torch.dtype = torch.float32,
+        knots: int | None = None,
+        interpolation: str = "linear",
     ) -> None:
         require(
             math.isfinite(temperature) and temperature > 0,
@@ -80,6 +82,8 @@ class MPPIPlanner(SamplingPlanner):
             init_std=noise_std,
             shift_fill=shift_fill,
             dtype=dtype,
+            knots=knots,
+            interpolation=interpolation,
         )
         self.temperature = temperature
         self.smoothing = float(smoothing)
@@ -97,7 +101,7 @@ class MPPIPlanner(SamplingPlanner):
     def _noise(
         self, dist: SamplingDistribution, generator: torch.Generator | None, num: int
     ) -> Tensor:
-        """Unit-variance noise (num, H, nu): white, or AR(1) along H with `smoothing`."""
+        """Unit-variance noise (num, K, nu): white, or AR(1) along the knots with `smoothing`."""
         white = super()._noise(dist, generator, num)
         if self.smoothing == 0.0:
             return white
@@ -105,7 +109,7 @@ class MPPIPlanner(SamplingPlanner):
         if key not in self._filters:
             with torch.inference_mode(False):  # a normal tensor, usable in and out of it
                 self._filters[key] = ar1_filter(
-                    self.horizon, self.smoothing, white.dtype, white.device
+                    white.shape[1], self.smoothing, white.dtype, white.device
                 )
         return torch.einsum("ts,nsu->ntu", self._filters[key], white)
 

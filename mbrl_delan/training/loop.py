@@ -295,9 +295,7 @@ class MBRLLoop:
             self.model, self.optimizer, data, self.fit_config, self.fit_generator, dropped
         )
 
-    def evaluate(
-        self, policy: EpisodePolicy, episodes: int, keep_rollouts: int = 0
-    ) -> Evaluation:
+    def evaluate(self, policy: EpisodePolicy, episodes: int, keep_rollouts: int = 0) -> Evaluation:
         """Returns of `episodes` seeded episodes; the first `keep_rollouts` rollouts are kept."""
         seeds = [EVAL_SEED_OFFSET + self.seed * 100 + i for i in range(episodes)]
         ev = Evaluation()
