@@ -10,27 +10,31 @@ from __future__ import annotations
 
 import logging
 import sys
-from typing import Any
 
 import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from mbrl_delan.benchmarks import (
     HUMANOID_MODELS,
     HUMANOID_ORACLE_TASKS,
     ILQR_TASKS,
-    ORACLE_PLANNERS,
     PLANNER_MODELS,
-    SUITE_NAMES,
     SuiteOptions,
     TimingConfig,
     UnknownSuiteError,
     get_suite,
 )
 from mbrl_delan.benchmarks.records import RecordWriter, format_table
-from mbrl_delan.config import ConfigError, check_device, exit_on_config_errors
-from mbrl_delan.schema import PLANNER_SCHEMAS
+from mbrl_delan.config import (
+    ConfigError,
+    check_device,
+    check_ranges,
+    exit_on_config_errors,
+    schema_error_message,
+)
+from mbrl_delan.schema import BenchConfig
 
 log = logging.getLogger("mbrl_delan.bench")
 
@@ -45,142 +49,89 @@ QUICK = {
 }
 
 
-def _positive_ints(name: str, values: Any) -> tuple[int, ...]:
-    items = list(values) if OmegaConf.is_list(values) or isinstance(values, list) else [values]
-    if not items or not all(
-        isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in items
-    ):
-        raise ConfigError(f"{name}={values!r} is not valid; it must be a list of integers >= 1")
-    return tuple(items)
-
-
-def _optional_int(name: str, value: Any, minimum: int) -> int | None:
-    """None (the suite's default) or an integer >= minimum."""
-    if value is None:
-        return None
-    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
-        raise ConfigError(
-            f"{name}={value!r} is not valid; it must be null or an integer >= {minimum}"
-        )
-    return value
-
-
-def _optional_positive_int(name: str, value: Any) -> int | None:
-    """None (the suite's default) or an integer >= 1."""
-    return _optional_int(name, value, 1)
-
-
-def _optional_positive_ints(name: str, values: Any) -> tuple[int, ...] | None:
-    """None (the suite's default) or a non-empty list of integers >= 1."""
-    return None if values is None else _positive_ints(name, values)
-
-
-def _optional_choices(
-    name: str, values: Any, choices: tuple[str, ...], allow_empty: bool = False
-) -> tuple[str, ...] | None:
-    """None (the suite's default) or a list of names from `choices` (empty if allowed)."""
+def _models(values: list[str] | None, suite: str) -> tuple[str, ...] | None:
+    """None (the suite's default) or the suite's own model cases (suite humanoid: or none)."""
     if values is None:
         return None
-    items = list(values) if OmegaConf.is_list(values) or isinstance(values, list) else [values]
-    if (not items and not allow_empty) or not all(v in choices for v in items):
-        empty = " (or [] for none)" if allow_empty else ""
+    humanoid = suite == "humanoid"
+    known = HUMANOID_MODELS if humanoid else PLANNER_MODELS
+    if (not values and not humanoid) or any(v not in known for v in values):
+        empty = " (or [] for none)" if humanoid else ""
         raise ConfigError(
-            f"{name}={values!r} is not valid; use null or a list of: {', '.join(choices)}{empty}"
+            f"models={values!r} is not valid; use null or a list of: {', '.join(known)}{empty}"
         )
-    return tuple(items)
+    return tuple(values)
 
 
-def _oracle_planner(value: Any, tasks: Any) -> str | None:
-    """None (MPPI) or one of ORACLE_PLANNERS; iLQR only on tracking tasks (their residuals)."""
-    if value is None:
-        return None
-    if value not in ORACLE_PLANNERS:
-        raise ConfigError(
-            f"oracle_planner={value!r} is not valid; use null or one of: "
-            + ", ".join(ORACLE_PLANNERS)
-        )
-    others = [t for t in (HUMANOID_ORACLE_TASKS if tasks is None else tasks) if t not in ILQR_TASKS]
-    if value == "ilqr" and others:
+def _check_lists(cfg: DictConfig) -> None:
+    """The lists that must not be empty (the rules on their elements are the schema's)."""
+    for name in ("nv", "batch", "planners", "num_samples", "horizons", "iterations", "transitions"):
+        if cfg[name] is not None and len(cfg[name]) == 0:
+            raise ConfigError(f"{name}=[] is not valid; give at least one value (or null)")
+
+
+def _check_oracle(cfg: DictConfig) -> None:
+    """iLQR only on tracking tasks (their residuals); overrides only of the planner group."""
+    others = [t for t in cfg.oracle_tasks or HUMANOID_ORACLE_TASKS if t not in ILQR_TASKS]
+    if cfg.oracle_planner == "ilqr" and others:
         raise ConfigError(
             f"oracle_planner=ilqr needs a tracking task's residuals: set oracle_tasks to a list of "
             f"{', '.join(ILQR_TASKS)} (it holds {', '.join(others)})"
         )
-    return str(value)
-
-
-def _overrides(name: str, values: Any) -> tuple[str, ...]:
-    """Planner overrides ("planner.KEY=VALUE"), checked when the suite composes them."""
-    items = [] if values is None else list(values)
-    bad = [v for v in items if not (isinstance(v, str) and v.startswith("planner.") and "=" in v)]
+    bad = [v for v in cfg.oracle_overrides if not (v.startswith("planner.") and "=" in v)]
     if bad:
-        raise ConfigError(f"{name}={values!r} is not valid; give a list like ['planner.knots=3']")
-    return tuple(items)
+        raise ConfigError(
+            f"oracle_overrides={list(cfg.oracle_overrides)!r} is not valid; give a list like "
+            "['planner.knots=3']"
+        )
 
 
-def _positive(name: str, value: Any) -> float:
-    if not isinstance(value, int | float) or isinstance(value, bool) or value <= 0:
-        raise ConfigError(f"{name}={value!r} is not valid; it must be a number > 0")
-    return float(value)
-
-
-def _compile_batch(values: Any) -> tuple[int, ...]:
-    """An empty list (no compiled figures) or batch sizes >= 1."""
-    if values is None or (OmegaConf.is_list(values) or isinstance(values, list)) and not values:
-        return ()
-    return _positive_ints("compile_batch", values)
+def typed_bench_config(cfg: DictConfig) -> DictConfig:
+    """`cfg` typed by `BenchConfig` and checked; a `ConfigError` names the first bad key."""
+    try:
+        typed = OmegaConf.merge(OmegaConf.structured(BenchConfig), cfg)
+    except OmegaConfBaseException as err:
+        raise ConfigError(schema_error_message(err)) from err
+    check_ranges(typed)
+    _check_lists(typed)
+    _check_oracle(typed)
+    return typed
 
 
 def build_options(cfg: DictConfig) -> SuiteOptions:
     """Check the config and turn it into the suite's plain options (quick sizes applied)."""
-    if cfg.suite not in SUITE_NAMES:
-        raise ConfigError(
-            f"suite={cfg.suite!r} is not a benchmark suite; valid suites: {', '.join(SUITE_NAMES)}"
-        )
-    values = {**OmegaConf.to_container(cfg, resolve=True), **(QUICK if cfg.quick else {})}
-    if values["threads"] is not None:
-        _positive_ints("threads", values["threads"])
-    if not isinstance(values["warmup"], int) or values["warmup"] < 0:
-        raise ConfigError(f"warmup={values['warmup']!r} is not valid; it must be an integer >= 0")
+    typed = typed_bench_config(cfg)
+    v = {**OmegaConf.to_container(typed, resolve=True), **(QUICK if typed.quick else {})}
+    tuples = lambda name: None if v[name] is None else tuple(v[name])  # noqa: E731
     return SuiteOptions(
-        nv=_positive_ints("nv", values["nv"]),
-        batch=_positive_ints("batch", values["batch"]),
-        device=check_device(values["device"]),
-        timing=TimingConfig(
-            repeats=_positive_ints("repeats", values["repeats"])[0],
-            min_time_s=_positive("min_time_s", values["min_time_s"]),
-            warmup=values["warmup"],
-        ),
-        max_call_s=_positive("max_call_s", values["max_call_s"]),
-        max_memory_bytes=int(_positive("max_memory_gb", values["max_memory_gb"]) * 1024**3),
-        matmul_size=_positive_ints("matmul_size", values["matmul_size"])[0],
-        humanoid=bool(values["humanoid"]),
-        compile_batch=_compile_batch(values["compile_batch"]),
-        quick=bool(values["quick"]),
-        n_samples=_optional_positive_int("n_samples", values["n_samples"]),
-        max_epochs=_optional_positive_int("max_epochs", values["max_epochs"]),
-        planners=_optional_choices("planners", values["planners"], tuple(PLANNER_SCHEMAS)),
-        models=_optional_choices(
-            "models",
-            values["models"],
-            HUMANOID_MODELS if cfg.suite == "humanoid" else PLANNER_MODELS,
-            allow_empty=cfg.suite == "humanoid",
-        ),
-        num_samples=_optional_positive_ints("num_samples", values["num_samples"]),
-        horizons=_optional_positive_ints("horizons", values["horizons"]),
-        iterations=_optional_positive_ints("iterations", values["iterations"]),
-        torchrl=bool(values["torchrl"]),
-        paired=bool(values["paired"]),
-        rollout_threads=_optional_positive_int("rollout_threads", values["rollout_threads"]),
-        compile_loop=bool(values["compile_loop"]),
-        transitions=_optional_positive_ints("transitions", values["transitions"]),
-        rollout_steps=_optional_positive_int("rollout_steps", values["rollout_steps"]),
-        oracle_tasks=_optional_choices(
-            "oracle_tasks", values["oracle_tasks"], HUMANOID_ORACLE_TASKS, allow_empty=True
-        ),
-        oracle_steps=_optional_positive_int("oracle_steps", values["oracle_steps"]),
-        oracle_planner=_oracle_planner(values["oracle_planner"], values["oracle_tasks"]),
-        oracle_overrides=_overrides("oracle_overrides", values["oracle_overrides"]),
-        seed=_optional_int("seed", values["seed"], 0),
+        nv=tuple(v["nv"]),
+        batch=tuple(v["batch"]),
+        device=check_device(v["device"]),
+        timing=TimingConfig(repeats=v["repeats"], min_time_s=v["min_time_s"], warmup=v["warmup"]),
+        max_call_s=v["max_call_s"],
+        max_memory_bytes=int(v["max_memory_gb"] * 1024**3),
+        matmul_size=v["matmul_size"],
+        humanoid=v["humanoid"],
+        compile_batch=tuple(v["compile_batch"]),
+        quick=v["quick"],
+        n_samples=v["n_samples"],
+        max_epochs=v["max_epochs"],
+        planners=tuples("planners"),
+        models=_models(v["models"], typed.suite),
+        num_samples=tuples("num_samples"),
+        horizons=tuples("horizons"),
+        iterations=tuples("iterations"),
+        torchrl=v["torchrl"],
+        paired=v["paired"],
+        rollout_threads=v["rollout_threads"],
+        compile_loop=v["compile_loop"],
+        transitions=tuples("transitions"),
+        rollout_steps=v["rollout_steps"],
+        oracle_tasks=tuples("oracle_tasks"),
+        oracle_steps=v["oracle_steps"],
+        oracle_planner=v["oracle_planner"],
+        oracle_overrides=tuple(v["oracle_overrides"]),
+        seed=v["seed"],
     )
 
 

@@ -19,8 +19,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING
+from omegaconf import MISSING, ListConfig
 
+from mbrl_delan.benchmarks import HUMANOID_ORACLE_TASKS, ORACLE_PLANNERS, SUITE_NAMES
 from mbrl_delan.planners.spline import INTERPOLATIONS
 from mbrl_delan.training.fit import FitConfig
 
@@ -66,6 +67,8 @@ class FieldRule:
         return f"it must be {kind}" + (" " + " and ".join(parts) if parts else "")
 
     def allows(self, value: Any) -> bool:
+        if isinstance(value, list | tuple | ListConfig):  # a list: each element
+            return all(self.allows(v) for v in value)
         if self.choices:
             return value in self.choices
         if isinstance(value, bool) or not isinstance(value, int | float):
@@ -293,6 +296,47 @@ PLANNER_SCHEMAS = {
     "mppi": MPPIConfig,
     "predictive": PredictiveConfig,
 }
+
+
+@dataclass
+class BenchConfig:
+    """``python -m mbrl_delan.bench`` (``configs/bench.yaml``); a rule on a list holds for each
+    element. Which `models` a suite knows and the oracle's planner per task are checked by
+    `mbrl_delan.bench.build_options`."""
+
+    suite: str = rule(choices=SUITE_NAMES)
+    out: str | None = None
+    device: str = "cpu"
+    threads: int | None = rule(None, low=1)
+    quick: bool = False
+    repeats: int = rule(low=1)
+    min_time_s: float = rule(low=0, above=True)
+    warmup: int = rule(low=0)
+    max_call_s: float = rule(low=0, above=True)
+    max_memory_gb: float = rule(low=0, above=True)
+    matmul_size: int = rule(low=1)
+    humanoid: bool = True
+    nv: list[int] = rule(low=1)
+    batch: list[int] = rule(low=1)
+    compile_batch: list[int] = rule(low=1)
+    n_samples: int | None = rule(None, low=1)
+    max_epochs: int | None = rule(None, low=1)
+    planners: list[str] | None = rule(None, choices=tuple(PLANNER_SCHEMAS))
+    models: list[str] | None = None
+    num_samples: list[int] | None = rule(None, low=1)
+    horizons: list[int] | None = rule(None, low=1)
+    iterations: list[int] | None = rule(None, low=1)
+    torchrl: bool = True
+    paired: bool = False
+    rollout_threads: int | None = rule(None, low=1)
+    compile_loop: bool = True
+    transitions: list[int] | None = rule(None, low=1)
+    rollout_steps: int | None = rule(None, low=1)
+    oracle_tasks: list[str] | None = rule(None, choices=HUMANOID_ORACLE_TASKS)
+    oracle_steps: int | None = rule(None, low=1)
+    oracle_planner: str | None = rule(None, choices=ORACLE_PLANNERS)
+    oracle_overrides: list[str] = field(default_factory=list)
+    seed: int | None = rule(None, low=0)
 
 
 def store_schemas(store: ConfigStore) -> None:

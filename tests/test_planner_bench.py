@@ -96,6 +96,12 @@ def test_options_reach_the_suites() -> None:
         "n_samples=0",
         "max_epochs=1.5",
         "rollout_threads=0",
+        "repeats=1.5",  # a float for an integer key
+        "nv=[0]",
+        "nv=[]",
+        "max_memory_gb=0",
+        "min_time_s=nan",
+        "suite=nope",
     ],
 )
 def test_bad_option_values_are_config_errors(override: str) -> None:
