@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from collections.abc import Callable
 
@@ -14,6 +15,32 @@ from hydra.core.global_hydra import GlobalHydra
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """The tests marked heavy first: a worker starts on them while the other runs the rest."""
     items.sort(key=lambda item: item.get_closest_marker("heavy") is None)
+
+
+# Set for the test session and the commands its tests start. wandb's console capture patches
+# the process's standard streams while pytest captures them; torch.compile's default pool of
+# compile subprocesses, one per worker on a 2-core machine, oversubscribes the cores and holds
+# pipes beside pytest's capture files. Either was suspected when pytest's capture file of one
+# worker was found closed and every later test of that worker failed at set-up.
+TEST_ENVIRONMENT = {"WANDB_CONSOLE": "off", "TORCHINDUCTOR_COMPILE_THREADS": "1"}
+
+
+@pytest.fixture(autouse=True, scope="session")
+def quiet_environment():
+    """`TEST_ENVIRONMENT` for the session (and torch.compile compiling in this process)."""
+    import torch._inductor.config as inductor
+
+    previous = {k: os.environ.get(k) for k in TEST_ENVIRONMENT}
+    threads = inductor.compile_threads
+    os.environ.update(TEST_ENVIRONMENT)
+    inductor.compile_threads = 1
+    yield
+    inductor.compile_threads = threads
+    for key, value in previous.items():
+        if value is None:
+            os.environ.pop(key, None)
+        else:
+            os.environ[key] = value
 
 
 @pytest.fixture(autouse=True, scope="session")

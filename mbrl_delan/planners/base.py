@@ -287,7 +287,7 @@ class SamplingPlanner(abc.ABC):
             knots = self.spline.knots_of(self.clamp(init_mean))  # (K, nu)
             dist = self._initial_distribution(knots)
             dist = self._warm_distribution(dist, **warm)
-            trace = PlanTrace(best_actions=self.spline.actions(dist.mean))
+            trace = PlanTrace(best_actions=self._actions(dist.mean))
             for _ in range(self.iterations):
                 samples = self.clamp(self._sample(dist, generator))  # (N_i, K, nu)
                 actions = self._actions(samples)  # (N_i, H, nu)
