@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import os
 import sys
 from collections.abc import Callable
 
@@ -17,30 +16,23 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     items.sort(key=lambda item: item.get_closest_marker("heavy") is None)
 
 
-# Set for the test session and the commands its tests start. wandb's console capture patches
-# the process's standard streams while pytest captures them; torch.compile's default pool of
-# compile subprocesses, one per worker on a 2-core machine, oversubscribes the cores and holds
-# pipes beside pytest's capture files. Either was suspected when pytest's capture file of one
-# worker was found closed and every later test of that worker failed at set-up.
-TEST_ENVIRONMENT = {"WANDB_CONSOLE": "off", "TORCHINDUCTOR_COMPILE_THREADS": "1"}
-
-
 @pytest.fixture(autouse=True, scope="session")
-def quiet_environment():
-    """`TEST_ENVIRONMENT` for the session (and torch.compile compiling in this process)."""
-    import torch._inductor.config as inductor
-
-    previous = {k: os.environ.get(k) for k in TEST_ENVIRONMENT}
-    threads = inductor.compile_threads
-    os.environ.update(TEST_ENVIRONMENT)
-    inductor.compile_threads = 1
+def absl_logs_to_the_real_stderr():
+    """absl's log handler (absl-py comes with dm-control) writes to the sys.stderr of the
+    moment absl is imported, under pytest a capture file, and closes that stream whenever
+    logging is configured again unless it is one of the standard streams of that moment:
+    Hydra configures logging in the in-process entry-point tests, and with capsys active
+    there it closed pytest's capture file, so every later test of that worker failed at
+    set-up. Its stream is made the real stderr, which it never closes."""
+    try:
+        from absl import logging as absl_logging
+    except ImportError:  # absl-py missing: nothing to guard
+        yield
+        return
+    handler = absl_logging.get_absl_handler().python_handler
+    stream, handler.stream = handler.stream, sys.__stderr__
     yield
-    inductor.compile_threads = threads
-    for key, value in previous.items():
-        if value is None:
-            os.environ.pop(key, None)
-        else:
-            os.environ[key] = value
+    handler.stream = stream
 
 
 @pytest.fixture(autouse=True, scope="session")
