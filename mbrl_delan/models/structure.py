@@ -8,7 +8,7 @@ friction (`DeLaN.load_mechanics`) when their `Structure`s agree on `Structure.ME
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import ClassVar
 
 import torch
@@ -73,9 +73,6 @@ class Structure:
     def differences(self, other: Structure, names: Sequence[str] = MECHANICS) -> list[str]:
         """The fields among `names` on which `other` differs from this one."""
         return [name for name in names if getattr(self, name) != getattr(other, name)]
-
-    def as_dict(self) -> dict[str, object]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
 
     def build(
         self, layout: JointLayout, actuation: Tensor
