@@ -21,6 +21,7 @@ from mbrl_delan.benchmarks import (
     HUMANOID_ORACLE_TASKS,
     ILQR_TASKS,
     PLANNER_MODELS,
+    REALTIME_DYNAMICS,
     SuiteOptions,
     TimingConfig,
     UnknownSuiteError,
@@ -50,11 +51,12 @@ QUICK = {
 
 
 def _models(values: list[str] | None, suite: str) -> tuple[str, ...] | None:
-    """None (the suite's default) or the suite's own model cases (suite humanoid: or none)."""
+    """None (the suite's default) or the suite's own model cases (suite humanoid: or none;
+    suite realtime: the dynamics planned on)."""
     if values is None:
         return None
     humanoid = suite == "humanoid"
-    known = HUMANOID_MODELS if humanoid else PLANNER_MODELS
+    known = {"humanoid": HUMANOID_MODELS, "realtime": REALTIME_DYNAMICS}.get(suite, PLANNER_MODELS)
     if (not values and not humanoid) or any(v not in known for v in values):
         empty = " (or [] for none)" if humanoid else ""
         raise ConfigError(
@@ -70,19 +72,23 @@ def _check_lists(cfg: DictConfig) -> None:
             raise ConfigError(f"{name}=[] is not valid; give at least one value (or null)")
 
 
+ORACLE_KEYS = ("planner.", "env.oracle_")  # what `oracle_overrides` may set
+
+
 def _check_oracle(cfg: DictConfig) -> None:
-    """iLQR only on tracking tasks (their residuals); overrides only of the planner group."""
+    """iLQR only on tracking tasks (their residuals); overrides only of the planner group and
+    the env's oracle physics."""
     others = [t for t in cfg.oracle_tasks or HUMANOID_ORACLE_TASKS if t not in ILQR_TASKS]
     if cfg.oracle_planner == "ilqr" and others:
         raise ConfigError(
             f"oracle_planner=ilqr needs a tracking task's residuals: set oracle_tasks to a list of "
             f"{', '.join(ILQR_TASKS)} (it holds {', '.join(others)})"
         )
-    bad = [v for v in cfg.oracle_overrides if not (v.startswith("planner.") and "=" in v)]
+    bad = [v for v in cfg.oracle_overrides if not (v.startswith(ORACLE_KEYS) and "=" in v)]
     if bad:
         raise ConfigError(
-            f"oracle_overrides={list(cfg.oracle_overrides)!r} is not valid; give a list like "
-            "['planner.knots=3']"
+            f"oracle_overrides={list(cfg.oracle_overrides)!r} is not valid; give a list of "
+            "planner.* or env.oracle_* overrides like ['planner.knots=3', 'env.oracle_substeps=2']"
         )
 
 
@@ -132,6 +138,8 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         oracle_planner=v["oracle_planner"],
         oracle_overrides=tuple(v["oracle_overrides"]),
         seed=v["seed"],
+        tasks=tuples("tasks"),
+        overrides=tuple(v["overrides"]),
     )
 
 

@@ -24,6 +24,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
 from mbrl_delan.models.base import WorldModel
+from mbrl_delan.models.contact import ContactModel
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
 from mbrl_delan.models.ensemble import GaussianEnsemble
@@ -203,6 +204,9 @@ MIGRATIONS: dict[str, Any] = {
     "model.rollout_threads": None,
     "model.compile_fit": False,
     "model.yaw_invariant": False,
+    "model.contacts": False,
+    "env.oracle_substeps": None,  # the oracle planned on the env's own physics
+    "env.oracle_integrator": None,
 }
 
 
@@ -432,7 +436,8 @@ def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> Sampli
 
 @MODELS.register("delan", schema=MODEL_SCHEMAS["delan"])
 def _delan(cfg: DictConfig, system: System) -> DeLaN:
-    return DeLaN(**_delan_arguments(cfg, system))
+    contact = ContactModel.from_mujoco(system.mj_model()) if cfg.contacts else None
+    return DeLaN(**_delan_arguments(cfg, system), contact=contact)
 
 
 @MODELS.register("delan_ensemble", schema=MODEL_SCHEMAS["delan_ensemble"])

@@ -21,7 +21,12 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, ListConfig
 
-from mbrl_delan.benchmarks import HUMANOID_ORACLE_TASKS, ORACLE_PLANNERS, SUITE_NAMES
+from mbrl_delan.benchmarks import (
+    HUMANOID_ORACLE_TASKS,
+    ORACLE_PLANNERS,
+    REALTIME_TASKS,
+    SUITE_NAMES,
+)
 from mbrl_delan.planners.spline import INTERPOLATIONS
 from mbrl_delan.training.fit import FitConfig
 
@@ -85,6 +90,8 @@ def field_rule(metadata: Any) -> FieldRule:
 
 
 INTEGRATORS = ("euler", "rk4")
+# MuJoCo's integrators the oracle may plan with (`objectives.mujoco.INTEGRATORS`)
+ORACLE_INTEGRATORS = ("euler", "implicitfast", "implicit", "rk4")
 PROPAGATIONS = ("tsinf", "ts1", "mean")
 
 
@@ -102,11 +109,17 @@ class EnvConfig:
     model_integrator: str = rule("euler", choices=INTEGRATORS)
     model_substeps: int = rule(1, low=1)
     model_residual: bool = False
+    model_contacts: bool = False
     model_inertia_scaling: bool = False
     mppi_temperature: float = rule(0.5, low=0, above=True)
     mppi_noise_std: float = rule(0.5, low=0, above=True)
     mppi_smoothing: float = rule(0.8, low=0, high=1, below=True)
+    mppi_samples: int = rule(256, low=1)  # planner=mppi's num_samples on this env
+    plan_knots: int | None = rule(None, low=1)  # mppi, cem, icem: spline knots (None: every step)
+    plan_interpolation: str = rule("linear", choices=INTERPOLATIONS)
     oracle_planner: str = rule("same", choices=("same", "ilqr"))
+    oracle_substeps: int | None = rule(None, low=1)  # null: frame_skip
+    oracle_integrator: str | None = rule(None, choices=ORACLE_INTEGRATORS)  # null: the MJCF's
     task: dict[str, Any] | None = None  # task options (cmu_track: the clip)
 
 
@@ -148,6 +161,7 @@ class _LagrangianConfig(ModelConfig):
 class DeLaNConfig(_LagrangianConfig):
     """``model=delan``."""
 
+    contacts: bool = False  # the structured contact model (`models/contact.py`)
     init_from: str | None = None
     compile: bool = MISSING
     cuda_graph: bool = MISSING
@@ -337,6 +351,8 @@ class BenchConfig:
     oracle_planner: str | None = rule(None, choices=ORACLE_PLANNERS)
     oracle_overrides: list[str] = field(default_factory=list)
     seed: int | None = rule(None, low=0)
+    tasks: list[str] | None = rule(None, choices=REALTIME_TASKS)
+    overrides: list[str] = field(default_factory=list)
 
 
 def store_schemas(store: ConfigStore) -> None:

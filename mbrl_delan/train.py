@@ -47,7 +47,7 @@ from mbrl_delan.envs.registry import EnvParts, make_env_parts
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.objectives.model import model_objective_factory
-from mbrl_delan.objectives.mujoco import available_cpus, mujoco_objective_factory
+from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus, mujoco_objective_factory
 from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, tracking_ilqr_policy
@@ -125,7 +125,7 @@ def _planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPla
         raise ConfigError(f"planner={cfg.planner.name}: {err}") from err
 
 
-def _oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy:
+def build_oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy:
     """The oracle policy of `budget.oracle_planner`: `same` (the loop's planner on MuJoCo) or
     `ilqr` (tracking tasks: iLQR over the planner's horizon, `TRACKING_ILQR` otherwise)."""
     if cfg.budget.oracle_planner == "ilqr":
@@ -142,11 +142,36 @@ def _oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy:
         )  # fmt: skip
         return tracking_ilqr_policy(system, task, nthread, settings)
     log.info("oracle: the loop's planner (%s) on MuJoCo's dynamics", cfg.planner.name)
-    oracle_factory = mujoco_objective_factory(system, task, discount=cfg.planner.discount)
+    physics = PlanPhysics(cfg.env.oracle_substeps, cfg.env.oracle_integrator)
+    oracle_factory = mujoco_objective_factory(
+        system, task, discount=cfg.planner.discount, physics=physics
+    )
     return _policy(
         cfg.planner, _planner(cfg, system, torch.float64), oracle_factory, cfg.seed,
         torch.device("cpu"),
     )  # fmt: skip
+
+
+def build_policy(
+    cfg: DictConfig, system: System, task: Task, model: WorldModel, generator: torch.Generator
+) -> PlannerPolicy:
+    """The loop's policy: its planner over `model`'s imagined returns of `task` (compiled,
+    replayed from CUDA graphs or on rollout threads as ``model.*`` says), in the model's
+    device and dtype; `generator` draws the model's noise."""
+    param = next(model.parameters())
+    factory = model_objective_factory(
+        model,
+        task,
+        particles=cfg.model.particles,
+        discount=cfg.planner.discount,
+        generator=generator,
+        risk=cfg.planner.risk,
+        compile=cfg.model.get("compile", False),  # models without the key: never compiled
+        cuda_graph=cfg.model.get("cuda_graph", False),
+        rollout_threads=cfg.model.get("rollout_threads"),
+    )
+    planner = _planner(cfg, system, param.dtype)
+    return _policy(cfg.planner, planner, factory, cfg.seed, param.device)
 
 
 def build_world_model(
@@ -181,19 +206,8 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         model.parameters(), lr=cfg.model.lr, weight_decay=cfg.model.weight_decay
     )
     model_gen = torch.Generator(device=device).manual_seed(cfg.seed + 3)
-    factory = model_objective_factory(
-        model,
-        task,
-        particles=cfg.model.particles,
-        discount=cfg.planner.discount,
-        generator=model_gen,
-        risk=cfg.planner.risk,
-        compile=cfg.model.get("compile", False),  # models without the key: never compiled
-        cuda_graph=cfg.model.get("cuda_graph", False),
-        rollout_threads=cfg.model.get("rollout_threads"),
-    )
-    policy = _policy(cfg.planner, _planner(cfg, system, dtype), factory, cfg.seed, device)
-    oracle = _oracle(cfg, system, task)
+    policy = build_policy(cfg, system, task, model, model_gen)
+    oracle = build_oracle(cfg, system, task)
     buffer = _replay_buffer(cfg, run_dir, env, device)
     fit_cfg = build_fit_config(cfg)
     loop = MBRLLoop(

@@ -67,3 +67,72 @@ def test_quat_rotate_quarter_turn_about_z() -> None:
     quarter = torch.tensor([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)], dtype=torch.float64)
     out = quat_rotate(quarter, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
     torch.testing.assert_close(out, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+
+
+BALL_SLIDE_XML = """
+<mujoco>
+  <worldbody>
+    <body pos="0 0 1">
+      <joint type="slide" axis="1 0 0"/>
+      <joint type="hinge" axis="0 1 0" pos="0 0 0.1"/>
+      <geom type="capsule" size="0.05 0.2"/>
+      <body pos="0 0.3 0">
+        <joint type="ball" pos="0 0 0.05"/>
+        <geom type="sphere" size="0.05"/>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize(
+    "model",
+    [
+        pytest.param(
+            lambda: mujoco.MjModel.from_xml_path(str(humanoid_v5_xml())), id="humanoid_v5"
+        ),
+        pytest.param(lambda: mujoco.MjModel.from_xml_path(str(humanoid_cmu_xml())), id="cmu"),
+        pytest.param(lambda: mujoco.MjModel.from_xml_string(BALL_SLIDE_XML), id="ball_slide"),
+    ],
+)
+def test_dof_axes_give_mujocos_point_jacobians(model) -> None:
+    """J(p) from each DoF's axis (translations: the axis; rotations: axis x (p - anchor), over
+    the DoFs above p's body) equals `mj_jac` at a point of every body."""
+    model = model()
+    fk = ForwardKinematics.from_mujoco(model)
+    q = random_q(model, np.random.default_rng(2))
+    poses, axes = fk.dof_axes(torch.from_numpy(q))
+    assert axes.axis.shape == axes.anchor.shape == (model.nv, 3)
+    torch.testing.assert_close(poses.xpos, fk(torch.from_numpy(q)).xpos)
+    data = mujoco.MjData(model)
+    data.qpos[:] = q
+    mujoco.mj_kinematics(model, data)
+    mujoco.mj_comPos(model, data)
+    rotational = torch.tensor(fk.rotational)
+    for body in range(1, model.nbody):
+        point = torch.from_numpy(data.xpos[body] + np.array([0.05, -0.02, 0.1]))
+        turn = torch.linalg.cross(axes.axis, point - axes.anchor, dim=-1)
+        above = torch.tensor([_is_above(fk.parent, d, body) for d in fk.dof_body])
+        columns = torch.where(rotational[:, None], turn, axes.axis) * above[:, None]
+        jacp = np.zeros((3, model.nv))
+        mujoco.mj_jac(model, data, jacp, None, point.numpy(), body)
+        np.testing.assert_allclose(columns.T.numpy(), jacp, atol=1e-10)
+
+
+def _is_above(parent: list[int], ancestor: int, body: int) -> bool:
+    while body > 0:
+        if body == ancestor:
+            return True
+        body = parent[body]
+    return False
+
+
+def test_the_first_bodies_alone_match_the_whole_tree() -> None:
+    model = mujoco.MjModel.from_xml_path(str(humanoid_cmu_xml()))
+    fk = ForwardKinematics.from_mujoco(model)
+    q = torch.from_numpy(random_q(model, np.random.default_rng(3)))
+    whole, first = fk(q), fk(q, nbody=5)
+    assert first.xpos.shape == (5, 3) and first.site_xpos.shape == (0, 3)
+    torch.testing.assert_close(first.xpos, whole.xpos[:5])
+    torch.testing.assert_close(first.xquat, whole.xquat[:5])

@@ -22,7 +22,7 @@ from mbrl_delan.benchmarks.humanoid import (
     PDHoldPolicy,
     collect_episodes,
     model_config,
-    oracle_planner_config,
+    oracle_config,
     rollout_error,
     suite_config,
     tracking_errors,
@@ -47,14 +47,17 @@ def test_quick_suite_writes_every_model_and_horizon(tmp_path: Path) -> None:
     assert done.returncode == 0, done.stdout + done.stderr
     records = [json.loads(line) for line in out.read_text().splitlines()]
     errors = [r for r in records if r["metric"] == "rollout_error"]
-    assert {r["case"] for r in errors} == {"delan-n120", "delan_ensemble-n120", "ensemble-n120"}
+    cases = {"delan-n120", "delan_contact-n120", "delan_ensemble-n120", "ensemble-n120"}
+    assert {r["case"] for r in errors} == cases
     assert sorted({r["horizon"] for r in errors}) == [1, 5]
     assert all(r["value"] is not None and math.isfinite(r["value"]) for r in errors)
-    assert sum(r["metric"] == "fit_s" for r in records) == 3
+    assert sum(r["metric"] == "fit_s" for r in records) == 4
     assert {r["seed"] for r in records} == {2}  # the data's, the fits' and the oracle's
     # the DeLaN models fit 2-step rollouts (the quick K), the MLP ensemble single transitions
     steps = {r["case"]: r["rollout_steps"] for r in records if "rollout_steps" in r}
-    assert steps == {"delan-n120": 2, "delan_ensemble-n120": 2, "ensemble-n120": 1}
+    assert steps == {
+        "delan-n120": 2, "delan_contact-n120": 2, "delan_ensemble-n120": 2, "ensemble-n120": 1
+    }  # fmt: skip
     # the quick oracle: one 3-step MPPI episode on humanoid_stand, before the models
     oracle = [r for r in records if r["case"] == "oracle-humanoid_stand"]
     assert [r["metric"] for r in oracle] == ["oracle_return", "oracle_step_s"]
@@ -167,11 +170,19 @@ def test_the_suite_builds_the_loops_model_and_oracle_planner() -> None:
     cfg = HumanoidBenchConfig()
     delan = model_config("delan", cfg)
     assert delan.residual and delan.inertia_scaling and delan.integrator == "euler"
+    assert not delan.contacts
+    contact = model_config("delan_contact", cfg)  # the same DeLaN with the contact model
+    assert contact.name == "delan" and contact.contacts and contact.residual
     quick = model_config("ensemble", HumanoidBenchConfig.quick())
     assert (quick.hidden, quick.layers, quick.ensemble_size) == (8, 1, 2)
     for env in cfg.oracle_tasks:
-        planner = oracle_planner_config(env, cfg)
-        assert (planner.num_samples, planner.horizon, planner.iterations) == (256, 15, 2)
+        planner = oracle_config(env, cfg).planner
+        spline = env != "cmu_track"  # standing and walking plan over 4 cubic knots
+        expected = (64, 30, 2, 4, "cubic") if spline else (256, 15, 2, None, "linear")
+        assert (
+            planner.num_samples, planner.horizon, planner.iterations, planner.knots,
+            planner.interpolation,
+        ) == expected  # fmt: skip
         assert (planner.temperature, planner.noise_std, planner.smoothing) == (0.05, 0.3, 0.0)
 
 
@@ -202,7 +213,7 @@ def test_oracle_options() -> None:
         options("oracle_planner=lqr")
     overrides = "oracle_overrides=['planner.knots=4','planner.horizon=23']"
     spline = suite_config(options("oracle_planner=predictive", overrides))
-    planner = oracle_planner_config("humanoid_stand", spline)
+    planner = oracle_config("humanoid_stand", spline).planner
     assert planner.name == "predictive" and (planner.knots, planner.horizon) == (4, 23)
     assert planner.interpolation == "cubic" and planner.num_samples == 10
     with pytest.raises(ConfigError, match="oracle_overrides"):

@@ -110,7 +110,7 @@ def test_ilqr_oracle_option_builds_the_tracking_ilqr() -> None:
     from mbrl_delan.envs.registry import make_env_parts
     from mbrl_delan.planners.ilqr import ILQRPlanner
     from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, TrackingResidual
-    from mbrl_delan.train import _oracle
+    from mbrl_delan.train import build_oracle
 
     configs = str(Path(__file__).resolve().parents[1] / "configs")
     clip = ["env.task.clip='09_06'", f"env.task.folders=[{DATA}]", "env.task.download=false"]
@@ -118,7 +118,7 @@ def test_ilqr_oracle_option_builds_the_tracking_ilqr() -> None:
         cfg = compose("config", overrides=["env=cmu_track", *clip, "budget.oracle_planner=ilqr"])
     parts = make_env_parts("cmu_track", task_options={"clip": "09_06", "folders": [str(DATA)],
                                                       "download": False})  # fmt: skip
-    oracle = _oracle(cfg, parts.system, parts.task)
+    oracle = build_oracle(cfg, parts.system, parts.task)
     assert isinstance(oracle.planner, ILQRPlanner)
     ilqr = oracle.planner.ilqr
     assert ilqr.settings == TRACKING_ILQR and isinstance(ilqr.cost, TrackingResidual)

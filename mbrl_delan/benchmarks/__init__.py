@@ -29,6 +29,7 @@ _SUITES = {
     "identify_humanoid": "mbrl_delan.benchmarks.humanoid_identify:run_identify_humanoid_suite",
     "planner": "mbrl_delan.benchmarks.planner:run_planner_suite",
     "humanoid": "mbrl_delan.benchmarks.humanoid:run_humanoid_suite",
+    "realtime": "mbrl_delan.benchmarks.realtime:run_realtime_suite",
 }
 SUITE_NAMES = tuple(_SUITES)
 # world-model cases of suite planner (here so the entry point can check names without
@@ -50,12 +51,16 @@ PLANNER_MODELS = (
 )
 COMPILED_SUFFIX = "_compiled"
 GRAPH_SUFFIX = "_graph"
-# world models of suite humanoid: DeLaN + residual, the DeLaN ensemble, the MLP ensemble
-HUMANOID_MODELS = ("delan", "delan_ensemble", "ensemble")
+# world models of suite humanoid: DeLaN + residual, DeLaN + residual + the structured contact
+# model, the DeLaN ensemble, the MLP ensemble
+HUMANOID_MODELS = ("delan", "delan_contact", "delan_ensemble", "ensemble")
 # tasks on which suite humanoid runs the oracle planner for one episode
 HUMANOID_ORACLE_TASKS = ("humanoid_stand", "humanoid_walk", "cmu_track")
 ORACLE_PLANNERS = ("mppi", "cem", "icem", "predictive", "ilqr")  # suite humanoid's oracles
 ILQR_TASKS = ("cmu_track",)  # tasks with residuals for the iLQR oracle
+# suite realtime: its tasks and the dynamics each is planned on
+REALTIME_TASKS = ("humanoid_stand", "humanoid_walk", "pendulum")
+REALTIME_DYNAMICS = ("mujoco", "delan", "ensemble")
 
 
 class UnknownSuiteError(KeyError):
@@ -145,6 +150,9 @@ class SuiteOptions:
     oracle_planner: str | None = None  # a sampling planner's name or "ilqr" (tracking tasks)
     oracle_overrides: tuple[str, ...] = ()  # planner overrides of the sampling oracle
     seed: int | None = None  # data, fits and oracle starts (test episodes: seed + 1000)
+    # suite realtime
+    tasks: tuple[str, ...] | None = None  # of REALTIME_TASKS (None: all)
+    overrides: tuple[str, ...] = ()  # train-config overrides of every case
 
 
 def synchronizer(device: torch.device) -> Callable[[], None]:

@@ -64,11 +64,11 @@ from mbrl_delan.benchmarks import (
     host_fields,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
-from mbrl_delan.config import build_model, build_planner, compose_train_config
+from mbrl_delan.config import ConfigError, build_model, build_planner, compose_train_config
 from mbrl_delan.envs.real import env_parts_of, make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.base import WorldModel
-from mbrl_delan.objectives.mujoco import mujoco_objective_factory
+from mbrl_delan.objectives.mujoco import ENV_PHYSICS, PlanPhysics, mujoco_objective_factory
 from mbrl_delan.planners.ilqr import ILQRSettings
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import (
@@ -86,6 +86,8 @@ log = logging.getLogger(__name__)
 
 SUITE = "humanoid"
 MODEL_CASES = HUMANOID_MODELS
+# cases that are a model group with overrides (the others: the group of their name)
+CASE_GROUPS = {"delan_contact": ("delan", ("model.contacts=true",))}
 
 
 @dataclass(frozen=True)
@@ -111,7 +113,7 @@ class HumanoidBenchConfig:
     oracle_tasks: tuple[str, ...] = HUMANOID_ORACLE_TASKS
     oracle_steps: int | None = None  # control steps per oracle episode (None: the task's own)
     # the loop's planner `oracle_method` on each oracle task's env (configs/,
-    # `oracle_planner_config`), with these overrides
+    # `oracle_config`), with these overrides
     oracle_overrides: tuple[str, ...] = ()
     # oracle_method: a sampling planner's name (mppi, cem, icem, predictive) or "ilqr": iLQR
     # on MuJoCo's derivatives (tracking tasks: their residuals, the task's w k plus body
@@ -131,12 +133,18 @@ class HumanoidBenchConfig:
             episode_len=30,
             fit=FitConfig(batch_size=32, max_epochs=2, patience=None),
             rollout_steps=2,
-            model_overrides={"delan": tiny, "delan_ensemble": ensemble, "ensemble": ensemble},
+            model_overrides={
+                "delan": tiny,
+                "delan_contact": tiny,
+                "delan_ensemble": ensemble,
+                "ensemble": ensemble,
+            },  # fmt: skip
             oracle_tasks=("humanoid_stand",),
             oracle_steps=3,
             oracle_overrides=(
                 "planner.num_samples=16",
                 "planner.horizon=3",
+                "planner.knots=2",
                 "planner.iterations=1",
             ),
         )
@@ -225,17 +233,18 @@ class FittedModel:
 
 
 def model_config(name: str, cfg: HumanoidBenchConfig) -> DictConfig:
-    """The model group of ``python -m mbrl_delan.train env=<cfg.env> model=<name>``, with the
-    suite's `model_overrides` for it."""
-    overrides = [f"env={cfg.env}", f"model={name}", *cfg.model_overrides.get(name, ())]
+    """The model group of ``python -m mbrl_delan.train env=<cfg.env> model=<name>`` (a
+    `CASE_GROUPS` case: its group and overrides), with the suite's `model_overrides` for it."""
+    group, own = CASE_GROUPS.get(name, (name, ()))
+    overrides = [f"env={cfg.env}", f"model={group}", *own, *cfg.model_overrides.get(name, ())]
     return compose_train_config(overrides).model
 
 
-def oracle_planner_config(task_name: str, cfg: HumanoidBenchConfig) -> DictConfig:
-    """The planner group of ``python -m mbrl_delan.train env=<task_name>
-    planner=<oracle_method>``, with the suite's `oracle_overrides`."""
+def oracle_config(task_name: str, cfg: HumanoidBenchConfig) -> DictConfig:
+    """The config of ``python -m mbrl_delan.train env=<task_name> planner=<oracle_method>``
+    with the suite's `oracle_overrides`: its planner group, and the env's oracle physics."""
     overrides = [f"env={task_name}", f"planner={cfg.oracle_method}", *cfg.oracle_overrides]
-    return compose_train_config(overrides).planner
+    return compose_train_config(overrides)
 
 
 def fit_world_model(
@@ -298,15 +307,24 @@ def tracking_errors(task: MotionTracking, rollout: TensorDictBase) -> dict[str, 
 
 
 def oracle_episode(
-    task_name: str, steps: int | None, planner_cfg: DictConfig, seed: int
+    task_name: str,
+    steps: int | None,
+    planner_cfg: DictConfig,
+    seed: int,
+    physics: PlanPhysics = ENV_PHYSICS,
 ) -> OracleEpisode:
-    """The planner of `planner_cfg` (a planner group) over MuJoCo's dynamics on `task_name`'s
-    real env for at most `steps` control steps (None: the task's episode length), from the
-    task's initial state of `seed`."""
+    """The planner of `planner_cfg` (a planner group) over MuJoCo's dynamics (stepped as
+    `physics` says) on `task_name`'s real env for at most `steps` control steps (None: the
+    task's episode length), from the task's initial state of `seed`."""
     parts = make_env_parts(task_name, None, steps)
-    planner = build_planner(planner_cfg, parts.system, torch.float64)
+    try:
+        planner = build_planner(planner_cfg, parts.system, torch.float64)
+    except ValueError as err:  # a setting the planner refuses (knots > horizon)
+        raise ConfigError(f"the oracle's planner={planner_cfg.name} on {task_name}: {err}") from err
     threads = torch.get_num_threads()  # the suite's `threads`: MuJoCo rollout threads too
-    with mujoco_objective_factory(parts.system, parts.task, nthread=threads) as factory:
+    with mujoco_objective_factory(
+        parts.system, parts.task, nthread=threads, physics=physics
+    ) as factory:
         policy = PlannerPolicy(planner, factory, seed=seed, action_dtype=torch.float32)
         return _timed_episode(task_name, parts.task.episode_len, seed, policy)
 
@@ -375,11 +393,15 @@ def _oracle_run(cfg: HumanoidBenchConfig, name: str) -> tuple[OracleEpisode, dic
             regularization=s.regularization, point_weight=w.point,
             point_velocity_weight=w.point_velocity, root_weight=w.root,
         )  # fmt: skip
-    p = oracle_planner_config(name, cfg)
-    ep = oracle_episode(name, cfg.oracle_steps, p, cfg.seed)
+    train_cfg = oracle_config(name, cfg)
+    p, env = train_cfg.planner, train_cfg.env
+    physics = PlanPhysics(env.oracle_substeps, env.oracle_integrator)
+    ep = oracle_episode(name, cfg.oracle_steps, p, cfg.seed, physics)
     settings = ("num_samples", "horizon", "iterations", "knots", "interpolation", "temperature",
                 "noise_std", "smoothing")  # fmt: skip
-    return ep, {k: p[k] for k in settings if k in p}
+    return ep, {k: p[k] for k in settings if k in p} | dict(
+        oracle_substeps=env.oracle_substeps, oracle_integrator=env.oracle_integrator
+    )
 
 
 def run_humanoid(cfg: HumanoidBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord]:

@@ -14,6 +14,7 @@ from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.models.base import LossOutput, WorldModel
+from mbrl_delan.models.contact import ContactModel
 from mbrl_delan.models.features import rotation_matrix
 from mbrl_delan.models.field import LagrangianNetwork
 from mbrl_delan.models.integrators import INTEGRATORS, integrate
@@ -75,7 +76,8 @@ class DeLaN(WorldModel):
 
     What the mechanics are made of (network size, friction, invariances, tree sparsity,
     armature, units from data, a residual force) is the frozen `structure`; see
-    `Structure` for each option.
+    `Structure` for each option. `contact`: a structured contact force beside them
+    (`ContactModel`: points of the body tree on the floor, in SI units).
 
     Losses (`loss=`): 'forward' compares the integrated next state with the data, per DoF
     normalised by the std of the one-step change; 'inverse' compares the predicted torque
@@ -115,6 +117,7 @@ class DeLaN(WorldModel):
         unactuated_torque_scale: float = 1.0,
         velocity_margin: float = 3.0,
         max_velocity: float = 100.0,
+        contact: ContactModel | None = None,
     ) -> None:
         super().__init__()
         if integrator not in INTEGRATORS:
@@ -134,6 +137,7 @@ class DeLaN(WorldModel):
         self.layout, self.control_dt = layout, control_dt
         self.integrator, self.substeps, self.loss_kind = integrator, substeps, loss
         self.dynamics, self.residual = structure.build(layout, actuation)
+        self.contact = contact
         n = layout.nv
         for name in ("q_scale", "qd_scale", "tau_scale"):
             self.register_buffer(name, torch.ones(n))
@@ -150,11 +154,14 @@ class DeLaN(WorldModel):
         return self.dynamics.forward_dynamics(q, qd, self.applied_force(q, qd, action))
 
     def applied_force(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
-        """B a, plus the residual force when the model has one. (..., nv)"""
+        """B a, plus the contact and residual forces when the model has them. (..., nv)"""
         return self._with_residual(self.dynamics.generalized_force(action), q, qd, action)
 
     def _with_residual(self, tau: Tensor, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
-        """tau + r(q, qd, a) in torque units; tau itself without a residual. (..., nv)"""
+        """tau + the contact force + r(q, qd, a) in torque units, those the model has.
+        (..., nv)"""
+        if self.contact is not None:
+            tau = tau + self.contact(q, qd)
         if self.residual is None:
             return tau
         qd_unit = self.velocity_limit / self.velocity_margin  # the largest |qd| in the data

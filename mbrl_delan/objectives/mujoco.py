@@ -22,6 +22,12 @@ from mbrl_delan.systems.system import State, System
 from mbrl_delan.tasks.base import Task
 
 FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+INTEGRATORS = {
+    "euler": mujoco.mjtIntegrator.mjINT_EULER,
+    "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST,
+    "implicit": mujoco.mjtIntegrator.mjINT_IMPLICIT,
+    "rk4": mujoco.mjtIntegrator.mjINT_RK4,
+}
 QPOS = int(mujoco.mjtState.mjSTATE_QPOS)
 QVEL = int(mujoco.mjtState.mjSTATE_QVEL)
 
@@ -31,6 +37,39 @@ def available_cpus() -> int:
     if hasattr(os, "sched_getaffinity"):
         return len(os.sched_getaffinity(0))
     return os.cpu_count() or 1
+
+
+@dataclass(frozen=True)
+class PlanPhysics:
+    """How the oracle's own MjModel steps while it plans; the env keeps its own physics.
+
+    substeps: MuJoCo steps per control step (None: the env's frame_skip); the planning
+        timestep is control_dt / substeps.
+    integrator: one of `INTEGRATORS` (None: the MJCF's).
+    """
+
+    substeps: int | None = None
+    integrator: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.substeps is not None and self.substeps < 1:
+            raise ValueError(f"oracle substeps must be >= 1, got {self.substeps}")
+        if self.integrator is not None and self.integrator not in INTEGRATORS:
+            raise ValueError(
+                f"oracle integrator must be one of {sorted(INTEGRATORS)}, got {self.integrator!r}"
+            )
+
+    def model(self, system: System) -> tuple[mujoco.MjModel, int]:
+        """The planning MjModel of `system` and its MuJoCo steps per control step."""
+        model = system.mj_model()
+        substeps = self.substeps or system.frame_skip
+        model.opt.timestep = system.control_dt / substeps
+        if self.integrator is not None:
+            model.opt.integrator = INTEGRATORS[self.integrator]
+        return model, substeps
+
+
+ENV_PHYSICS = PlanPhysics()  # the env's own steps and integrator
 
 
 def _state_offset(model: mujoco.MjModel, component: int) -> int:
@@ -111,7 +150,12 @@ class MujocoObjectiveFactory:
     """
 
     def __init__(
-        self, system: System, task: Task, nthread: int | None = None, discount: float = 1.0
+        self,
+        system: System,
+        task: Task,
+        nthread: int | None = None,
+        discount: float = 1.0,
+        physics: PlanPhysics = ENV_PHYSICS,
     ) -> None:
         if nthread is None:
             nthread = min(available_cpus(), 8)
@@ -122,8 +166,8 @@ class MujocoObjectiveFactory:
         self.system = system
         self.task = task
         self.discount = discount
-        self.model = system.mj_model()
-        self.sim = HeldControlRollout(self.model, system.frame_skip, nthread)
+        self.model, substeps = physics.model(system)
+        self.sim = HeldControlRollout(self.model, substeps, nthread)
         self.ctrl_low = system.ctrl_low.numpy()
         self.ctrl_high = system.ctrl_high.numpy()
 
@@ -199,10 +243,15 @@ class MujocoObjective:
 
 
 def mujoco_objective_factory(
-    system: System, task: Task, nthread: int | None = None, discount: float = 1.0
+    system: System,
+    task: Task,
+    nthread: int | None = None,
+    discount: float = 1.0,
+    physics: PlanPhysics = ENV_PHYSICS,
 ) -> MujocoObjectiveFactory:
-    """The oracle: (q0 (nq,), qd0 (nv,)) -> objective over (N, H, nu) actions, true dynamics.
+    """The oracle: (q0 (nq,), qd0 (nv,)) -> objective over (N, H, nu) actions, true dynamics
+    (or MuJoCo's with a coarser step or cheaper integrator: `physics`).
 
     nthread: MuJoCo rollout threads (None: up to 8, bounded by the CPU count).
     """
-    return MujocoObjectiveFactory(system, task, nthread=nthread, discount=discount)
+    return MujocoObjectiveFactory(system, task, nthread, discount, physics)

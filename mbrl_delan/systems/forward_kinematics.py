@@ -9,8 +9,11 @@ control step; this walks the body tree in torch the way MuJoCo's `mj_kinematics`
   q - qpos0; a hinge rotates it about its axis by q - qpos0 and a ball by its (normalised)
   quaternion, both about the joint's anchor, which stays in place.
 
+`dof_axes` also gives each DoF's world axis (and a point on it for a rotation), as MuJoCo's
+`cdof` does: the point Jacobians of the contact model (`models/contact.py`) are built from them.
+
 Quaternions are (w, x, y, z). `tests/test_forward_kinematics.py` compares with MuJoCo's
-`xpos`, `xquat` and `site_xpos` on both humanoids.
+`xpos`, `xquat`, `site_xpos` and `mj_jac` on both humanoids.
 """
 
 from __future__ import annotations
@@ -64,6 +67,15 @@ class Poses:
     site_xpos: Tensor  # (..., nsite, 3)
 
 
+@dataclass
+class DofAxes:
+    """Each DoF's motion in the world: a translation along `axis`, or a rotation about `axis`
+    through `anchor` (`ForwardKinematics.rotational`)."""
+
+    axis: Tensor  # (..., nv, 3) unit vectors
+    anchor: Tensor  # (..., nv, 3)
+
+
 class ForwardKinematics(nn.Module):
     """q (..., nq) -> `Poses`, for a tree given as plain arrays (see `from_mujoco`).
 
@@ -91,6 +103,15 @@ class ForwardKinematics(nn.Module):
         if any(p >= i for i, p in enumerate(parent) if i > 0):
             raise ValueError("bodies must come after their parent (MuJoCo's tree order)")
         self.parent, self.joints, self.site_body = parent, joints, site_body
+        sizes = {FREE: 6, BALL: 3, SLIDE: 1, HINGE: 1}
+        # per DoF, in MuJoCo's order: its body and whether it rotates (else it translates)
+        self.dof_body = [b for b, js in enumerate(joints) for j in js for _ in range(sizes[j.kind])]
+        self.rotational = [
+            r for js in joints for j in js for r in {
+                FREE: (False,) * 3 + (True,) * 3, BALL: (True,) * 3, SLIDE: (False,),
+                HINGE: (True,),
+            }[j.kind]
+        ]  # fmt: skip
         self.register_buffer("body_pos", body_pos.double())
         self.register_buffer("body_quat", body_quat.double())
         self.register_buffer("site_pos", site_pos.double().reshape(-1, 3))
@@ -136,31 +157,67 @@ class ForwardKinematics(nn.Module):
         self._placed = {}  # a moved or cast module rebuilds its constants from its buffers
         return super()._apply(fn, recurse)
 
-    def forward(self, q: Tensor) -> Poses:
-        """Poses at positions q (..., nq), in q's dtype."""
+    def forward(self, q: Tensor, nbody: int | None = None) -> Poses:
+        """Poses at positions q (..., nq), in q's dtype; with `nbody`, of the first `nbody`
+        bodies only (and no sites): enough for a body and its ancestors, which come first."""
+        return self._walk(q, None, nbody)
+
+    def dof_axes(self, q: Tensor) -> tuple[Poses, DofAxes]:
+        """Poses and each DoF's world axis at q (..., nq): MuJoCo's `xaxis` / `xanchor` for
+        hinges and slides, the world axes for a free joint's translation, and the body's own
+        axes for a free or ball joint's (body-frame) rotation."""
+        axes: list[tuple[Tensor, Tensor]] = []
+        poses = self._walk(q, axes)
+        if not axes:
+            return poses, DofAxes(q.new_zeros((*q.shape[:-1], 0, 3)), q.new_zeros(0, 3))
+        axis, anchor = (torch.stack(t, dim=-2) for t in zip(*axes, strict=True))
+        return poses, DofAxes(axis=axis, anchor=anchor)
+
+    def _walk(
+        self, q: Tensor, axes: list[tuple[Tensor, Tensor]] | None, nbody: int | None = None
+    ) -> Poses:
+        """Poses of the first `nbody` bodies (None: all, with the sites) at q (..., nq); each
+        DoF's (axis, anchor) appended to `axes` unless None."""
         batch, c = q.shape[:-1], self.placed(q)
         xpos = [q.new_zeros((*batch, 3))]
         xquat = [c.world_quat.expand(*batch, 4)]
-        for b in range(1, len(self.parent)):
-            pos, quat = self._body(q, b, xpos, xquat, c)
+        for b in range(1, len(self.parent) if nbody is None else nbody):
+            pos, quat = self._body(q, b, xpos, xquat, c, axes)
             xpos.append(pos)
             xquat.append(_unit(quat))
         xpos_t, xquat_t = torch.stack(xpos, dim=-2), torch.stack(xquat, dim=-2)
-        return Poses(xpos=xpos_t, xquat=xquat_t, site_xpos=self._sites(xpos_t, xquat_t, c))
+        sites = self._sites(xpos_t, xquat_t, c) if nbody is None else xpos_t[..., :0, :]
+        return Poses(xpos=xpos_t, xquat=xquat_t, site_xpos=sites)
 
     def _body(
-        self, q: Tensor, b: int, xpos: list[Tensor], xquat: list[Tensor], c: _Placed
+        self,
+        q: Tensor,
+        b: int,
+        xpos: list[Tensor],
+        xquat: list[Tensor],
+        c: _Placed,
+        axes: list[tuple[Tensor, Tensor]] | None = None,
     ) -> tuple[Tensor, Tensor]:
         """Position (..., 3) and orientation (..., 4) of body b from its parent's."""
         joints = self.joints[b]
         if len(joints) == 1 and joints[0].kind == FREE:
             adr = joints[0].qpos_adr
-            return q[..., adr : adr + 3], _unit(q[..., adr + 3 : adr + 7])
+            pos, quat = q[..., adr : adr + 3], _unit(q[..., adr + 3 : adr + 7])
+            if axes is not None:
+                world = torch.eye(3, dtype=q.dtype, device=q.device).expand(*pos.shape, 3)
+                axes += [(world[..., k, :], pos) for k in range(3)]
+                axes += _body_axes(quat, pos)
+            return pos, quat
         p = self.parent[b]
         pos = xpos[p] + quat_rotate(xquat[p], c.body_pos[b].expand_as(xpos[p]))
         quat = quat_mul(xquat[p], c.body_quat[b].expand_as(xquat[p]))
         for joint, axis, anchor in zip(joints, c.axes[b], c.anchors[b], strict=True):
+            if axes is not None and joint.kind in (HINGE, SLIDE):
+                world_axis = quat_rotate(quat, axis.expand_as(pos))
+                axes.append((world_axis, pos + quat_rotate(quat, anchor.expand_as(pos))))
             pos, quat = self._joint(q, joint, axis, anchor, pos, quat)
+            if axes is not None and joint.kind == BALL:
+                axes += _body_axes(_unit(quat), pos + quat_rotate(quat, anchor.expand_as(pos)))
         return pos, quat
 
     @staticmethod
@@ -190,6 +247,13 @@ class ForwardKinematics(nn.Module):
         body_pos = xpos.index_select(-2, c.site_body)
         body_quat = xquat.index_select(-2, c.site_body)
         return body_pos + quat_rotate(body_quat, c.site_pos.expand_as(body_pos))
+
+
+def _body_axes(quat: Tensor, anchor: Tensor) -> list[tuple[Tensor, Tensor]]:
+    """A body's own x, y, z axes in the world (..., 3) at orientation quat (..., 4), each
+    with `anchor` (..., 3): the DoFs of a body-frame angular velocity."""
+    eye = torch.eye(3, dtype=quat.dtype, device=quat.device)
+    return [(quat_rotate(quat, eye[k].expand_as(anchor)), anchor) for k in range(3)]
 
 
 @dataclass(frozen=True)

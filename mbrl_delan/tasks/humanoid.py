@@ -90,6 +90,7 @@ class HumanoidTask(Task):
         self.torso = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body.torso_body)
         if min(self.head, self.torso) < 0:
             raise ValueError(f"bodies {body.head_body!r} / {body.torso_body!r} not in the model")
+        self.nbody = max(self.head, self.torso) + 1  # the bodies the rewards need (tree order)
         self.body, self.speed = body, speed
         self.stand_height, self.fall_height = stand_height, fall_height
         self.ctrl_max, self.episode_len, self.reset_noise = ctrl_max, episode_len, reset_noise
@@ -112,16 +113,20 @@ class HumanoidTask(Task):
         up = self.constants.on(quat)["torso_up"].expand_as(quat[..., 1:])
         return quat_rotate(quat, up)[..., 2]
 
+    def _poses(self, q: Tensor) -> Poses:
+        """Poses of the head, the torso and the bodies before them. (..., nq) ->"""
+        return self.fk(q, self.nbody)
+
     def head_height(self, q: Tensor) -> Tensor:
         """(..., nq) -> (...) m."""
-        return self._head_z(self.fk(q))
+        return self._head_z(self._poses(q))
 
     def upright(self, q: Tensor) -> Tensor:
         """World z of the torso's up axis, in [-1, 1]. (..., nq) -> (...)."""
-        return self._up_z(self.fk(q))
+        return self._up_z(self._poses(q))
 
     def reward(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
-        poses = self.fk(q)
+        poses = self._poses(q)
         standing = tolerance_below(self._head_z(poses), self.stand_height, self.stand_height / 4)
         upright = (1.0 + tolerance_below(self._up_z(poses), 0.9, 1.9)) / 2.0
         control = torch.exp(-(action / self.ctrl_max).square().mean(dim=-1))

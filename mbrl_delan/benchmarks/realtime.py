@@ -1,0 +1,181 @@
+"""Suite `realtime`: milliseconds of planning per control step at the loop's own settings.
+
+For each task in `tasks` (`humanoid_stand`, `humanoid_walk`, `pendulum`) and each dynamics in
+`models` (`mujoco`, `delan`, `ensemble`), the config is the one
+``python -m mbrl_delan.train env=<task> model=<dynamics>`` composes (with the suite's
+`overrides`), and the policy is the one the loop builds from it (`train.build_policy`, or
+`train.build_oracle` for `mujoco`):
+
+- `mujoco`: the oracle (the loop's planner on MuJoCo, with the env's `oracle_substeps` and
+  `oracle_integrator`) runs one episode of at most `oracle_steps` control steps on the real
+  env from the task's start of `seed`. `plan_ms_per_control_step` is the planning time per
+  control step (the policy's calls only, not the env's steps); `steps_survived` is the
+  number of control steps before the task terminated (the humanoid fell), or all of them.
+- `delan`, `ensemble`: an untrained model (timing does not depend on the weights) in
+  float32 on `device`, the DeLaN through the compiled path (`model.compile=true`).
+  `plan_ms_per_control_step` is one warm-started `act` from the task's start state, timed
+  as `TimingConfig` says (the median over `repeats` measurements).
+
+Every record carries `task`, `dynamics`, `threads` (torch's, which are also MuJoCo's rollout
+threads), the planner and its `num_samples`, `iterations`, `knots`, `interpolation` and
+`horizon`, and the control period `control_dt_ms`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+
+from mbrl_delan import keys
+from mbrl_delan.benchmarks import (
+    REALTIME_DYNAMICS,
+    REALTIME_TASKS,
+    SuiteOptions,
+    host_fields,
+    synchronizer,
+    time_call,
+)
+from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.config import compose_train_config
+from mbrl_delan.envs.real import make_real_env
+from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.systems.system import FREE, System
+from mbrl_delan.training.loop import episode_return, run_episode
+
+log = logging.getLogger(__name__)
+
+SUITE = "realtime"
+METRIC = "plan_ms_per_control_step"
+# the learned models' planning path: the DeLaN compiled, as the loop runs it with compile on
+MODEL_OVERRIDES = {"delan": ("model=delan", "model.compile=true"), "ensemble": ("model=ensemble",)}
+QUICK_STEPS = 5  # control steps of a mujoco episode under `quick`
+PLANNER_FIELDS = ("num_samples", "iterations", "knots", "interpolation", "horizon")
+
+
+@dataclass(frozen=True)
+class RealtimeConfig:
+    """What the suite runs: tasks x dynamics at the loop's settings (with `overrides`)."""
+
+    tasks: tuple[str, ...] = REALTIME_TASKS
+    dynamics: tuple[str, ...] = REALTIME_DYNAMICS
+    overrides: tuple[str, ...] = ()  # train-config overrides of every case
+    oracle_steps: int | None = None  # control steps of the mujoco episodes (None: the task's)
+    seed: int = 0
+
+    @classmethod
+    def from_options(cls, opts: SuiteOptions) -> RealtimeConfig:
+        """The options' choices; None keeps the default (`quick`: 5-step mujoco episodes)."""
+        steps = opts.oracle_steps
+        return cls(
+            tasks=opts.tasks or REALTIME_TASKS,
+            dynamics=REALTIME_DYNAMICS if opts.models is None else opts.models,
+            overrides=opts.overrides,
+            oracle_steps=QUICK_STEPS if opts.quick and steps is None else steps,
+            seed=opts.seed or 0,
+        )
+
+
+class TimedPolicy:
+    """A policy whose calls are timed: `seconds` in all over `calls` calls."""
+
+    def __init__(self, policy: PlannerPolicy) -> None:
+        self.policy, self.seconds, self.calls = policy, 0.0, 0
+
+    def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
+        start = time.perf_counter()
+        out = self.policy(tensordict)
+        self.seconds += time.perf_counter() - start
+        self.calls += 1
+        return out
+
+    def reset(self) -> None:
+        self.policy.reset()
+
+
+def case_config(task: str, dynamics: str, overrides: tuple[str, ...]) -> DictConfig:
+    """The train config of one case: the loop's on `task`, its model, then `overrides`."""
+    model = MODEL_OVERRIDES.get(dynamics, ())
+    return compose_train_config([f"env={task}", *model, *overrides])
+
+
+def _fields(cfg: DictConfig, task: str, dynamics: str, control_dt: float) -> dict[str, Any]:
+    planner = {name: cfg.planner.get(name) for name in PLANNER_FIELDS}
+    return dict(
+        task=task, dynamics=dynamics, threads=torch.get_num_threads(),
+        planner=cfg.planner.name, **planner, control_dt_ms=1e3 * control_dt,
+    )  # fmt: skip
+
+
+def mujoco_case(cfg: DictConfig, task: str, steps: int | None, seed: int) -> tuple[float, dict]:
+    """The oracle's planning ms per control step over one episode, and `steps_survived`."""
+    from mbrl_delan.train import build_oracle  # the entry point's parts: imported when used
+
+    parts = make_env_parts(task, None, steps)
+    policy = TimedPolicy(build_oracle(cfg, parts.system, parts.task))
+    env = make_real_env(task, seed=seed, episode_len=parts.task.episode_len)
+    try:
+        rollout = run_episode(env, policy, seed, parts.task.episode_len)
+    finally:
+        env.close()
+        policy.policy.objective_factory.close()
+    extra = dict(
+        steps_survived=int(rollout.shape[0]), episode_len=parts.task.episode_len, seed=seed,
+        episode_return=episode_return(rollout), **_root_speed(parts.system, rollout),
+        oracle_substeps=cfg.env.oracle_substeps, oracle_integrator=cfg.env.oracle_integrator,
+    )  # fmt: skip
+    return 1e3 * policy.seconds / max(policy.calls, 1), extra
+
+
+def _root_speed(system: System, rollout: TensorDictBase) -> dict[str, float]:
+    """A free root's mean horizontal speed and mean x velocity over the reached states, m/s
+    (nothing for a system without a free root)."""
+    if not system.layout.types or system.layout.types[0] != FREE:
+        return {}
+    velocity = rollout.get(keys.NEXT_QD)[:, 0:2].to(torch.float64)  # (T, 2) world frame
+    return dict(
+        mean_speed_m_s=float(torch.linalg.vector_norm(velocity, dim=-1).mean()),
+        mean_forward_speed_m_s=float(velocity[:, 0].mean()),
+    )
+
+
+def model_case(cfg: DictConfig, task: str, opts: SuiteOptions, seed: int) -> tuple[float, dict]:
+    """One warm-started `act` of the loop's policy over an untrained model, in ms."""
+    from mbrl_delan.train import build_policy, build_world_model
+
+    parts = make_env_parts(task, None, None)
+    model = build_world_model(cfg, parts.system, opts.device, torch.float32)
+    generator = torch.Generator(device=opts.device).manual_seed(seed)
+    policy = build_policy(cfg, parts.system, parts.task, model, generator)
+    start = parts.task.initial_state((), torch.Generator().manual_seed(seed))
+    q = start.q.to(opts.device, torch.float32)
+    qd = start.qd.to(opts.device, torch.float32)
+    policy.reset()
+    timing = time_call(lambda: policy.act(q, qd), opts.timing, synchronizer(opts.device))
+    return 1e3 * timing.seconds_per_call, timing.fields()
+
+
+def run_realtime_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
+    rt = RealtimeConfig.from_options(opts)
+    host = host_fields(opts.device)
+    for task in rt.tasks:
+        for dynamics in rt.dynamics:
+            cfg = case_config(task, dynamics, rt.overrides)
+            control_dt = make_env_parts(task, None, None).system.control_dt
+            fields = _fields(cfg, task, dynamics, control_dt)
+            log.info("realtime: %s on %s (%s)", dynamics, task, fields)
+            if dynamics == "mujoco":
+                ms, extra = mujoco_case(cfg, task, rt.oracle_steps, rt.seed)
+                device = "cpu"
+            else:
+                ms, extra = model_case(cfg, task, opts, rt.seed)
+                device = opts.device.type
+            case = f"{task}-{dynamics}"
+            yield BenchRecord(SUITE, case, METRIC, ms, "ms", device, fields | extra | host)

@@ -1,0 +1,113 @@
+"""Suite realtime (the benchmark contract of planning time per control step) and the
+oracle's planning physics (`PlanPhysics`)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from mbrl_delan.bench import build_options
+from mbrl_delan.benchmarks import SuiteOptions, TimingConfig
+from mbrl_delan.benchmarks.realtime import (
+    PLANNER_FIELDS,
+    RealtimeConfig,
+    case_config,
+    model_case,
+)
+from mbrl_delan.config import ConfigError, compose_train_config
+from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.objectives.mujoco import MujocoObjectiveFactory, PlanPhysics
+
+CONFIGS = Path(__file__).parents[1] / "configs"
+
+
+def test_quick_suite_writes_the_contract(tmp_path: Path) -> None:
+    out = tmp_path / "realtime.jsonl"
+    cmd = [sys.executable, "-m", "mbrl_delan.bench", "suite=realtime", "quick=true", "threads=1"]
+    cmd += ["tasks=[pendulum]", "models=[mujoco,ensemble]", f"out={out}"]
+    cmd += [f"hydra.run.dir={tmp_path / 'run'}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [r["dynamics"] for r in records] == ["mujoco", "ensemble"]
+    for r in records:
+        assert r["suite"] == "realtime" and r["metric"] == "plan_ms_per_control_step"
+        assert r["task"] == "pendulum" and r["threads"] == 1 and r["planner"] == "mppi"
+        assert set(PLANNER_FIELDS) <= set(r)
+        assert math.isfinite(r["value"]) and r["value"] > 0
+    oracle = records[0]
+    assert oracle["steps_survived"] == 5 and oracle["episode_len"] == 5  # the quick episode
+
+
+def test_the_delan_case_plans_with_the_loops_policy() -> None:
+    """The DeLaN case (eager here: compiling takes 5-40 s) times the loop's own policy."""
+    cfg = case_config("pendulum", "delan", ("model.compile=false", "planner.num_samples=16"))
+    assert cfg.model.name == "delan" and cfg.planner.num_samples == 16
+    assert case_config("pendulum", "delan", ()).model.compile  # the suite's default: compiled
+    opts = SuiteOptions(nv=(2,), batch=(1,), device=torch.device("cpu"),
+                        timing=TimingConfig(repeats=1, min_time_s=0.01, warmup=1))  # fmt: skip
+    ms, timing = model_case(cfg, "pendulum", opts, seed=0)
+    assert math.isfinite(ms) and ms > 0 and timing["repeats"] == 1
+
+
+def test_realtime_options() -> None:
+    def options(*overrides: str):
+        with initialize_config_dir(config_dir=str(CONFIGS.resolve()), version_base=None):
+            return build_options(compose("bench", overrides=["suite=realtime", *overrides]))
+
+    default = RealtimeConfig.from_options(options())
+    assert default.tasks == ("humanoid_stand", "humanoid_walk", "pendulum")
+    assert default.dynamics == ("mujoco", "delan", "ensemble") and default.oracle_steps is None
+    some = RealtimeConfig.from_options(options("models=[delan]", "tasks=[humanoid_walk]"))
+    assert some.dynamics == ("delan",) and some.tasks == ("humanoid_walk",)
+    with pytest.raises(ConfigError, match="tasks"):
+        options("tasks=[cartpole]")
+    with pytest.raises(ConfigError, match="models"):
+        options("models=[humanoid_delan]")
+
+
+def test_humanoid_oracle_plans_on_a_cheaper_mujoco() -> None:
+    cfg = compose_train_config(["env=humanoid_stand"])
+    assert (cfg.env.oracle_substeps, cfg.env.oracle_integrator) == (2, "euler")
+    system = make_env_parts("humanoid_stand").system
+    model, substeps = PlanPhysics(2, "euler").model(system)
+    assert substeps == 2 and model.opt.timestep == pytest.approx(system.control_dt / 2)
+    assert model.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER
+    own, skip = PlanPhysics().model(system)
+    assert skip == system.frame_skip and own.opt.timestep == pytest.approx(system.timestep)
+    assert own.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4  # the MJCF's
+    with pytest.raises(ValueError, match="integrator"):
+        PlanPhysics(integrator="verlet")
+    with pytest.raises(ValueError, match="substeps"):
+        PlanPhysics(substeps=0)
+    with pytest.raises(ConfigError, match="oracle_integrator"):
+        compose_train_config(["env=humanoid_stand", "env.oracle_integrator=verlet"])
+
+
+def test_the_plan_physics_is_the_env_physics_when_unset() -> None:
+    """Default `PlanPhysics`: the oracle's rollout equals the env's own MuJoCo steps."""
+    parts = make_env_parts("pendulum")
+    factory = MujocoObjectiveFactory(parts.system, parts.task, nthread=1)
+    same = MujocoObjectiveFactory(
+        parts.system, parts.task, nthread=1, physics=PlanPhysics(parts.system.frame_skip)
+    )
+    finer = MujocoObjectiveFactory(
+        parts.system, parts.task, nthread=1, physics=PlanPhysics(4 * parts.system.frame_skip)
+    )
+    start = factory.initial_state(torch.tensor([0.3]), torch.tensor([0.0]))
+    actions = torch.linspace(-1, 1, 10, dtype=torch.float64).reshape(1, 10, 1)
+    a, b, c = (f.rollout(start, actions).states.q for f in (factory, same, finer))
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert not torch.equal(a, c) and float((a - c).abs().max()) < 1e-2  # the same motion, finer
+    for f in (factory, same, finer):
+        f.close()
+    np.testing.assert_array_equal(a.shape, (1, 10, 1))
