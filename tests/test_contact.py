@@ -160,3 +160,18 @@ def test_delan_adds_the_contact_force() -> None:
     residual = model.tau_scale * model.residual(q, qd, action, model.velocity_limit / 3.0)
     torch.testing.assert_close(model.applied_force(q, qd, action), own + residual)
     assert isinstance(model.contact.points, ContactPoints)
+
+
+def test_the_contact_law_learns_through_a_delan_step() -> None:
+    """A forward step from states through the floor gives the law's constants a finite,
+    non-zero gradient (they are fitted with the rest of the model)."""
+    cfg = compose_train_config(["env=humanoid_stand", "model=delan", "env.model_contacts=true"])
+    parts = make_env_parts("humanoid_stand", None, 10)
+    model = build_model(cfg.model, parts.system)
+    q, qd = random_state(parts.system.mj_model(), 8, 0.95, seed=4)
+    nxt = model.step(q.float(), qd.float(), torch.zeros(8, parts.system.nu))
+    assert bool(torch.isfinite(nxt.q).all() and torch.isfinite(nxt.qd).all())
+    nxt.qd.square().sum().backward()
+    for name, param in model.contact.named_parameters():
+        assert param.grad is not None and bool(torch.isfinite(param.grad)), name
+        assert float(param.grad.abs()) > 0, name

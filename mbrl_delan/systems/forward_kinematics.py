@@ -36,6 +36,10 @@ FREE, BALL, SLIDE, HINGE = (
 )
 
 
+# per joint kind, whether each of its DoFs rotates (else it translates)
+ROTATES = {FREE: (False,) * 3 + (True,) * 3, BALL: (True,) * 3, SLIDE: (False,), HINGE: (True,)}
+
+
 def quat_rotate(quat: Tensor, vec: Tensor) -> Tensor:
     """Rotate vectors by unit quaternions: (..., 4), (..., 3) -> (..., 3)."""
     w, xyz = quat[..., :1], quat[..., 1:]
@@ -103,15 +107,9 @@ class ForwardKinematics(nn.Module):
         if any(p >= i for i, p in enumerate(parent) if i > 0):
             raise ValueError("bodies must come after their parent (MuJoCo's tree order)")
         self.parent, self.joints, self.site_body = parent, joints, site_body
-        sizes = {FREE: 6, BALL: 3, SLIDE: 1, HINGE: 1}
         # per DoF, in MuJoCo's order: its body and whether it rotates (else it translates)
-        self.dof_body = [b for b, js in enumerate(joints) for j in js for _ in range(sizes[j.kind])]
-        self.rotational = [
-            r for js in joints for j in js for r in {
-                FREE: (False,) * 3 + (True,) * 3, BALL: (True,) * 3, SLIDE: (False,),
-                HINGE: (True,),
-            }[j.kind]
-        ]  # fmt: skip
+        self.dof_body = [b for b, js in enumerate(joints) for j in js for _ in ROTATES[j.kind]]
+        self.rotational = [r for js in joints for j in js for r in ROTATES[j.kind]]
         self.register_buffer("body_pos", body_pos.double())
         self.register_buffer("body_quat", body_quat.double())
         self.register_buffer("site_pos", site_pos.double().reshape(-1, 3))
