@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from mbrl_delan.benchmarks import (
+    HUMANOID_MODEL_VARIANTS,
     HUMANOID_MODELS,
     HUMANOID_ORACLE_TASKS,
     ILQR_TASKS,
@@ -56,7 +57,10 @@ def _models(values: list[str] | None, suite: str) -> tuple[str, ...] | None:
     if values is None:
         return None
     humanoid = suite == "humanoid"
-    known = {"humanoid": HUMANOID_MODELS, "realtime": REALTIME_DYNAMICS}.get(suite, PLANNER_MODELS)
+    known = {
+        "humanoid": HUMANOID_MODELS + HUMANOID_MODEL_VARIANTS,
+        "realtime": REALTIME_DYNAMICS,
+    }.get(suite, PLANNER_MODELS)
     if (not values and not humanoid) or any(v not in known for v in values):
         empty = " (or [] for none)" if humanoid else ""
         raise ConfigError(

@@ -173,6 +173,8 @@ def test_the_suite_builds_the_loops_model_and_oracle_planner() -> None:
     assert not delan.contacts
     contact = model_config("delan_contact", cfg)  # the same DeLaN with the contact model
     assert contact.name == "delan" and contact.contacts and contact.residual
+    alone = model_config("delan_contact_only", cfg)  # on demand: contacts without residual
+    assert alone.contacts and not alone.residual
     quick = model_config("ensemble", HumanoidBenchConfig.quick())
     assert (quick.hidden, quick.layers, quick.ensemble_size) == (8, 1, 2)
     for env in cfg.oracle_tasks:

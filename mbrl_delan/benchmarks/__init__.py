@@ -54,6 +54,8 @@ GRAPH_SUFFIX = "_graph"
 # world models of suite humanoid: DeLaN + residual, DeLaN + residual + the structured contact
 # model, the DeLaN ensemble, the MLP ensemble
 HUMANOID_MODELS = ("delan", "delan_contact", "delan_ensemble", "ensemble")
+# and, on demand only (`models=[...]`): DeLaN without the residual, with or without contacts
+HUMANOID_MODEL_VARIANTS = ("delan_plain", "delan_contact_only")
 # tasks on which suite humanoid runs the oracle planner for one episode
 HUMANOID_ORACLE_TASKS = ("humanoid_stand", "humanoid_walk", "cmu_track")
 ORACLE_PLANNERS = ("mppi", "cem", "icem", "predictive", "ilqr")  # suite humanoid's oracles

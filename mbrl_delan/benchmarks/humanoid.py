@@ -87,7 +87,11 @@ log = logging.getLogger(__name__)
 SUITE = "humanoid"
 MODEL_CASES = HUMANOID_MODELS
 # cases that are a model group with overrides (the others: the group of their name)
-CASE_GROUPS = {"delan_contact": ("delan", ("model.contacts=true",))}
+CASE_GROUPS = {
+    "delan_contact": ("delan", ("model.contacts=true",)),
+    "delan_plain": ("delan", ("model.residual=false",)),
+    "delan_contact_only": ("delan", ("model.contacts=true", "model.residual=false")),
+}
 
 
 @dataclass(frozen=True)
