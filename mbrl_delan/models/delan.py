@@ -155,9 +155,9 @@ class DeLaN(WorldModel):
 
     def applied_force(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
         """B a, plus the contact and residual forces when the model has them. (..., nv)"""
-        return self._with_residual(self.dynamics.generalized_force(action), q, qd, action)
+        return self._with_learned_forces(self.dynamics.generalized_force(action), q, qd, action)
 
-    def _with_residual(self, tau: Tensor, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
+    def _with_learned_forces(self, tau: Tensor, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
         """tau + the contact force + r(q, qd, a) in torque units, those the model has.
         (..., nv)"""
         if self.contact is not None:
@@ -179,7 +179,7 @@ class DeLaN(WorldModel):
 
         def accel(q_: Tensor, qd_: Tensor) -> Tensor:
             qd_ = self._clamp_velocity(q_, qd_)
-            force = self._with_residual(tau, q_, qd_, action)
+            force = self._with_learned_forces(tau, q_, qd_, action)
             return self.dynamics.forward_dynamics(q_, qd_, force)
 
         nxt = integrate(self.layout, accel, q, qd, self.control_dt, self.integrator, self.substeps)
