@@ -142,6 +142,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         oracle_planner=v["oracle_planner"],
         oracle_overrides=tuple(v["oracle_overrides"]),
         seed=v["seed"],
+        data_run=v["data_run"],
         tasks=tuples("tasks"),
         overrides=tuple(v["overrides"]),
     )

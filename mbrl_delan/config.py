@@ -191,6 +191,9 @@ MIGRATIONS: dict[str, Any] = {
     "plugins": [],
     "video": False,
     "budget.oracle_planner": "same",
+    "budget.env_steps": None,  # runs ended after `iterations` rounds only
+    "env.env_steps": None,
+    "env.eval_episodes": 2,
     "buffer.device": "auto",
     "buffer.device_fraction": 0.5,
     "planner.risk": 0.0,

@@ -105,7 +105,9 @@ class EnvConfig:
     horizon: int = rule(low=1)  # the planners' horizon (planner.horizon)
     random_episodes: int = rule(1, low=1)
     iterations: int = rule(low=1)
+    env_steps: int | None = rule(None, low=1)  # the run's env-step budget (null: rounds only)
     eval_every: int = rule(1, low=1)
+    eval_episodes: int = rule(2, low=0)
     model_integrator: str = rule("euler", choices=INTEGRATORS)
     model_substeps: int = rule(1, low=1)
     model_residual: bool = False
@@ -257,6 +259,7 @@ class BudgetConfig:
 
     random_episodes: int = rule(low=1)  # the first fit needs data
     iterations: int = rule(low=1)
+    env_steps: int | None = rule(None, low=1)
     eval_every: int = rule(low=1)
     eval_episodes: int = rule(low=0)
     final_eval_episodes: int = rule(low=0)
@@ -351,6 +354,7 @@ class BenchConfig:
     oracle_planner: str | None = rule(None, choices=ORACLE_PLANNERS)
     oracle_overrides: list[str] = field(default_factory=list)
     seed: int | None = rule(None, low=0)
+    data_run: str | None = None  # suite humanoid: a train run dir whose buffer gives the data
     tasks: list[str] | None = rule(None, choices=REALTIME_TASKS)
     overrides: list[str] = field(default_factory=list)
 

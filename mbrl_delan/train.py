@@ -49,11 +49,13 @@ from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus, mujoco_objective_factory
 from mbrl_delan.planners.base import SamplingPlanner
+from mbrl_delan.planners.humanoid_residual import HUMANOID_ILQR, humanoid_ilqr_policy
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, tracking_ilqr_policy
 from mbrl_delan.sweep import exit_or_raise, marks_crash, with_sweep_group
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
+from mbrl_delan.tasks.humanoid import HumanoidTask
 from mbrl_delan.tasks.tracking import MotionTracking
 from mbrl_delan.training.checkpoint import (
     CHECKPOINT_FILE,
@@ -127,22 +129,12 @@ def _planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPla
 
 def build_oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy:
     """The oracle policy of `budget.oracle_planner`: `same` (the loop's planner on MuJoCo) or
-    `ilqr` (tracking tasks: iLQR over the planner's horizon, `TRACKING_ILQR` otherwise)."""
-    if cfg.budget.oracle_planner == "ilqr":
-        if not isinstance(task, MotionTracking):
-            raise ConfigError(
-                f"budget.oracle_planner=ilqr needs a motion-tracking env (cmu_track), got "
-                f"env={cfg.env.name}"
-            )
-        settings = replace(TRACKING_ILQR, horizon=cfg.planner.horizon)
-        nthread = min(available_cpus(), 8)
-        log.info(
-            "oracle: iLQR, horizon %d, %d iterations, on MuJoCo's derivatives (%d threads)",
-            settings.horizon, settings.iterations, nthread,
-        )  # fmt: skip
-        return tracking_ilqr_policy(system, task, nthread, settings)
-    log.info("oracle: the loop's planner (%s) on MuJoCo's dynamics", cfg.planner.name)
+    `ilqr` (iLQR over the planner's horizon on MuJoCo's derivatives, with the tracking
+    residuals on cmu_track and the humanoid residuals on humanoid_stand and humanoid_walk)."""
     physics = PlanPhysics(cfg.env.oracle_substeps, cfg.env.oracle_integrator)
+    if cfg.budget.oracle_planner == "ilqr":
+        return _ilqr_oracle(cfg, system, task, physics)
+    log.info("oracle: the loop's planner (%s) on MuJoCo's dynamics", cfg.planner.name)
     oracle_factory = mujoco_objective_factory(
         system, task, discount=cfg.planner.discount, physics=physics
     )
@@ -150,6 +142,28 @@ def build_oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy:
         cfg.planner, _planner(cfg, system, torch.float64), oracle_factory, cfg.seed,
         torch.device("cpu"),
     )  # fmt: skip
+
+
+def _ilqr_oracle(
+    cfg: DictConfig, system: System, task: Task, physics: PlanPhysics
+) -> PlannerPolicy:
+    nthread = min(available_cpus(), 8)
+    if isinstance(task, MotionTracking):
+        settings = replace(TRACKING_ILQR, horizon=cfg.planner.horizon)
+        policy = tracking_ilqr_policy(system, task, nthread, settings)
+    elif isinstance(task, HumanoidTask):
+        settings = replace(HUMANOID_ILQR, horizon=cfg.planner.horizon)
+        policy = humanoid_ilqr_policy(system, task, nthread, settings, physics=physics)
+    else:
+        raise ConfigError(
+            "budget.oracle_planner=ilqr needs a motion-tracking or humanoid env (cmu_track, "
+            f"humanoid_stand, humanoid_walk), got env={cfg.env.name}"
+        )
+    log.info(
+        "oracle: iLQR, horizon %d, %d iterations, on MuJoCo's derivatives (%d threads)",
+        settings.horizon, settings.iterations, nthread,
+    )  # fmt: skip
+    return policy
 
 
 def build_policy(
@@ -290,7 +304,7 @@ def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Reco
     evaluation, k = loop.last_evaluation, loop.counters.iteration
     if not cfg.video or evaluation is None or not evaluation.rollouts:
         return
-    if k < cfg.budget.iterations and not cfg.video_every_eval:
+    if not loop.finished(schedule_of(cfg)) and not cfg.video_every_eval:
         return
     try:
         with VideoRecorder(
@@ -420,6 +434,7 @@ def schedule_of(cfg: DictConfig) -> Schedule:
         eval_every=b.eval_every,
         eval_episodes=b.eval_episodes,
         final_eval_episodes=b.final_eval_episodes,
+        env_steps=b.env_steps,
     )
 
 
@@ -432,17 +447,18 @@ def _run(
 ) -> None:
     """`loop.run` with the entry point's hooks: metrics to the recorder, an atomic checkpoint
     after each stage, videos and a progress bar after each round."""
+    by_steps = cfg.budget.env_steps is not None  # the bar counts env steps, else rounds
     bar = tqdm(
-        total=cfg.budget.iterations,
-        initial=loop.counters.iteration,
+        total=cfg.budget.env_steps if by_steps else cfg.budget.iterations,
+        initial=loop.counters.env_steps if by_steps else loop.counters.iteration,
         desc="mbrl",
-        unit="iter",
+        unit="step" if by_steps else "iter",
         disable=None,
     )
 
     def after_round(metrics: dict[str, Any]) -> None:
         _write_videos(cfg, run_dir, loop, recorder)
-        bar.update(1)
+        bar.update(metrics["env_steps"] - bar.n if by_steps else 1)
         bar.set_postfix(
             steps=metrics["env_steps"],
             ret=f"{metrics['train_return']:.1f}",

@@ -21,9 +21,11 @@ from mbrl_delan.benchmarks.humanoid import (
     HumanoidBenchConfig,
     PDHoldPolicy,
     collect_episodes,
+    first_transitions,
     model_config,
     oracle_config,
     rollout_error,
+    split_run_episodes,
     suite_config,
     tracking_errors,
 )
@@ -275,3 +277,35 @@ def test_tracking_errors_average_the_episodes_distances() -> None:
     assert errors["root_error_max_m"] == pytest.approx(0.3, abs=1e-6)
     assert errors["end_effector_error_m"] == pytest.approx(0.0, abs=1e-5)
     assert errors["end_effector_error_max_m"] == pytest.approx(0.0, abs=1e-5)
+
+
+def test_data_run_gives_a_runs_buffered_episodes_in_order(tmp_path: Path) -> None:
+    """`data_run`: the episodes of a run's checkpointed buffer (one that wrapped: the oldest
+    transitions overwritten), oldest first, the last ones the test set."""
+    from omegaconf import OmegaConf
+
+    from mbrl_delan.data.buffer import add_transitions, buffer_state, make_replay_buffer
+    from mbrl_delan.training.checkpoint import save_checkpoint
+
+    parts = make_env_parts("humanoid_stand")
+    cfg = HumanoidBenchConfig(episode_len=12)
+    episodes = collect_episodes(parts.system, parts.task, 60, cfg, seed=3)  # 5 x 12
+    total = sum(e.shape[0] for e in episodes)
+    buffer = make_replay_buffer(total - 4)  # the first episode's first 4 steps overwritten
+    for i, episode in enumerate(episodes):
+        add_transitions(buffer, episode.to(torch.float32).set("episode", torch.full((12, 1), i)))
+    save_checkpoint(tmp_path / "checkpoint.pt", {"loop": {"buffer": buffer_state(buffer)}})
+    OmegaConf.save({"env": {"name": "humanoid_stand"}}, tmp_path / "config.yaml")
+
+    train, test = split_run_episodes(str(tmp_path), "humanoid_stand", test_transitions=20)
+    assert [e.shape[0] for e in train] == [8, 12, 12] and [e.shape[0] for e in test] == [12, 12]
+    for got, want in zip(train[1:] + test, episodes[1:], strict=True):
+        torch.testing.assert_close(got[keys.NEXT_Q], want[keys.NEXT_Q].to(torch.float32).double())
+    torch.testing.assert_close(train[0][keys.Q], episodes[0][keys.Q][4:].float().double())
+    assert first_transitions(train, 30, "run").shape == (30,)
+    with pytest.raises(ConfigError, match="more than the 32 training transitions"):
+        first_transitions(train, 33, "run")
+    with pytest.raises(ConfigError, match="a run of env=humanoid_stand, not humanoid_walk"):
+        split_run_episodes(str(tmp_path), "humanoid_walk", 20)
+    with pytest.raises(ConfigError, match="no checkpoint.pt"):
+        split_run_episodes(str(tmp_path / "missing"), "humanoid_stand", 20)

@@ -20,6 +20,7 @@ from mbrl_delan.benchmarks import SuiteOptions, TimingConfig
 from mbrl_delan.benchmarks.realtime import (
     PLANNER_FIELDS,
     RealtimeConfig,
+    _fields,
     case_config,
     model_case,
 )
@@ -46,6 +47,15 @@ def test_quick_suite_writes_the_contract(tmp_path: Path) -> None:
         assert math.isfinite(r["value"]) and r["value"] > 0
     oracle = records[0]
     assert oracle["steps_survived"] == 5 and oracle["episode_len"] == 5  # the quick episode
+
+
+def test_an_ilqr_oracle_case_is_recorded_as_ilqr() -> None:
+    walk = case_config("humanoid_walk", "mujoco", ())  # its default oracle
+    fields = _fields(walk, "humanoid_walk", "mujoco", 0.015)
+    assert fields["planner"] == "ilqr" and fields["horizon"] == 30
+    assert fields["num_samples"] is None and fields["knots"] is None
+    stand = _fields(case_config("humanoid_stand", "mujoco", ()), "humanoid_stand", "mujoco", 0.015)
+    assert stand["planner"] == "mppi" and stand["num_samples"] == 64 and stand["knots"] == 4
 
 
 def test_the_delan_case_plans_with_the_loops_policy() -> None:

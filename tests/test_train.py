@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -16,6 +17,7 @@ from hydra import compose, initialize_config_dir
 from tiny import TINY_TRAIN
 
 from mbrl_delan.training.checkpoint import load_checkpoint
+from mbrl_delan.training.loop import Schedule
 
 TINY = TINY_TRAIN
 DATA = Path(__file__).parent / "data"  # holds the CMU clip 09_06 (a run)
@@ -38,7 +40,8 @@ def records(run_dir: Path) -> list[dict]:
 @pytest.fixture(scope="module")
 def finished_run(tmp_path_factory) -> Path:
     run_dir = tmp_path_factory.mktemp("run") / "full"
-    out = train(run_dir, "budget.iterations=3")
+    # the env-step budget ends it: 15 random steps, then rounds of 15 until 60 >= 50
+    out = train(run_dir, "budget.env_steps=50", "budget.iterations=10")
     assert out.returncode == 0, out.stdout + out.stderr
     return run_dir
 
@@ -65,6 +68,15 @@ def test_tiny_training_run_writes_everything(finished_run: Path) -> None:
     assert all(r["model_error_1step"] >= 0.0 for r in recs)
     for name in ("returns.png", "model_error.png", "checkpoint.pt", "config.yaml"):
         assert (finished_run / name).is_file(), name
+
+
+def test_schedule_ends_at_the_round_cap_or_the_env_step_budget() -> None:
+    rounds = Schedule(1, 1, iterations=4, eval_every=2, eval_episodes=2, final_eval_episodes=5)
+    assert [rounds.evaluations_at(k, env_steps=10**6) for k in (1, 2, 3, 4)] == [0, 2, 0, 5]
+    steps = replace(rounds, iterations=100, env_steps=1000)
+    assert [steps.is_last(k, 999) for k in (1, 99, 100)] == [False, False, True]
+    assert steps.is_last(3, 1000) and steps.evaluations_at(3, 1200) == 5
+    assert steps.evaluations_at(2, 999) == 2 and steps.evaluations_at(3, 999) == 0
 
 
 @pytest.mark.slow
@@ -126,6 +138,29 @@ def test_ilqr_oracle_option_builds_the_tracking_ilqr() -> None:
     oracle.planner.close()
 
 
+def test_humanoid_walk_oracle_is_ilqr_on_the_cheaper_physics() -> None:
+    """humanoid_walk's default oracle: iLQR with the humanoid residuals over the planner's
+    horizon, on the env's planning physics (2 x 7.5 ms, Euler)."""
+    import mujoco
+
+    from mbrl_delan.config import compose_train_config
+    from mbrl_delan.envs.registry import make_env_parts
+    from mbrl_delan.planners.humanoid_residual import HumanoidResidual
+    from mbrl_delan.planners.ilqr import ILQRPlanner
+    from mbrl_delan.train import build_oracle
+
+    cfg = compose_train_config(["env=humanoid_walk"])
+    assert cfg.budget.oracle_planner == "ilqr"
+    parts = make_env_parts("humanoid_walk")
+    oracle = build_oracle(cfg, parts.system, parts.task)
+    assert isinstance(oracle.planner, ILQRPlanner)
+    ilqr = oracle.planner.ilqr
+    assert isinstance(ilqr.cost, HumanoidResidual) and ilqr.settings.horizon == 30
+    assert ilqr.frame_skip == 2 and ilqr.model.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER
+    assert ilqr.model.opt.timestep == pytest.approx(parts.system.control_dt / 2)
+    oracle.planner.close()
+
+
 @pytest.mark.heavy
 @pytest.mark.parametrize("memmap", [False, True])
 def test_sigkill_then_resume_continues_identically(
@@ -176,7 +211,7 @@ def test_sigkill_then_resume_continues_identically(
         ("buffer.device_fraction=0", "buffer.device_fraction=0.0 is not valid"),
         ("model.yaw_invariant=true", "yaw_invariant needs a model whose first joint is a free"),
         ("fit.val_fraction=2", "fit.val_fraction=2.0 is not valid; it must be a finite number"),
-        ("budget.oracle_planner=ilqr", "budget.oracle_planner=ilqr needs a motion-tracking env"),
+        ("budget.oracle_planner=ilqr", "oracle_planner=ilqr needs a motion-tracking or humanoid"),
         ("+fit.learning_rate=0.1", "fit.learning_rate is not a config key"),
         ("fit.max_grad_norm=0", "fit.max_grad_norm=0.0 is not valid; it must be a finite"),
         ("fit.max_batches_per_epoch=0", "fit.max_batches_per_epoch=0 is not valid"),

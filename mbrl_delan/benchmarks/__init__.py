@@ -59,7 +59,7 @@ HUMANOID_MODEL_VARIANTS = ("delan_plain", "delan_contact_only")
 # tasks on which suite humanoid runs the oracle planner for one episode
 HUMANOID_ORACLE_TASKS = ("humanoid_stand", "humanoid_walk", "cmu_track")
 ORACLE_PLANNERS = ("mppi", "cem", "icem", "predictive", "ilqr")  # suite humanoid's oracles
-ILQR_TASKS = ("cmu_track",)  # tasks with residuals for the iLQR oracle
+ILQR_TASKS = ("cmu_track",)  # suite humanoid: tasks of its tracking iLQR oracle
 # suite realtime: its tasks and the dynamics each is planned on
 REALTIME_TASKS = ("humanoid_stand", "humanoid_walk", "pendulum")
 REALTIME_DYNAMICS = ("mujoco", "delan", "ensemble")
@@ -152,6 +152,7 @@ class SuiteOptions:
     oracle_planner: str | None = None  # a sampling planner's name or "ilqr" (tracking tasks)
     oracle_overrides: tuple[str, ...] = ()  # planner overrides of the sampling oracle
     seed: int | None = None  # data, fits and oracle starts (test episodes: seed + 1000)
+    data_run: str | None = None  # a loop run dir: its checkpointed buffer's episodes as data
     # suite realtime
     tasks: tuple[str, ...] | None = None  # of REALTIME_TASKS (None: all)
     overrides: tuple[str, ...] = ()  # train-config overrides of every case

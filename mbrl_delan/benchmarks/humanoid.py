@@ -48,12 +48,13 @@ import logging
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import Any
 
 import mujoco
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
 
 from mbrl_delan import keys
@@ -79,8 +80,10 @@ from mbrl_delan.planners.tracking_residual import (
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.tracking import MotionTracking
+from mbrl_delan.training.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from mbrl_delan.training.fit import FitConfig, fit_model
 from mbrl_delan.training.loop import episode_return, model_error, run_episode
+from mbrl_delan.training.recorder import RUN_CONFIG
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +128,9 @@ class HumanoidBenchConfig:
     oracle_method: str = "mppi"
     oracle_ilqr: ILQRSettings = TRACKING_ILQR
     oracle_tracking_weights: TrackingCostWeights = TrackingCostWeights()
+    # a train run dir of `env`: its checkpointed buffer's episodes (the loop's on-policy data)
+    # replace the PD-hold episodes; the last ones, `test_transitions` at least, are the test set
+    data_run: str | None = None
 
     @classmethod
     def quick(cls) -> HumanoidBenchConfig:
@@ -209,6 +215,52 @@ def collect_episodes(
         count += episode.shape[0]
         episodes.append(episode)
     return episodes
+
+
+def run_episodes(run_dir: str | Path) -> list[TensorDict]:
+    """The episodes (each (T,) of q, qd, action, next q, next qd; float64) in the replay
+    buffer of a train run's last checkpoint, in the order they were collected."""
+    path = Path(run_dir) / CHECKPOINT_FILE
+    if not path.is_file():
+        raise ConfigError(f"data_run={run_dir}: no {CHECKPOINT_FILE} there (a train run dir?)")
+    buffer = load_checkpoint(path)["loop"]["buffer"]
+    size = int(buffer["size"])
+    data = TensorDict(buffer["filled"], batch_size=[size]).to(torch.float64)
+    # slot order; a full buffer's oldest transition is at the writer's cursor (else it is 0)
+    oldest = int(buffer["writer"].get("_cursor", 0)) % size
+    data = data[(torch.arange(size) + oldest) % size]
+    _, lengths = torch.unique_consecutive(data["episode"].reshape(-1), return_counts=True)
+    data = data.select(keys.Q, keys.QD, keys.ACTION, keys.NEXT_Q, keys.NEXT_QD)
+    return list(data.split(lengths.tolist()))
+
+
+def split_run_episodes(
+    run_dir: str, env: str, test_transitions: int
+) -> tuple[list[TensorDict], list[TensorDict]]:
+    """`run_episodes` of a run of `env`: (training episodes, the last episodes holding at
+    least `test_transitions` transitions)."""
+    config = Path(run_dir) / RUN_CONFIG
+    ran = OmegaConf.load(config).env.name if config.is_file() else env
+    if ran != env:
+        raise ConfigError(f"data_run={run_dir} is a run of env={ran}, not {env}")
+    episodes = run_episodes(run_dir)
+    count, first_test = 0, len(episodes)
+    while first_test > 1 and count < test_transitions:
+        first_test -= 1
+        count += episodes[first_test].shape[0]
+    return episodes[:first_test], episodes[first_test:]
+
+
+def first_transitions(episodes: list[TensorDict], n: int, run_dir: str) -> TensorDict:
+    """The first n transitions of `episodes` (time-ordered), or a ConfigError naming how
+    many there are."""
+    data = torch.cat(episodes)
+    if n > data.shape[0]:
+        raise ConfigError(
+            f"transitions={n} is more than the {data.shape[0]} training transitions of "
+            f"data_run={run_dir}"
+        )
+    return data[:n]
 
 
 def _until_terminated(episode: TensorDict, task: Task) -> TensorDict:
@@ -415,12 +467,20 @@ def run_humanoid(cfg: HumanoidBenchConfig, opts: SuiteOptions) -> Iterator[Bench
     yield from oracle_records(cfg, host)
     if not cfg.models:
         return
-    test = collect_episodes(system, task, cfg.test_transitions, cfg, cfg.seed + 1000)
+    if cfg.data_run is None:
+        test = collect_episodes(system, task, cfg.test_transitions, cfg, cfg.seed + 1000)
+        data_policy = f"pd_hold kp={cfg.kp} kd={cfg.kd} noise={cfg.noise}"
+    else:
+        train_episodes, test = split_run_episodes(cfg.data_run, cfg.env, cfg.test_transitions)
+        data_policy = f"on-policy: {cfg.data_run}"
     for n in cfg.sizes:
-        train = torch.cat(collect_episodes(system, task, n, cfg, cfg.seed))
+        if cfg.data_run is None:
+            train = torch.cat(collect_episodes(system, task, n, cfg, cfg.seed))
+        else:
+            train = first_transitions(train_episodes, n, cfg.data_run)
         fields = dict(
-            env=cfg.env, transitions=n, test_transitions=cfg.test_transitions, seed=cfg.seed,
-            data_policy=f"pd_hold kp={cfg.kp} kd={cfg.kd} noise={cfg.noise}", **host,
+            env=cfg.env, transitions=n, test_transitions=sum(e.shape[0] for e in test),
+            seed=cfg.seed, data_policy=data_policy, **host,
         )  # fmt: skip
         for name in cfg.models:
             log.info("humanoid suite: fitting %s on %d transitions", name, n)
@@ -459,6 +519,8 @@ def suite_config(opts: SuiteOptions) -> HumanoidBenchConfig:
         cfg = replace(cfg, oracle_overrides=(*cfg.oracle_overrides, *opts.oracle_overrides))
     if opts.seed is not None:
         cfg = replace(cfg, seed=opts.seed)
+    if opts.data_run is not None:
+        cfg = replace(cfg, data_run=opts.data_run)
     return cfg
 
 

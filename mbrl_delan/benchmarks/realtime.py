@@ -6,19 +6,22 @@ For each task in `tasks` (`humanoid_stand`, `humanoid_walk`, `pendulum`) and eac
 `overrides`), and the policy is the one the loop builds from it (`train.build_policy`, or
 `train.build_oracle` for `mujoco`):
 
-- `mujoco`: the oracle (the loop's planner on MuJoCo, with the env's `oracle_substeps` and
-  `oracle_integrator`) runs one episode of at most `oracle_steps` control steps on the real
-  env from the task's start of `seed`. `plan_ms_per_control_step` is the planning time per
+- `mujoco`: the loop's oracle (`budget.oracle_planner`: the loop's planner on MuJoCo, or
+  iLQR with the humanoid residuals; the env's `oracle_substeps` and `oracle_integrator`)
+  runs one episode of at most `oracle_steps` control steps on the real env from the task's
+  start of `seed`. `plan_ms_per_control_step` is the planning time per
   control step (the policy's calls only, not the env's steps); `steps_survived` is the
   number of control steps before the task terminated (the humanoid fell), or all of them.
 - `delan`, `ensemble`: an untrained model (timing does not depend on the weights) in
   float32 on `device`, the DeLaN through the compiled path (`model.compile=true`).
-  `plan_ms_per_control_step` is one warm-started `act` from the task's start state, timed
-  as `TimingConfig` says (the median over `repeats` measurements).
+  `plan_ms_per_control_step` is the time of `replan_every` calls of `act` from the task's
+  start state (one warm-started plan, then the stored plan's next actions) divided by
+  `replan_every`, timed as `TimingConfig` says (the median over `repeats` measurements).
 
 Every record carries `task`, `dynamics`, `threads` (torch's, which are also MuJoCo's rollout
-threads), the planner and its `num_samples`, `iterations`, `knots`, `interpolation` and
-`horizon`, and the control period `control_dt_ms`.
+threads), the planner and its `num_samples`, `iterations`, `knots`, `interpolation`,
+`horizon` and `replan_every` (control steps per plan), and the control period
+`control_dt_ms`.
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.config import compose_train_config
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.planners.humanoid_residual import HUMANOID_ILQR
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.system import FREE, System
 from mbrl_delan.training.loop import episode_return, run_episode
@@ -57,7 +61,7 @@ METRIC = "plan_ms_per_control_step"
 # the learned models' planning path: the DeLaN compiled, as the loop runs it with compile on
 MODEL_OVERRIDES = {"delan": ("model=delan", "model.compile=true"), "ensemble": ("model=ensemble",)}
 QUICK_STEPS = 5  # control steps of a mujoco episode under `quick`
-PLANNER_FIELDS = ("num_samples", "iterations", "knots", "interpolation", "horizon")
+PLANNER_FIELDS = ("num_samples", "iterations", "knots", "interpolation", "horizon", "replan_every")
 
 
 @dataclass(frozen=True)
@@ -107,10 +111,17 @@ def case_config(task: str, dynamics: str, overrides: tuple[str, ...]) -> DictCon
 
 
 def _fields(cfg: DictConfig, task: str, dynamics: str, control_dt: float) -> dict[str, Any]:
+    """The case's fields; an iLQR oracle (`budget.oracle_planner=ilqr`) has no samples,
+    knots or interpolation (None) and `HUMANOID_ILQR`'s iterations."""
     planner = {name: cfg.planner.get(name) for name in PLANNER_FIELDS}
+    name = cfg.planner.name
+    if dynamics == "mujoco" and cfg.budget.oracle_planner == "ilqr":
+        name = "ilqr"
+        planner.update(num_samples=None, knots=None, interpolation=None, replan_every=1)
+        planner["iterations"] = HUMANOID_ILQR.iterations
     return dict(
         task=task, dynamics=dynamics, threads=torch.get_num_threads(),
-        planner=cfg.planner.name, **planner, control_dt_ms=1e3 * control_dt,
+        planner=name, **planner, control_dt_ms=1e3 * control_dt,
     )  # fmt: skip
 
 
@@ -147,7 +158,9 @@ def _root_speed(system: System, rollout: TensorDictBase) -> dict[str, float]:
 
 
 def model_case(cfg: DictConfig, task: str, opts: SuiteOptions, seed: int) -> tuple[float, dict]:
-    """One warm-started `act` of the loop's policy over an untrained model, in ms."""
+    """The loop's policy over an untrained model: ms per control step, timed over whole
+    replanning cycles (`planner.replan_every` calls of `act`, the first of them a
+    warm-started plan) and divided by their length."""
     from mbrl_delan.train import build_policy, build_world_model
 
     parts = make_env_parts(task, None, None)
@@ -158,8 +171,14 @@ def model_case(cfg: DictConfig, task: str, opts: SuiteOptions, seed: int) -> tup
     q = start.q.to(opts.device, torch.float32)
     qd = start.qd.to(opts.device, torch.float32)
     policy.reset()
-    timing = time_call(lambda: policy.act(q, qd), opts.timing, synchronizer(opts.device))
-    return 1e3 * timing.seconds_per_call, timing.fields()
+    cycle = policy.replan_every
+
+    def control_steps() -> None:
+        for _ in range(cycle):
+            policy.act(q, qd)
+
+    timing = time_call(control_steps, opts.timing, synchronizer(opts.device))
+    return 1e3 * timing.seconds_per_call / cycle, timing.fields()
 
 
 def run_realtime_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:

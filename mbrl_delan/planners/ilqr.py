@@ -103,7 +103,8 @@ class MujocoILQR:
     Args:
         model: the MuJoCo model (its own timestep and integrator).
         frame_skip: physics steps per control step.
-        ctrl_low, ctrl_high: the control range (nu,).
+        ctrl_low: the control range's lower bounds (nu,).
+        ctrl_high: its upper bounds (nu,).
         cost: the state cost (`ResidualCost`).
         settings: horizon, iterations and constants.
         nthread: MuJoCo rollout threads for the derivatives.

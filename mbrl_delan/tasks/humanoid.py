@@ -46,12 +46,17 @@ class HumanoidBody:
     head_offset: tuple[float, float, float]  # head point in the head body's frame
     torso_body: str
     torso_up: tuple[float, float, float]  # the torso's up axis in its own frame
+    feet: tuple[str, ...] = ()  # the foot bodies (the iLQR oracle's balance residual)
 
 
 # gymnasium's Humanoid-v5: the head is a sphere geom on the torso, z up
-HUMANOID_V5_BODY = HumanoidBody("torso", (0.0, 0.0, 0.19), "torso", (0.0, 0.0, 1.0))
+HUMANOID_V5_BODY = HumanoidBody(
+    "torso", (0.0, 0.0, 0.19), "torso", (0.0, 0.0, 1.0), ("left_foot", "right_foot")
+)
 # dm_control's CMU humanoid: a head body; its body frames are y up
-HUMANOID_CMU_BODY = HumanoidBody("head", (0.0, 0.11, 0.03), "thorax", (0.0, 1.0, 0.0))
+HUMANOID_CMU_BODY = HumanoidBody(
+    "head", (0.0, 0.11, 0.03), "thorax", (0.0, 1.0, 0.0), ("lfoot", "rfoot")
+)
 
 
 class HumanoidTask(Task):

@@ -141,8 +141,10 @@ def model_error(
 @dataclass(frozen=True)
 class Schedule:
     """What a run does, in order: the oracle's evaluation, the warm-up (random episodes, then
-    the first fit), then `iterations` rounds; round k evaluates `eval_episodes` episodes when
-    `eval_every` divides k, and the last round `final_eval_episodes`."""
+    the first fit), then rounds until `iterations` rounds are done or, with `env_steps` set,
+    until a round's collection brings the env steps (the warm-up's included) to `env_steps`;
+    round k evaluates `eval_episodes` episodes when `eval_every` divides k, and the last round
+    `final_eval_episodes`."""
 
     oracle_episodes: int
     random_episodes: int
@@ -150,10 +152,15 @@ class Schedule:
     eval_every: int
     eval_episodes: int
     final_eval_episodes: int
+    env_steps: int | None = None
 
-    def evaluations_at(self, k: int) -> int:
-        """Evaluation episodes of round k (1-based)."""
-        if k == self.iterations:
+    def is_last(self, k: int, env_steps: int) -> bool:
+        """Whether round k (1-based) ends the run, `env_steps` collected by its end."""
+        return k >= self.iterations or (self.env_steps is not None and env_steps >= self.env_steps)
+
+    def evaluations_at(self, k: int, env_steps: int) -> int:
+        """Evaluation episodes of round k (1-based), `env_steps` collected by its end."""
+        if self.is_last(k, env_steps):
             return self.final_eval_episodes
         return self.eval_episodes if k % self.eval_every == 0 else 0
 
@@ -252,12 +259,17 @@ class MBRLLoop:
                 self.fit()
             self.warmup_done = True
             hooks.checkpoint()
-        while self.counters.iteration < schedule.iterations:
-            metrics = self.iterate(schedule.evaluations_at(self.counters.iteration + 1))
+        while not self.finished(schedule):
+            metrics = self.iterate(schedule)
             metrics["oracle_return_mean"] = self.oracle_mean
             hooks.log_round(metrics)
             hooks.checkpoint()
             hooks.after_round(metrics)
+
+    def finished(self, schedule: Schedule) -> bool:
+        """Whether the rounds of `schedule` are done (a run has at least one round)."""
+        k = self.counters.iteration
+        return k > 0 and schedule.is_last(k, self.counters.env_steps)
 
     @property
     def oracle_mean(self) -> float:
@@ -306,10 +318,11 @@ class MBRLLoop:
                 ev.rollouts.append(rollout)
         return ev
 
-    def iterate(self, eval_episodes: int) -> dict[str, Any]:
-        """One round: collect an on-policy episode, score the model on it, refit, evaluate."""
+    def iterate(self, schedule: Schedule) -> dict[str, Any]:
+        """One round: collect an on-policy episode, score the model on it, refit, evaluate (as
+        many episodes as `schedule` gives this round)."""
         with self.timed():
-            metrics = self._round(eval_episodes)
+            metrics = self._round(schedule)
         self.counters.iteration += 1
         metrics.update(
             env_steps=self.counters.env_steps,
@@ -318,9 +331,12 @@ class MBRLLoop:
         )
         return metrics
 
-    def _round(self, eval_episodes: int) -> dict[str, Any]:
+    def _round(self, schedule: Schedule) -> dict[str, Any]:
         self.last_evaluation = None
         rollout = self._collect(self.policy)
+        eval_episodes = schedule.evaluations_at(
+            self.counters.iteration + 1, self.counters.env_steps
+        )
         err = model_error(self.model, self.system, rollout, self.error_horizon)
         report = self.fit()
         metrics: dict[str, Any] = {
