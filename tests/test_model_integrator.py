@@ -2,24 +2,19 @@
 reproduces the simulator's control step where MuJoCo integrates with RK4 and so does the model:
 then a perfect model of the continuous dynamics predicts the env exactly."""
 
-from pathlib import Path
-
 import mujoco
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from torch import Tensor
 
+from mbrl_delan.config import compose_train_config
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.integrators import integrate
 
-CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
-
 
 def _model_config(env: str):
-    with initialize_config_dir(config_dir=CONFIGS, version_base=None):
-        return compose("config", overrides=[f"env={env}", "model=delan"]).model
+    return compose_train_config([f"env={env}", "model=delan"]).model
 
 
 def _mujoco_accel(model: mujoco.MjModel, ctrl: np.ndarray):
@@ -65,3 +60,28 @@ def test_rk4_envs_model_step_is_mujocos_control_step(env: str) -> None:
     )
     predicted = torch.cat([step.q, step.qd], dim=-1)
     torch.testing.assert_close(predicted, torch.from_numpy(expected), rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("method", ["euler", "rk4"])
+def test_positions_move_with_limited_velocities(method: str) -> None:
+    """A huge acceleration (a learned model's blow-up) moves a free body no further than its
+    velocity limit allows in a step, and leaves it moving at that limit; without a limit it
+    flies off."""
+    layout = make_env_parts("humanoid_stand").system.layout
+    q = torch.zeros(2, 24, dtype=torch.float64)
+    q[:, 2], q[:, 3] = 1.4, 1.0  # root at 1.4 m, unit quaternion
+    qd = torch.zeros(2, 23, dtype=torch.float64)
+    bound = torch.full((23,), 2.0, dtype=torch.float64)
+
+    def accel(q_: Tensor, qd_: Tensor) -> Tensor:
+        return torch.full_like(qd_, 1e6)  # m/s^2, rad/s^2
+
+    def limit(q_: Tensor, qd_: Tensor) -> Tensor:
+        return torch.clamp(qd_, -bound, bound)
+
+    dt, substeps = 0.015, 2
+    held = integrate(layout, accel, q, qd, dt, method, substeps, limit=limit)
+    torch.testing.assert_close(held.qd, bound.expand(2, 23))
+    assert float((held.q[:, :3] - q[:, :3]).abs().max()) <= 2.0 * dt + 1e-12
+    free = integrate(layout, accel, q, qd, dt, method, substeps)
+    assert float((free.q[:, :3] - q[:, :3]).abs().max()) > 10.0

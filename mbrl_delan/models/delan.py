@@ -182,8 +182,12 @@ class DeLaN(WorldModel):
             force = self._with_learned_forces(tau, q_, qd_, action)
             return self.dynamics.forward_dynamics(q_, qd_, force)
 
-        nxt = integrate(self.layout, accel, q, qd, self.control_dt, self.integrator, self.substeps)
-        return State(q=nxt.q, qd=self._clamp_velocity(nxt.q, nxt.qd))
+        # positions move with clamped velocities: a huge learned acceleration cannot throw
+        # the body further than the data's speeds allow
+        return integrate(
+            self.layout, accel, q, qd, self.control_dt, self.integrator, self.substeps,
+            limit=self._clamp_velocity,
+        )  # fmt: skip
 
     def _clamp_velocity(self, q: Tensor, qd: Tensor) -> Tensor:
         """qd within +-`velocity_limit` per DoF; with `yaw_invariant` the root's linear
