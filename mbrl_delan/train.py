@@ -150,7 +150,7 @@ def _ilqr_oracle(
     nthread = min(available_cpus(), 8)
     if isinstance(task, MotionTracking):
         settings = replace(TRACKING_ILQR, horizon=cfg.planner.horizon)
-        policy = tracking_ilqr_policy(system, task, nthread, settings)
+        policy = tracking_ilqr_policy(system, task, nthread, settings, physics=physics)
     elif isinstance(task, HumanoidTask):
         settings = replace(HUMANOID_ILQR, horizon=cfg.planner.horizon)
         policy = humanoid_ilqr_policy(system, task, nthread, settings, physics=physics)

@@ -135,6 +135,9 @@ def test_ilqr_oracle_option_builds_the_tracking_ilqr() -> None:
     ilqr = oracle.planner.ilqr
     assert ilqr.settings == TRACKING_ILQR and isinstance(ilqr.cost, TrackingResidual)
     assert ilqr.cost.ref_q.shape == tuple(parts.task.ref_q.shape)
+    # cmu_track's oracle plans on the env's own physics (no oracle_substeps / integrator)
+    assert ilqr.frame_skip == parts.system.frame_skip == 15
+    assert ilqr.model.opt.timestep == pytest.approx(0.002)
     oracle.planner.close()
 
 

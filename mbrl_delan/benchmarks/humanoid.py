@@ -81,7 +81,7 @@ from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.tracking import MotionTracking
 from mbrl_delan.training.checkpoint import CHECKPOINT_FILE, load_checkpoint
-from mbrl_delan.training.fit import FitConfig, fit_model
+from mbrl_delan.training.fit import FitConfig, TrainingDivergedError, fit_model
 from mbrl_delan.training.loop import episode_return, model_error, run_episode
 from mbrl_delan.training.recorder import RUN_CONFIG
 
@@ -484,8 +484,14 @@ def run_humanoid(cfg: HumanoidBenchConfig, opts: SuiteOptions) -> Iterator[Bench
         )  # fmt: skip
         for name in cfg.models:
             log.info("humanoid suite: fitting %s on %d transitions", name, n)
-            fitted = fit_world_model(name, system, train, cfg, opts.device)
             case = f"{name}-n{n}"
+            try:
+                fitted = fit_world_model(name, system, train, cfg, opts.device)
+            except TrainingDivergedError as err:  # recorded; the other models still run
+                log.error("%s: the fit diverged (%s); no rollout errors for it", case, err)
+                note = {**fields, "note": f"fit diverged: {err}"}
+                yield BenchRecord(SUITE, case, "fit_s", None, "s", str(opts.device), note)
+                continue
             model_fields = {**fields, "rollout_steps": fitted.rollout_steps}
             yield BenchRecord(
                 SUITE, case, "fit_s", fitted.seconds, "s", str(opts.device), model_fields

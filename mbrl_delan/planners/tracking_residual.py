@@ -28,6 +28,7 @@ import mujoco
 import numpy as np
 import torch
 
+from mbrl_delan.objectives.mujoco import ENV_PHYSICS, PlanPhysics
 from mbrl_delan.planners.ilqr import ILQRPlanner, ILQRSettings, ILQRStarts, MujocoILQR
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.system import System
@@ -169,16 +170,18 @@ def tracking_ilqr_policy(
     nthread: int = 1,
     settings: ILQRSettings = TRACKING_ILQR,
     weights: TrackingCostWeights = TrackingCostWeights(),
+    physics: PlanPhysics = ENV_PHYSICS,
 ) -> PlannerPolicy:
-    """Receding-horizon iLQR on `system`'s MuJoCo model with `task`'s tracking residuals.
-    Close it with `policy.planner.close()` (or leave it to the garbage collector)."""
+    """Receding-horizon iLQR on `system`'s MuJoCo model (stepped as `physics` says) with
+    `task`'s tracking residuals. Close it with `policy.planner.close()` (or leave it to the
+    garbage collector)."""
     if not isinstance(task, MotionTracking):
         raise ValueError(f"the iLQR oracle needs a motion-tracking task, got {task.name}")
-    model = system.mj_model()
+    model, substeps = physics.model(system)
     cost = TrackingResidual(
         model, task, point_weight=weights.point, root_weight=weights.root,
         point_velocity_weight=weights.point_velocity,
     )  # fmt: skip
     low, high = system.ctrl_low.numpy(), system.ctrl_high.numpy()
-    ilqr = MujocoILQR(model, system.frame_skip, low, high, cost, settings, nthread=nthread)
+    ilqr = MujocoILQR(model, substeps, low, high, cost, settings, nthread=nthread)
     return PlannerPolicy(ILQRPlanner(ilqr), ILQRStarts(ilqr), action_dtype=torch.float32)
