@@ -25,7 +25,13 @@ import numpy as np
 import torch
 
 from mbrl_delan.objectives.mujoco import ENV_PHYSICS, PlanPhysics
-from mbrl_delan.planners.ilqr import ILQRPlanner, ILQRSettings, ILQRStarts, MujocoILQR
+from mbrl_delan.planners.ilqr import (
+    ILQRPlanner,
+    ILQRSettings,
+    ILQRStarts,
+    MujocoILQR,
+    set_kinematics,
+)
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.humanoid import HumanoidTask
@@ -74,7 +80,7 @@ class HumanoidResidual:
         self.torso_up = np.asarray(task.body.torso_up, float)
         self.target_velocity = np.array([task.speed or 0.0, 0.0])
         self.qpos0 = model.qpos0.copy()
-        self._pose(self.qpos0)
+        set_kinematics(self.model, self.data, self.qpos0)
         self.stand_height = self._head()[2]
         nj = model.nv - 6
         self.weights = np.concatenate([
@@ -82,12 +88,6 @@ class HumanoidResidual:
             np.full(2, weights.balance), np.full(nj, weights.posture),
             np.full(nj, weights.joint_velocity),
         ])  # fmt: skip
-
-    def _pose(self, q: np.ndarray) -> None:
-        """Put the kinematics of q (positions, subtree centres of mass) in self.data."""
-        self.data.qpos[:] = q
-        mujoco.mj_kinematics(self.model, self.data)
-        mujoco.mj_comPos(self.model, self.data)
 
     def _head(self) -> np.ndarray:
         return (
@@ -116,7 +116,7 @@ class HumanoidResidual:
     def residual(self, q: np.ndarray, qd: np.ndarray, step: int) -> np.ndarray:
         """e (R,): height, upright, velocity, balance, posture, joint velocities. Leaves the
         kinematics of q in self.data."""
-        self._pose(q)
+        set_kinematics(self.model, self.data, q)
         _, _, com_jac, _ = self._jacobians()
         com_velocity = (com_jac @ qd)[:2]
         com = self.data.subtree_com[1, :2]

@@ -40,6 +40,14 @@ from mbrl_delan.objectives.mujoco import FULLPHYSICS, HeldControlRollout
 log = logging.getLogger(__name__)
 
 
+def set_kinematics(model: mujoco.MjModel, data: mujoco.MjData, q: np.ndarray) -> None:
+    """Put the kinematics of q in `data`: body poses, subtree centres of mass and what the
+    Jacobians (`mj_jac`, `mj_jacBody`, `mj_jacSubtreeCom`) read."""
+    data.qpos[:] = q
+    mujoco.mj_kinematics(model, data)
+    mujoco.mj_comPos(model, data)
+
+
 class ResidualCost(Protocol):
     """A state cost 1/2 e^T diag(weights) e with residuals e of the state and episode step."""
 

@@ -29,7 +29,13 @@ import numpy as np
 import torch
 
 from mbrl_delan.objectives.mujoco import ENV_PHYSICS, PlanPhysics
-from mbrl_delan.planners.ilqr import ILQRPlanner, ILQRSettings, ILQRStarts, MujocoILQR
+from mbrl_delan.planners.ilqr import (
+    ILQRPlanner,
+    ILQRSettings,
+    ILQRStarts,
+    MujocoILQR,
+    set_kinematics,
+)
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.tracking import MotionTracking
@@ -82,7 +88,7 @@ class TrackingResidual:
         self.moving = ids if point_velocity_weight > 0 else []  # bodies scored by velocity
         self.ref_points, self.ref_velocities = [], []
         for q, qd in zip(self.ref_q, self.ref_qd, strict=True):
-            self._pose(q)
+            set_kinematics(self.model, self.data, q)
             self.ref_points.append(self._points())
             self.ref_velocities.append(self._velocities(qd))
         w, k, nv = task.weights, task.scales, model.nv
@@ -93,12 +99,6 @@ class TrackingResidual:
             np.full(3 * len(self.points), point_weight),
             np.full(3 * len(self.moving), point_velocity_weight),
         ])  # fmt: skip
-
-    def _pose(self, q: np.ndarray) -> None:
-        """Put the kinematics of q (positions and what `mj_jacBody` reads) in self.data."""
-        self.data.qpos[:] = q
-        mujoco.mj_kinematics(self.model, self.data)
-        mujoco.mj_comPos(self.model, self.data)
 
     def _points(self) -> np.ndarray:
         """Root, end effectors relative to it, body points: (1 + E + P, 3) world positions
@@ -126,7 +126,7 @@ class TrackingResidual:
         j = min(step + 1, self.last)
         pose = np.empty(self.model.nv)
         mujoco.mj_differentiatePos(self.model, pose, 1.0, self.ref_q[j], q)
-        self._pose(q)
+        set_kinematics(self.model, self.data, q)
         velocities = self._velocities(qd) - self.ref_velocities[j]
         points = self._points() - self.ref_points[j]
         ee, rest = points[1 : 1 + len(self.ee_bodies)], points[1 + len(self.ee_bodies) :]
