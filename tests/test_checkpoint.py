@@ -86,6 +86,20 @@ def test_corrupt_checkpoint_falls_back_to_prev(tmp_path, caplog):
     assert "unreadable" in caplog.text and "ckpt.pt" in caplog.text
 
 
+@pytest.mark.parametrize("kept", [0.01, 0.1, 0.25, 0.5, 0.99])
+def test_a_checkpoint_cut_anywhere_falls_back_to_prev(tmp_path, kept):
+    """A cut zip archive fails in several ways (OSError EINVAL near its start, a missing
+    central directory later): each falls back to the intact previous checkpoint."""
+    path = tmp_path / "ckpt.pt"
+    weights = torch.arange(200_000, dtype=torch.float32)
+    save_checkpoint(path, {"iteration": 1, "w": weights})
+    save_checkpoint(path, {"iteration": 2, "w": weights})
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * kept)])
+    state = load_checkpoint(path)
+    assert state["iteration"] == 1 and torch.equal(state["w"], weights)
+
+
 def test_missing_and_unreadable_checkpoints_name_the_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="nope.pt"):
         load_checkpoint(tmp_path / "nope.pt")

@@ -29,7 +29,15 @@ CHECKPOINT_FILE = "checkpoint.pt"  # a training run's checkpoint in its run dir
 PREV_SUFFIX = ".prev"
 
 # What torch.load raises on a truncated or otherwise damaged file.
-_UNREADABLE = (RuntimeError, EOFError, pickle.UnpicklingError, ValueError, zipfile.BadZipFile)
+# what torch.load raises on a damaged file (a cut zip archive can give OSError EINVAL)
+_UNREADABLE = (
+    RuntimeError,
+    EOFError,
+    pickle.UnpicklingError,
+    ValueError,
+    zipfile.BadZipFile,
+    OSError,
+)
 
 
 class CheckpointError(RuntimeError):
