@@ -139,6 +139,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         rollout_steps=v["rollout_steps"],
         oracle_tasks=tuples("oracle_tasks"),
         oracle_steps=v["oracle_steps"],
+        clips=tuples("clips"),
         oracle_planner=v["oracle_planner"],
         oracle_overrides=tuple(v["oracle_overrides"]),
         seed=v["seed"],

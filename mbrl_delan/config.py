@@ -210,6 +210,7 @@ MIGRATIONS: dict[str, Any] = {
     "model.contacts": False,
     "env.oracle_substeps": None,  # the oracle planned on the env's own physics
     "env.oracle_integrator": None,
+    "env.oracle_horizon": None,  # the iLQR oracle planned over the planner's horizon
 }
 
 

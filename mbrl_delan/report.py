@@ -348,12 +348,23 @@ def _figure(n_rows: int, n_cols: int) -> tuple[Any, Any]:
     return fig, fig.subplots(n_rows, n_cols, squeeze=False)
 
 
+def _oracle_planner(summary: dict[str, Any]) -> str:
+    """The planner of a run's oracle: iLQR (``budget.oracle_planner=ilqr`` in its
+    ``config.yaml``) or the run's own planner."""
+    try:
+        cfg = yaml.safe_load((Path(summary["run_dir"]) / RUN_CONFIG).read_text(encoding="utf-8"))
+        ilqr = cfg["budget"]["oracle_planner"] == "ilqr"
+    except (OSError, KeyError, TypeError, yaml.YAMLError):
+        ilqr = False
+    return "iLQR" if ilqr else str(summary["planner"])
+
+
 def _oracles(summaries: list[dict[str, Any]], env: str) -> dict[str, float]:
-    """Per planner, the mean oracle return of the env's runs (the oracle has no model)."""
+    """Per oracle planner, the mean oracle return of the env's runs (the oracle has no model)."""
     by_planner: dict[str, list[float]] = defaultdict(list)
     for s in summaries:
         if s["env"] == env:
-            by_planner[str(s["planner"])] += _finite([s.get("oracle_return_mean")])
+            by_planner[_oracle_planner(s)] += _finite([s.get("oracle_return_mean")])
     return {p: statistics.fmean(v) for p, v in sorted(by_planner.items()) if v}
 
 

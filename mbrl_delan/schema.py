@@ -122,6 +122,7 @@ class EnvConfig:
     oracle_planner: str = rule("same", choices=("same", "ilqr"))
     oracle_substeps: int | None = rule(None, low=1)  # null: frame_skip
     oracle_integrator: str | None = rule(None, choices=ORACLE_INTEGRATORS)  # null: the MJCF's
+    oracle_horizon: int | None = rule(None, low=1)  # the iLQR oracle's (null: the planner's)
     task: dict[str, Any] | None = None  # task options (cmu_track: the clip)
 
 
@@ -351,6 +352,7 @@ class BenchConfig:
     rollout_steps: int | None = rule(None, low=1)
     oracle_tasks: list[str] | None = rule(None, choices=HUMANOID_ORACLE_TASKS)
     oracle_steps: int | None = rule(None, low=1)
+    clips: list[str] | None = None  # suite humanoid: cmu_track's oracle, one episode per clip
     oracle_planner: str | None = rule(None, choices=ORACLE_PLANNERS)
     oracle_overrides: list[str] = field(default_factory=list)
     seed: int | None = rule(None, low=0)

@@ -148,11 +148,12 @@ def _ilqr_oracle(
     cfg: DictConfig, system: System, task: Task, physics: PlanPhysics
 ) -> PlannerPolicy:
     nthread = min(available_cpus(), 8)
+    horizon = cfg.env.oracle_horizon or cfg.planner.horizon
     if isinstance(task, MotionTracking):
-        settings = replace(TRACKING_ILQR, horizon=cfg.planner.horizon)
+        settings = replace(TRACKING_ILQR, horizon=horizon)
         policy = tracking_ilqr_policy(system, task, nthread, settings, physics=physics)
     elif isinstance(task, HumanoidTask):
-        settings = replace(HUMANOID_ILQR, horizon=cfg.planner.horizon)
+        settings = replace(HUMANOID_ILQR, horizon=horizon)
         policy = humanoid_ilqr_policy(system, task, nthread, settings, physics=physics)
     else:
         raise ConfigError(

@@ -24,6 +24,7 @@ from mbrl_delan.benchmarks.humanoid import (
     collect_episodes,
     first_transitions,
     model_config,
+    oracle_cases,
     oracle_config,
     rollout_error,
     split_run_episodes,
@@ -213,6 +214,12 @@ def test_oracle_options() -> None:
     assert default.oracle_method == "mppi"
     ilqr = suite_config(options("oracle_tasks=[cmu_track]", "oracle_planner=ilqr"))
     assert ilqr.oracle_method == "ilqr" and ilqr.oracle_tasks == ("cmu_track",)
+    assert oracle_config("cmu_track", ilqr).env.oracle_substeps == 3  # the env's oracle physics
+    clips = options("oracle_tasks=[cmu_track,humanoid_stand]", "clips=['02_01','09_06']")
+    assert list(oracle_cases(suite_config(clips))) == [
+        ("cmu_track", {"clip": "02_01"}), ("cmu_track", {"clip": "09_06"}), ("humanoid_stand", None)
+    ]  # fmt: skip
+    assert list(oracle_cases(ilqr)) == [("cmu_track", None)]  # the env's own clip
     with pytest.raises(ConfigError, match="oracle_planner=ilqr needs .* humanoid_stand"):
         options("oracle_planner=ilqr")  # all three tasks; standing has no residuals
     with pytest.raises(ConfigError, match="oracle_planner"):

@@ -106,6 +106,29 @@ def test_iterations_without_a_step_reuse_the_derivatives():
     assert 2 <= len(calls) <= 1 + moved.accepted
 
 
+def test_reused_derivatives_are_taken_once_per_plan_and_exact_on_a_linear_system():
+    """`reuse_derivatives`: one A, B per plan however many iterations move the trajectory. On
+    a linear system A, B are the same everywhere, so the plan is the one of fresh derivatives
+    (Gauss-Newton on a quadratic cost: the first iteration already solves it)."""
+    model = mujoco.MjModel.from_xml_string(POINT_MASS)
+    low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
+    start = np.array([1.0, -0.5]), np.array([0.3, 0.8])
+    plans = {}
+    for reuse in (False, True):
+        settings = ILQRSettings(
+            horizon=6, iterations=3, control_weight=0.01, reuse_derivatives=reuse
+        )
+        ilqr = MujocoILQR(model, 2, low, high, Quadratic(np.ones(4)), settings)
+        calls = []
+        derivatives = ilqr.derivatives
+        ilqr.derivatives = lambda *args, d=derivatives, c=calls: c.append(1) or d(*args)
+        plans[reuse] = ilqr.plan(ilqr.full_state(*start), np.zeros((6, 2)))
+        assert plans[reuse].accepted >= 1
+        assert len(calls) == (1 if reuse else 1 + min(plans[reuse].accepted, 2))
+    np.testing.assert_allclose(plans[True].actions, plans[False].actions, rtol=1e-6, atol=1e-6)
+    assert plans[True].cost == pytest.approx(plans[False].cost, rel=1e-9)
+
+
 def chained_transition(model, state, ctrl, frame_skip):
     """A, B of frame_skip physics steps chained from MuJoCo's own mjd_transitionFD."""
     data = mujoco.MjData(model)

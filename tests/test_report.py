@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from mbrl_delan.report import find_runs, main, mean_ci, steps_to_fraction, table
+from mbrl_delan.report import _oracles, find_runs, main, mean_ci, steps_to_fraction, table
 from mbrl_delan.sweep import write_crash
 
 
@@ -194,3 +194,17 @@ def test_report_of_a_single_run_dir_goes_to_its_report_folder(tmp_path: Path) ->
     run = make_run(tmp_path, "run", summary(0, 40.0, 42.0))
     assert main([str(run)]) == 0
     assert (run / "report" / "report.md").is_file() and not (run / "report.md").exists()
+
+
+def test_the_oracle_line_names_the_runs_oracle_planner(tmp_path: Path) -> None:
+    """An iLQR oracle (`budget.oracle_planner: ilqr` in the run's config.yaml) is drawn as iLQR,
+    not as the loop's planner; without a readable config, the run's planner."""
+    ilqr_run, plain_run = tmp_path / "walk", tmp_path / "stand"
+    ilqr_run.mkdir()
+    (ilqr_run / "config.yaml").write_text("budget:\n  oracle_planner: ilqr\n")
+    runs = [
+        {**summary(0, 10.0, 600.0), "env": "walk", "run_dir": str(ilqr_run)},
+        {**summary(0, 10.0, 900.0), "env": "stand", "run_dir": str(plain_run)},
+    ]
+    assert _oracles(runs, "walk") == {"iLQR": 600.0}
+    assert _oracles(runs, "stand") == {"mppi": 900.0}

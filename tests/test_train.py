@@ -102,10 +102,11 @@ def test_tiny_humanoid_stand_run_with_the_residual_delan(tmp_path: Path) -> None
 def test_tiny_cmu_track_run_follows_the_clip_in_time(tmp_path: Path) -> None:
     """A time-indexed task through the whole loop: the CMU humanoid (56 actuators, contacts)
     following the test clip, every reward scored against the reference frame of its step; the
-    oracle is the env's default, iLQR over the planner's horizon (5 here)."""
+    oracle is the env's default, iLQR over `env.oracle_horizon` (5 here)."""
     run_dir = tmp_path / "track"
     clip = ["env.task.clip=09_06", f"env.task.folders=[{DATA}]", "env.task.download=false"]
-    out = train(run_dir, "env=cmu_track", *clip, "env.episode_len=6", "budget.iterations=1")
+    short = ("env.episode_len=6", "env.oracle_horizon=5", "budget.iterations=1")
+    out = train(run_dir, "env=cmu_track", *clip, *short)
     assert out.returncode == 0, out.stdout + out.stderr
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["env"] == "cmu_track" and summary["env_steps"] == 2 * 6
@@ -135,9 +136,9 @@ def test_ilqr_oracle_option_builds_the_tracking_ilqr() -> None:
     ilqr = oracle.planner.ilqr
     assert ilqr.settings == TRACKING_ILQR and isinstance(ilqr.cost, TrackingResidual)
     assert ilqr.cost.ref_q.shape == tuple(parts.task.ref_q.shape)
-    # cmu_track's oracle plans on the env's own physics (no oracle_substeps / integrator)
-    assert ilqr.frame_skip == parts.system.frame_skip == 15
-    assert ilqr.model.opt.timestep == pytest.approx(0.002)
+    # cmu_track's oracle plans on MuJoCo at 3 x 10 ms per control step (the env: 15 x 2 ms)
+    assert parts.system.frame_skip == 15 and ilqr.frame_skip == 3
+    assert ilqr.model.opt.timestep == pytest.approx(0.01)
     oracle.planner.close()
 
 

@@ -149,6 +149,7 @@ class SuiteOptions:
     rollout_steps: int | None = None  # K of the K-step rollout loss of models that take it
     oracle_tasks: tuple[str, ...] | None = None  # tasks of the oracle's episodes (() for none)
     oracle_steps: int | None = None  # control steps of each oracle episode at most
+    clips: tuple[str, ...] | None = None  # cmu_track's oracle: one episode per clip
     oracle_planner: str | None = None  # a sampling planner's name or "ilqr" (tracking tasks)
     oracle_overrides: tuple[str, ...] = ()  # planner overrides of the sampling oracle
     seed: int | None = None  # data, fits and oracle starts (test episodes: seed + 1000)

@@ -67,7 +67,7 @@ from mbrl_delan.benchmarks import (
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.config import ConfigError, build_model, build_planner, compose_train_config
 from mbrl_delan.envs.real import env_parts_of, make_real_env
-from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.envs.registry import TaskOptions, make_env_parts
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.objectives.mujoco import ENV_PHYSICS, PlanPhysics, mujoco_objective_factory
 from mbrl_delan.planners.ilqr import ILQRSettings
@@ -119,6 +119,7 @@ class HumanoidBenchConfig:
     seed: int = 0
     oracle_tasks: tuple[str, ...] = HUMANOID_ORACLE_TASKS
     oracle_steps: int | None = None  # control steps per oracle episode (None: the task's own)
+    clips: tuple[str, ...] | None = None  # cmu_track: an oracle episode per clip (None: its own)
     # the loop's planner `oracle_method` on each oracle task's env (configs/,
     # `oracle_config`), with these overrides
     oracle_overrides: tuple[str, ...] = ()
@@ -298,7 +299,11 @@ def model_config(name: str, cfg: HumanoidBenchConfig) -> DictConfig:
 
 def oracle_config(task_name: str, cfg: HumanoidBenchConfig) -> DictConfig:
     """The config of ``python -m mbrl_delan.train env=<task_name> planner=<oracle_method>``
-    with the suite's `oracle_overrides`: its planner group, and the env's oracle physics."""
+    with the suite's `oracle_overrides`: its planner group, and the env's oracle physics
+    (iLQR: the env's only, with the `env.*` overrides)."""
+    if cfg.oracle_method == "ilqr":
+        env_only = [o for o in cfg.oracle_overrides if o.startswith("env.")]
+        return compose_train_config([f"env={task_name}", *env_only])
     overrides = [f"env={task_name}", f"planner={cfg.oracle_method}", *cfg.oracle_overrides]
     return compose_train_config(overrides)
 
@@ -368,11 +373,13 @@ def oracle_episode(
     planner_cfg: DictConfig,
     seed: int,
     physics: PlanPhysics = ENV_PHYSICS,
+    task_options: TaskOptions | None = None,
 ) -> OracleEpisode:
     """The planner of `planner_cfg` (a planner group) over MuJoCo's dynamics (stepped as
-    `physics` says) on `task_name`'s real env for at most `steps` control steps (None: the
-    task's episode length), from the task's initial state of `seed`."""
-    parts = make_env_parts(task_name, None, steps)
+    `physics` says) on `task_name`'s real env (its task as `task_options` say) for at most
+    `steps` control steps (None: the task's episode length), from the task's initial state
+    of `seed`."""
+    parts = make_env_parts(task_name, None, steps, task_options)
     try:
         planner = build_planner(planner_cfg, parts.system, torch.float64)
     except ValueError as err:  # a setting the planner refuses (knots > horizon)
@@ -382,7 +389,7 @@ def oracle_episode(
         parts.system, parts.task, nthread=threads, physics=physics
     ) as factory:
         policy = PlannerPolicy(planner, factory, seed=seed, action_dtype=torch.float32)
-        return _timed_episode(task_name, parts.task.episode_len, seed, policy)
+        return _timed_episode(task_name, parts.task.episode_len, seed, policy, task_options)
 
 
 def ilqr_oracle_episode(
@@ -391,24 +398,31 @@ def ilqr_oracle_episode(
     settings: ILQRSettings,
     seed: int,
     weights: TrackingCostWeights,
+    physics: PlanPhysics = ENV_PHYSICS,
+    task_options: TaskOptions | None = None,
 ) -> OracleEpisode:
-    """Receding-horizon iLQR (`settings`) on MuJoCo's dynamics and derivatives, with the
-    tracking task's residuals (`TrackingResidual`, `weights`), like `oracle_episode`."""
-    parts = make_env_parts(task_name, None, steps)
+    """Receding-horizon iLQR (`settings`) on MuJoCo's dynamics (stepped as `physics` says)
+    and derivatives, with the tracking task's residuals (`TrackingResidual`, `weights`), like
+    `oracle_episode`."""
+    parts = make_env_parts(task_name, None, steps, task_options)
     policy = tracking_ilqr_policy(
-        parts.system, parts.task, torch.get_num_threads(), settings, weights
+        parts.system, parts.task, torch.get_num_threads(), settings, weights, physics
     )
     try:
-        return _timed_episode(task_name, parts.task.episode_len, seed, policy)
+        return _timed_episode(task_name, parts.task.episode_len, seed, policy, task_options)
     finally:
         policy.planner.close()
 
 
 def _timed_episode(
-    task_name: str, episode_len: int, seed: int, policy: PlannerPolicy
+    task_name: str,
+    episode_len: int,
+    seed: int,
+    policy: PlannerPolicy,
+    task_options: TaskOptions | None = None,
 ) -> OracleEpisode:
     """One episode of `policy` on the real env of `episode_len` control steps, timed."""
-    env = make_real_env(task_name, seed=seed, episode_len=episode_len)
+    env = make_real_env(task_name, seed=seed, episode_len=episode_len, task_options=task_options)
     start = time.perf_counter()
     rollout = run_episode(env, policy, seed, episode_len)
     seconds = time.perf_counter() - start
@@ -421,15 +435,28 @@ def _timed_episode(
     )
 
 
-def oracle_records(cfg: HumanoidBenchConfig, host: dict[str, Any]) -> Iterator[BenchRecord]:
-    """`oracle_return` and `oracle_step_s` of one oracle episode per task."""
+def oracle_cases(cfg: HumanoidBenchConfig) -> Iterator[tuple[str, TaskOptions | None]]:
+    """Each oracle episode's task and task options: cmu_track once per clip of `cfg.clips`."""
     for name in cfg.oracle_tasks:
-        log.info("humanoid suite: oracle %s episode on %s", cfg.oracle_method, name)
-        ep, settings = _oracle_run(cfg, name)
+        if name == "cmu_track" and cfg.clips:
+            yield from ((name, {"clip": clip}) for clip in cfg.clips)
+        else:
+            yield name, None
+
+
+def oracle_records(cfg: HumanoidBenchConfig, host: dict[str, Any]) -> Iterator[BenchRecord]:
+    """`oracle_return` and `oracle_step_s` of one oracle episode per task (and clip)."""
+    for name, options in oracle_cases(cfg):
+        log.info("humanoid suite: oracle %s episode on %s %s", cfg.oracle_method, name,
+                 options or "")  # fmt: skip
+        try:
+            ep, settings = _oracle_run(cfg, name, options)
+        except FileNotFoundError as err:  # a clip of `clips` nowhere to be found
+            raise ConfigError(f"the oracle on {name} {options or ''}: {err}") from err
         fields = dict(
-            env=name, steps=ep.steps, episode_len=ep.episode_len, fell=ep.fell,
-            mean_reward=ep.ret / ep.steps, planner=cfg.oracle_method, **settings, seed=cfg.seed,
-            **(ep.tracking or {}), **host,
+            env=name, **(options or {}), steps=ep.steps, episode_len=ep.episode_len,
+            fell=ep.fell, mean_reward=ep.ret / ep.steps, planner=cfg.oracle_method, **settings,
+            seed=cfg.seed, **(ep.tracking or {}), **host,
         )  # fmt: skip
         log.info("oracle-%s: return %.2f over %d steps%s", name, ep.ret, ep.steps,
                  " (fell)" if ep.fell else "")  # fmt: skip
@@ -439,25 +466,31 @@ def oracle_records(cfg: HumanoidBenchConfig, host: dict[str, Any]) -> Iterator[B
         yield BenchRecord(SUITE, case, "oracle_step_s", step_s, "s", "cpu", fields)
 
 
-def _oracle_run(cfg: HumanoidBenchConfig, name: str) -> tuple[OracleEpisode, dict[str, Any]]:
+def _oracle_run(
+    cfg: HumanoidBenchConfig, name: str, options: TaskOptions | None
+) -> tuple[OracleEpisode, dict[str, Any]]:
     """The oracle's episode on task `name` and its planner settings (record fields)."""
-    if cfg.oracle_method == "ilqr":
-        s, w = cfg.oracle_ilqr, cfg.oracle_tracking_weights
-        ep = ilqr_oracle_episode(name, cfg.oracle_steps, s, cfg.seed, w)
-        return ep, dict(
-            horizon=s.horizon, iterations=s.iterations, control_weight=s.control_weight,
-            regularization=s.regularization, point_weight=w.point,
-            point_velocity_weight=w.point_velocity, root_weight=w.root,
-        )  # fmt: skip
     train_cfg = oracle_config(name, cfg)
-    p, env = train_cfg.planner, train_cfg.env
+    env = train_cfg.env
     physics = PlanPhysics(env.oracle_substeps, env.oracle_integrator)
-    ep = oracle_episode(name, cfg.oracle_steps, p, cfg.seed, physics)
-    settings = ("num_samples", "horizon", "iterations", "knots", "interpolation", "temperature",
-                "noise_std", "smoothing")  # fmt: skip
-    return ep, {k: p[k] for k in settings if k in p} | dict(
+    plan_physics = dict(
         oracle_substeps=env.oracle_substeps, oracle_integrator=env.oracle_integrator
     )
+    if cfg.oracle_method == "ilqr":
+        s, w = cfg.oracle_ilqr, cfg.oracle_tracking_weights
+        s = replace(s, horizon=env.oracle_horizon or s.horizon)
+        ep = ilqr_oracle_episode(name, cfg.oracle_steps, s, cfg.seed, w, physics, options)
+        return ep, dict(
+            horizon=s.horizon, iterations=s.iterations, control_weight=s.control_weight,
+            regularization=s.regularization, reuse_derivatives=s.reuse_derivatives,
+            point_weight=w.point, point_velocity_weight=w.point_velocity, root_weight=w.root,
+            **plan_physics,
+        )  # fmt: skip
+    p = train_cfg.planner
+    ep = oracle_episode(name, cfg.oracle_steps, p, cfg.seed, physics, options)
+    settings = ("num_samples", "horizon", "iterations", "knots", "interpolation", "temperature",
+                "noise_std", "smoothing")  # fmt: skip
+    return ep, {k: p[k] for k in settings if k in p} | plan_physics
 
 
 def run_humanoid(cfg: HumanoidBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord]:
@@ -519,6 +552,8 @@ def suite_config(opts: SuiteOptions) -> HumanoidBenchConfig:
         cfg = replace(cfg, oracle_tasks=opts.oracle_tasks)
     if opts.oracle_steps is not None:
         cfg = replace(cfg, oracle_steps=opts.oracle_steps)
+    if opts.clips is not None:
+        cfg = replace(cfg, clips=opts.clips)
     if opts.oracle_planner is not None:
         cfg = replace(cfg, oracle_method=opts.oracle_planner)
     if opts.oracle_overrides:

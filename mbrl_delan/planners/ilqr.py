@@ -16,7 +16,9 @@ u_0 and c the control weight. Each iteration (Gauss-Newton iLQR):
    Levenberg-Marquardt regularisation mu I on Q_uu, giving feed-forward terms k_t and gains K_t;
 3. a forward pass u_t = clip(u_t + alpha k_t + K_t (x_t (-) xbar_t)) on MuJoCo, for alpha in
    `line_search` until the cost falls; mu shrinks after an accepted step and grows when none is
-   (the next iteration then reuses the derivatives: the trajectory has not moved).
+   (the next iteration then reuses the derivatives: the trajectory has not moved). With
+   `reuse_derivatives` every iteration of a plan reuses the first one's A_t, B_t: one
+   derivative pass per plan, the costliest part.
 
 `ILQRPlanner` runs it under `PlannerPolicy`, warm-started from the previous plan shifted by the
 steps executed since, as the sampling planners are.
@@ -33,6 +35,7 @@ import mujoco
 import numpy as np
 import torch
 from scipy.linalg import cho_factor, cho_solve
+from threadpoolctl import ThreadpoolController
 from torch import Tensor
 
 from mbrl_delan.objectives.mujoco import FULLPHYSICS, HeldControlRollout
@@ -72,6 +75,7 @@ class ILQRSettings:
     regularization: float = 1e-3  # mu at the start of each plan
     fd_eps: float = 1e-6  # forward-difference step (tangent space and controls)
     line_search: tuple[float, ...] = (1.0, 0.5, 0.25, 0.1, 0.03)
+    reuse_derivatives: bool = False  # later iterations of a plan reuse its first A, B
 
     def __post_init__(self) -> None:
         if self.horizon < 1 or self.iterations < 1:
@@ -133,6 +137,9 @@ class MujocoILQR:
         self.nq, self.nv, self.nu = model.nq, model.nv, model.nu
         self.sim = HeldControlRollout(model, frame_skip, nthread)
         self.data = mujoco.MjData(model)  # the forward pass's
+        # the Riccati pass's matrices are small: BLAS threads only wait on each other, and on
+        # a busy CPU for the other processes (20x slower backward passes measured)
+        self.blas = ThreadpoolController()
 
     def close(self) -> None:
         self.sim.close()
@@ -235,6 +242,10 @@ class MujocoILQR:
 
     def plan(self, state: np.ndarray, actions: np.ndarray, step: int = 0) -> ILQRResult:
         """Improve actions (H, nu) from FULLPHYSICS `state` (nstate,) at episode `step`."""
+        with self.blas.limit(limits=1, user_api="blas"):
+            return self._plan(state, actions, step)
+
+    def _plan(self, state: np.ndarray, actions: np.ndarray, step: int) -> ILQRResult:
         s = self.settings
         actions = np.clip(np.asarray(actions, float), self.low, self.high)
         states = np.concatenate([state[None], self.sim(state[None], actions[None])[0]])
@@ -253,7 +264,9 @@ class MujocoILQR:
                 trial = self.total_cost(trial_states, trial_actions, step)
                 if trial < cost:
                     states, actions, cost = trial_states, trial_actions, trial
-                    accepted, derivatives = accepted + 1, None
+                    accepted += 1
+                    if not s.reuse_derivatives:
+                        derivatives = None
                     mu = max(mu / 3.0, 1e-8)
                     break
             else:
