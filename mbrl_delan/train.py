@@ -129,8 +129,9 @@ def _planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPla
 
 def build_oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy:
     """The oracle policy of `budget.oracle_planner`: `same` (the loop's planner on MuJoCo) or
-    `ilqr` (iLQR over the planner's horizon on MuJoCo's derivatives, with the tracking
-    residuals on cmu_track and the humanoid residuals on humanoid_stand and humanoid_walk)."""
+    `ilqr` (iLQR over `env.oracle_horizon`, null: the planner's, on MuJoCo's derivatives, with
+    the tracking residuals on cmu_track and the humanoid residuals on humanoid_stand and
+    humanoid_walk)."""
     physics = PlanPhysics(cfg.env.oracle_substeps, cfg.env.oracle_integrator)
     if cfg.budget.oracle_planner == "ilqr":
         return _ilqr_oracle(cfg, system, task, physics)
