@@ -28,8 +28,8 @@ log = logging.getLogger(__name__)
 CHECKPOINT_FILE = "checkpoint.pt"  # a training run's checkpoint in its run dir
 PREV_SUFFIX = ".prev"
 
-# What torch.load raises on a truncated or otherwise damaged file.
-# what torch.load raises on a damaged file (a cut zip archive can give OSError EINVAL)
+# What torch.load raises on a truncated or otherwise damaged file (a zip archive cut near its
+# start gives OSError EINVAL).
 _UNREADABLE = (
     RuntimeError,
     EOFError,
