@@ -32,6 +32,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
+from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.accelerate.compile import compile_fit
@@ -60,6 +61,7 @@ from mbrl_delan.data.mocap import (
     dof_groups,
     humanoid_cmu_xml,
     load_dataset,
+    random_poses,
     split_dataset,
 )
 from mbrl_delan.data.mocap.retarget import joint_layout
@@ -80,6 +82,7 @@ from mbrl_delan.training.inverse_fit import (
     InverseFitSettings,
     TorqueErrors,
     check_mass_matrix,
+    evaluate_torques,
     fit_inverse_model,
 )
 from mbrl_delan.training.recorder import (
@@ -95,6 +98,7 @@ log = logging.getLogger("mbrl_delan.fit")
 DATA_NAMES = ("cmu_mocap",)
 LR_SCHEDULES = ("constant", "cosine")
 PROVENANCE_FILE = "dataset_provenance.json"
+RANDOM_POSES = 1024  # poses over the whole joint space where the summary checks a DeLaN's M
 MODEL_FILE = "model.pt"
 # what a fit writes into its run dir; a new fit refuses a folder holding any of them
 RUN_FILES = (RUN_CONFIG, PROVENANCE_FILE, MODEL_FILE, METRICS_FILE, SUMMARY_FILE)
@@ -153,6 +157,7 @@ def _validate_model(cfg: DictConfig) -> None:
 def _validate_data(cfg: DictConfig) -> None:
     _choice("data.name", cfg.name, DATA_NAMES)
     _choice("data.torques", cfg.torques, TORQUE_SOURCES)
+    _flag("data.skip_bad_clips", cfg.skip_bad_clips)
     if cfg.dataset_dir is not None:
         return
     clips = _clip_names("data.clips", cfg.clips)
@@ -235,6 +240,7 @@ def make_dataset(cfg: DictConfig) -> MocapDataset:
                 gains=cfg.pd.gains,
                 feedforward=cfg.pd.feedforward,
             ),
+            skip_bad_clips=cfg.skip_bad_clips,
         )
     check_finite(dataset.data, f"the mocap dataset ({len(dataset)} samples)")
     return dataset
@@ -285,9 +291,9 @@ def build_inverse_model(
     )
 
 
-def _mujoco_model(dataset: MocapDataset) -> mujoco.MjModel:
-    """The model the data were retargeted onto (from the provenance, else humanoid_CMU)."""
-    xml = dataset.provenance.get("model", {}).get("xml")
+def _mujoco_model(provenance: dict[str, Any]) -> mujoco.MjModel:
+    """The model the data were retargeted onto (from their provenance, else humanoid_CMU)."""
+    xml = provenance.get("model", {}).get("xml")
     path = Path(xml) if xml and Path(xml).is_file() else humanoid_cmu_xml()
     return mujoco.MjModel.from_xml_path(str(path))
 
@@ -314,7 +320,8 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     (run_dir / PROVENANCE_FILE).write_text(json.dumps(dataset.provenance, indent=1))
     parts = split_dataset(dataset)
     splits = {name: _tensors(getattr(parts, name), device, dtype) for name in SPLITS}
-    mj_model = _mujoco_model(dataset)
+    clip_ids = {name: getattr(parts, name)[keys.CLIP].reshape(-1) for name in SPLITS}  # (N,)
+    mj_model = _mujoco_model(dataset.provenance)
     model = build_inverse_model(
         cfg.model,
         joint_layout(mj_model),
@@ -331,6 +338,14 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
     with Recorder(run_dir, logger.wandb, logger.project, logger.group, container) as recorder:
         results = _train(cfg, model, splits, recorder, device)
         summary = _summary(cfg, dataset, model, mj_model, splits, results)
+        for name, part in summary["final"].items():  # the evaluated (non-empty) splits
+            part["clips"] = _clip_errors(
+                model,
+                splits[name],
+                clip_ids[name],
+                dataset.provenance["clips"],
+                cfg.eval_batch_size,
+            )
         summary["wall_time_s"] = time.perf_counter() - start
         recorder.write_summary(summary)
     _save_model_and_curves(cfg, model, run_dir)
@@ -388,6 +403,28 @@ def _split_summary(errors: TorqueErrors, groups: dict[str, tuple[int, ...]]) -> 
     }
 
 
+def _clip_errors(
+    model: InverseDynamicsModel,
+    data: TensorDict,
+    clip_ids: Tensor,
+    clip_names: list[str],
+    batch_size: int,
+) -> dict[str, dict[str, float]]:
+    """The errors on each clip's samples of one split: n, mse, mse_si, r2 (R^2 against the
+    clip's own torque variance). data (N,), clip_ids (N,) indices into `clip_names`."""
+    out = {}
+    for clip in clip_ids.unique().tolist():
+        mask = (clip_ids == clip).to(data.device)
+        errors = evaluate_torques(model, data[mask], batch_size)
+        out[clip_names[clip]] = {
+            "n": errors.n,
+            "mse": errors.mse,
+            "mse_si": errors.mse_si,
+            "r2": errors.r2,
+        }
+    return out
+
+
 def _summary(
     cfg: DictConfig,
     dataset: MocapDataset,
@@ -408,6 +445,7 @@ def _summary(
         "n_parameters": sum(p.numel() for p in model.parameters()),
         "clips": list(dataset.provenance.get("clips", [])),
         "val_clips": list(dataset.provenance.get("split", {}).get("val_clips", [])),
+        "skipped_clips": dict(dataset.provenance.get("skipped_clips", {})),
         "torques": dataset.provenance.get("torques", {}).get("source", "inverse"),
         "samples": {name: int(td.shape[0]) for name, td in splits.items()},
         "tau": TAU_DEFINITION,
@@ -424,6 +462,8 @@ def _summary(
         check = check_mass_matrix(model, q_all, cfg.eval_batch_size)
         summary["mass_matrix"] = check.as_dict()
         summary["positive_definite_fraction"] = check.positive_definite_fraction
+        poses = random_poses(mj_model, RANDOM_POSES).to(q_all)  # off the data
+        summary["mass_matrix_random_poses"] = check_mass_matrix(model, poses).as_dict()
     return summary
 
 
@@ -500,3 +540,21 @@ def read_fit_run(run_dir: str | Path) -> tuple[DictConfig, dict[str, torch.Tenso
     if not isinstance(cfg, DictConfig) or not isinstance(saved, dict) or "state_dict" not in saved:
         raise ValueError(f"{run_dir} does not hold a fit's config.yaml and model.pt")
     return cfg, saved["state_dict"]
+
+
+def load_fit_model(run_dir: str | Path) -> tuple[DictConfig, InverseDynamicsModel]:
+    """A finished fit's config and its trained model (on the CPU, float32), built on the
+    MuJoCo model its data were retargeted onto (its tree and armature)."""
+    cfg, state = read_fit_run(run_dir)
+    provenance = Path(run_dir) / PROVENANCE_FILE
+    mj_model = _mujoco_model(json.loads(provenance.read_text()) if provenance.is_file() else {})
+    model = build_inverse_model(
+        cfg.model,
+        joint_layout(mj_model),
+        cfg.loss.std_floor,
+        cfg.get("translation_invariant", False),
+        mj_model.dof_parentid.tolist(),
+        mj_model.dof_armature.tolist(),
+    )
+    model.load_state_dict(state)
+    return cfg, model

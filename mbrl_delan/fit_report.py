@@ -5,7 +5,8 @@ holds a ``summary.json`` from it), draws their training and validation torque MS
 on the same axes (``--figure``; the paper's figure: DeLaN against the feed-forward network)
 and prints a Markdown table of the final MSE per model and split (``--table``, the default
 when nothing else is asked for); ``--seeds``: mean and 95% CI over seeds per model and split,
-and each model's paired difference to the feed-forward network on the same seeds.
+and each model's paired difference to the feed-forward network on the same seeds;
+``--clips``: the final errors per clip of every split.
 """
 
 from __future__ import annotations
@@ -66,6 +67,23 @@ def table(runs: list[dict[str, Any]]) -> str:
                 f"| {part['joint_mse_si']:.4g} | {part['r2']:.3f} "
                 f"| {s.get('wall_time_s', float('nan')):.0f} |"
             )
+    return "\n".join(lines)
+
+
+def clip_table(runs: list[dict[str, Any]]) -> str:
+    """Markdown: one row per run, split and clip, the final errors on that clip's samples
+    (``final.<split>.clips`` of summary.json; runs written before it have no rows)."""
+    lines = [
+        "| model | seed | split | clip | samples | MSE (normalised) | MSE (SI) | R^2 |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for s in runs:
+        for split in SPLIT_ORDER:
+            for clip, part in s["final"].get(split, {}).get("clips", {}).items():
+                lines.append(
+                    f"| {_label(s, runs)} | {s.get('seed')} | {split} | {clip} | {part['n']} "
+                    f"| {part['mse']:.4g} | {part['mse_si']:.4g} | {part['r2']:.3f} |"
+                )
     return "\n".join(lines)
 
 
@@ -140,6 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--figure", type=Path, default=None, help="write the loss curves (PNG)")
     parser.add_argument("--table", action="store_true", help="print the Markdown table")
+    parser.add_argument("--clips", action="store_true", help="print the errors per clip")
     parser.add_argument(
         "--seeds",
         action="store_true",
@@ -159,10 +178,12 @@ def main(argv: list[str] | None = None) -> int:
             ", ".join(map(str, args.runs)),
         )
         return 2
-    if args.table or (args.figure is None and not args.seeds):
+    if args.table or (args.figure is None and not args.seeds and not args.clips):
         sys.stdout.write(table(runs) + "\n")  # the command's output, for piping into a file
     if args.seeds:
         sys.stdout.write(seed_table(runs) + "\n")
+    if args.clips:
+        sys.stdout.write(clip_table(runs) + "\n")
     if args.figure is not None:
         written = figure(runs, args.figure)
         log.info("figure: %s", written if written else "nothing to draw (no metrics)")

@@ -1,12 +1,13 @@
 """`python -m mbrl_delan.report DIR [DIR ...] [--out DIR]`: a sweep's results over seeds.
 
 Finds the training run dirs below the given folders (a sweep dir, ``runs/multirun``, single
-run dirs), groups the finished runs (those with a ``summary.json``) by (env, model, planner)
-and writes into ``--out`` (default: the first DIR; ``<DIR>/report`` when DIR is itself a run):
+run dirs), groups the finished runs (those with a ``summary.json``) by (env, model, planner,
+start: ``scratch``, or the fit a DeLaN started from with ``model.init_from``) and writes
+into ``--out`` (default: the first DIR; ``<DIR>/report`` when DIR is itself a run):
 
 * ``report.md`` and ``report.csv``: per group the seeds, n, mean and 95% confidence interval
   (Student t over seeds) of the final evaluation return and of the fraction of the oracle, the
-  oracle return, the env steps to reach 90% of the oracle and the wall time;
+  oracle return, the env steps to reach 50%, 80% and 90% of the oracle and the wall time;
 * ``returns.png``: evaluation return vs env steps per model x planner, mean with a 95% CI band,
   the oracle as a dashed line, one panel per env;
 * ``model_error.png``: the one-step and H-step model errors vs env steps, same layout.
@@ -30,6 +31,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 from omegaconf import OmegaConf
 from scipy import stats
@@ -41,9 +43,11 @@ log = logging.getLogger(__name__)
 
 SUMMARY = "summary.json"
 RUN_FILES = (RUN_CONFIG, SUMMARY, CRASH_FILE)
-GROUP_KEYS = ("env", "model", "planner")
-REQUIRED_KEYS = (*GROUP_KEYS, "seed")
+GROUP_KEYS = ("env", "model", "planner", "start")
+REQUIRED_KEYS = ("env", "model", "planner", "seed")
 ORACLE_FRACTION = 0.9
+REACH_FRACTIONS = (0.5, 0.8, ORACLE_FRACTION)  # the table's "env steps to x of the oracle"
+SCRATCH = "scratch"  # a run's start when its model did not start from a fit
 CONFIDENCE = 0.95
 MODEL_ERRORS = {"model_error_1step": "one-step error", "model_error_hstep": "H-step error"}
 
@@ -53,9 +57,7 @@ RETURNS_PNG = "returns.png"
 MODEL_ERROR_PNG = "model_error.png"
 
 COLUMNS = (
-    "env",
-    "model",
-    "planner",
+    *GROUP_KEYS,
     "seeds",
     "n",
     "eval_return_mean",
@@ -64,13 +66,12 @@ COLUMNS = (
     "fraction_of_oracle_ci95",
     "oracle_return_mean",
     "oracle_return_ci95",
-    "steps_to_90_mean",
-    "steps_to_90_reached",
+    *(f"steps_to_{100 * f:.0f}_{part}" for f in REACH_FRACTIONS for part in ("mean", "reached")),
     "env_steps_mean",
     "wall_time_s_mean",
 )
 
-Group = tuple[str, str, str]
+Group = tuple[str, str, str, str]
 
 
 # --- finding runs -------------------------------------------------------------------------
@@ -126,7 +127,18 @@ def _load_summary(run: Path) -> dict[str, Any] | None:
         return None
     if not isinstance(summary, dict) or any(k not in summary for k in REQUIRED_KEYS):
         return None
-    return {**summary, "run_dir": str(run)}
+    return {**summary, "run_dir": str(run), "start": run_start(run)}
+
+
+def run_start(run: Path) -> str:
+    """How the run's model started: ``scratch``, or ``from <fit dir>`` (``model.init_from``
+    in its ``config.yaml``)."""
+    try:
+        cfg = yaml.safe_load((run / RUN_CONFIG).read_text(encoding="utf-8"))
+        source = cfg["model"].get("init_from")
+    except (OSError, KeyError, TypeError, AttributeError, yaml.YAMLError):
+        source = None
+    return f"from {Path(source).name}" if source else SCRATCH
 
 
 def find_runs(roots: list[Path]) -> tuple[list[dict[str, Any]], list[Path]]:
@@ -202,7 +214,7 @@ def steps_to_fraction(
 def _groups(summaries: list[dict[str, Any]]) -> dict[Group, list[dict[str, Any]]]:
     groups: dict[Group, list[dict[str, Any]]] = defaultdict(list)
     for s in summaries:
-        groups[(str(s["env"]), str(s["model"]), str(s["planner"]))].append(s)
+        groups[(str(s["env"]), str(s["model"]), str(s["planner"]), str(s["start"]))].append(s)
     return {k: sorted(v, key=lambda s: s["seed"]) for k, v in sorted(groups.items())}
 
 
@@ -210,13 +222,7 @@ def _row(group: Group, runs: list[dict[str, Any]]) -> dict[str, Any]:
     def col(key: str) -> list[float]:
         return _finite(r.get(key) for r in runs)
 
-    reach = [
-        steps_to_fraction(
-            read_metrics(Path(r["run_dir"]) / METRICS_FILE), r.get("oracle_return_mean")
-        )
-        for r in runs
-    ]
-    reached = [s for s in reach if s is not None]
+    records = [read_metrics(Path(r["run_dir"]) / METRICS_FILE) for r in runs]
     seeds = [r["seed"] for r in runs]
     if len(set(seeds)) < len(seeds):
         log.warning("%s: seeds %s repeat; runs of different sweeps are pooled", group, seeds)
@@ -228,15 +234,23 @@ def _row(group: Group, runs: list[dict[str, Any]]) -> dict[str, Any]:
         ("oracle_return_mean", "oracle_return"),
     ):
         row[f"{name}_mean"], row[f"{name}_ci95"] = mean_ci(col(key))
-    row["steps_to_90_mean"] = statistics.fmean(reached) if reached else None
-    row["steps_to_90_reached"] = len(reached)
+    for fraction in REACH_FRACTIONS:
+        reach = [
+            steps_to_fraction(recs, r.get("oracle_return_mean"), fraction)
+            for recs, r in zip(records, runs, strict=True)
+        ]
+        reached = [s for s in reach if s is not None]
+        name = f"steps_to_{100 * fraction:.0f}"
+        row[f"{name}_mean"] = statistics.fmean(reached) if reached else None
+        row[f"{name}_reached"] = len(reached)
     row["env_steps_mean"] = mean_ci(col("env_steps"))[0]
     row["wall_time_s_mean"] = mean_ci(col("wall_time_s"))[0]
     return row
 
 
 def rows(summaries: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One dict per (env, model, planner) with the keys of ``COLUMNS``; None where n/a."""
+    """One dict per (env, model, planner, start) with the keys of ``COLUMNS``; None where
+    n/a."""
     return [_row(group, runs) for group, runs in _groups(summaries).items()]
 
 
@@ -254,33 +268,41 @@ def _plain(value: float | None, spec: str = ".3g") -> str:
 
 
 def table(summaries: list[dict[str, Any]]) -> str:
-    """Markdown: one row per (env, model, planner), mean ± 95% CI half-width over seeds."""
+    """Markdown: one row per (env, model, planner, start), mean ± 95% CI half-width over
+    seeds."""
     return markdown_table(rows(summaries))
 
 
 def markdown_table(table_rows: list[dict[str, Any]]) -> str:
     """The Markdown table of ``rows``' output."""
     lines = [
-        "| env | model | planner | seeds | n | eval return | fraction of oracle | oracle return "
-        "| env steps to 90% of oracle (seeds reaching) | env steps | wall time (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| env | model | planner | start | seeds | n | eval return | fraction of oracle "
+        "| oracle return | env steps to 50% / 80% / 90% of oracle (seeds reaching) "
+        "| env steps | wall time (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in table_rows:
         cells = [
             r["env"],
             r["model"],
             r["planner"],
+            r["start"],
             r["seeds"].replace(" ", ","),
             str(r["n"]),
             _pm(r["eval_return_mean"], r["eval_return_ci95"]),
             _pm(r["fraction_of_oracle_mean"], r["fraction_of_oracle_ci95"]),
             _pm(r["oracle_return_mean"], r["oracle_return_ci95"]),
-            f"{_plain(r['steps_to_90_mean'], '.0f')} ({r['steps_to_90_reached']}/{r['n']})",
+            " / ".join(_reach(r, fraction) for fraction in REACH_FRACTIONS),
             _plain(r["env_steps_mean"], ".0f"),
             _plain(r["wall_time_s_mean"], ".0f"),
         ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _reach(row: dict[str, Any], fraction: float) -> str:
+    name = f"steps_to_{100 * fraction:.0f}"
+    return f"{_plain(row[f'{name}_mean'], '.0f')} ({row[f'{name}_reached']}/{row['n']})"
 
 
 def write_csv(table_rows: list[dict[str, Any]], path: Path) -> Path:
@@ -302,8 +324,9 @@ def markdown(table_rows: list[dict[str, Any]], incomplete: list[Path], figures: 
         markdown_table(table_rows),
         f"Mean ± half-width of the {CONFIDENCE:.0%} confidence interval over seeds (Student t; "
         "n/a for one seed). Fraction of oracle: final evaluation return / the same planner's "
-        f"return on MuJoCo's dynamics, per seed. Env steps to {ORACLE_FRACTION:.0%} of oracle: "
-        "first evaluation reaching it, mean over the seeds that did.",
+        "return on MuJoCo's dynamics, per seed. Env steps to x of oracle: first evaluation "
+        "reaching it, mean over the seeds that did. Start: scratch, or the fit the model "
+        "started from (`model.init_from`).",
         "## Incomplete runs",
         "\n".join(f"- `{run}`: {incomplete_reason(run)}" for run in incomplete) or "None.",
     ]
@@ -316,14 +339,36 @@ def markdown(table_rows: list[dict[str, Any]], incomplete: list[Path], figures: 
 
 
 def curves(summaries: list[dict[str, Any]], key: str) -> dict[Group, dict[int, list[float]]]:
-    """Per group, the values of metric ``key`` by env step, one per seed that logged it."""
-    out: dict[Group, dict[int, list[float]]] = defaultdict(lambda: defaultdict(list))
+    """Per group, the values of metric ``key`` by env step, one per seed. Seeds whose rounds
+    end at different env steps (episodes that end early) are put on one grid, the union of
+    their steps: each seed gives its value linearly interpolated at the grid's steps within
+    its own first and last."""
+    out: dict[Group, dict[int, list[float]]] = {}
     for group, runs in _groups(summaries).items():
-        for r in runs:
-            for rec in read_metrics(Path(r["run_dir"]) / METRICS_FILE):
-                if _finite([rec.get(key)]) and _finite([rec.get("env_steps")]):
-                    out[group][int(rec["env_steps"])].append(float(rec[key]))
+        series = [_series(Path(r["run_dir"]) / METRICS_FILE, key) for r in runs]
+        series = [(x, y) for x, y in series if x]
+        grid = sorted({step for x, _ in series for step in x})
+        out[group] = {
+            step: [float(np.interp(step, x, y)) for x, y in series if x[0] <= step <= x[-1]]
+            for step in grid
+        }
     return out
+
+
+def _series(metrics: Path, key: str) -> tuple[list[int], list[float]]:
+    """(env steps, values) of metric ``key`` in a run's records, in logged order."""
+    steps, values = [], []
+    for rec in read_metrics(metrics):
+        if _finite([rec.get(key)]) and _finite([rec.get("env_steps")]):
+            steps.append(int(rec["env_steps"]))
+            values.append(float(rec[key]))
+    return steps, values
+
+
+def group_label(group: Group) -> str:
+    """``model + planner``, and the start when the model started from a fit."""
+    _, model, planner, start = group
+    return f"{model} + {planner}" + ("" if start == SCRATCH else f", {start}")
 
 
 def _draw_band(ax: Any, by_step: dict[int, list[float]], label: str) -> str:
@@ -402,7 +447,7 @@ def _returns_panel(
 ) -> None:
     """One env's return curves (line and band per group) and its planners' oracle lines."""
     for group in (g for g in sorted(by_group) if g[0] == env):
-        _draw_band(ax, by_group[group], f"{group[1]} + {group[2]}")
+        _draw_band(ax, by_group[group], group_label(group))
     for i, (planner, oracle) in enumerate(_oracles(summaries, env).items()):
         grey = str(0.3 * (i % 3))  # black, dark grey, light grey, black, ...
         ax.axhline(oracle, color=grey, ls="--", lw=1.2, label=f"oracle: {planner} on MuJoCo")
@@ -414,7 +459,7 @@ def _error_panel(ax: Any, by_group: dict[Group, dict[int, list[float]]], env: st
     """One model-error metric of one env: a line and band per group, log axis when all > 0."""
     groups = [g for g in sorted(by_group) if g[0] == env]
     for group in groups:
-        _draw_band(ax, by_group[group], f"{group[1]} + {group[2]}")
+        _draw_band(ax, by_group[group], group_label(group))
     values = [v for g in groups for vs in by_group[g].values() for v in vs]
     if values and min(values) > 0:
         ax.set_yscale("log")

@@ -17,6 +17,7 @@ import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 from tqdm import tqdm
@@ -53,7 +54,7 @@ from mbrl_delan.planners.humanoid_residual import HUMANOID_ILQR, humanoid_ilqr_p
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, tracking_ilqr_policy
 from mbrl_delan.sweep import exit_or_raise, marks_crash, with_sweep_group
-from mbrl_delan.systems.system import System
+from mbrl_delan.systems.system import FREE, System
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.humanoid import HumanoidTask
 from mbrl_delan.tasks.tracking import MotionTracking
@@ -297,8 +298,18 @@ def _check_video(cfg: DictConfig) -> None:
     log.info("videos: MuJoCo renders with the %r OpenGL backend", backend)
 
 
+def _record_episode(video: VideoRecorder, path: Path, rollout: TensorDictBase, task: Task) -> Path:
+    """One episode's MP4; a tracking task's shows its reference motion beside it."""
+    q, qd = rollout_states(rollout)
+    if isinstance(task, MotionTracking):
+        return video.record_beside(path, q, qd, task.reference_poses(q.shape[0]))
+    return video.record(path, q, qd)
+
+
 def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Recorder) -> None:
-    """Render the kept episodes of this round's evaluation to ``<run dir>/videos`` and wandb.
+    """Render the kept episodes of this round's evaluation to ``<run dir>/videos`` and wandb,
+    and at the final one the oracle's (``oracle_ep<j>.mp4``); a tracking task's reference
+    motion is drawn beside each episode.
 
     Only the final evaluation is rendered, or every one with `video_every_eval=true`. Runs after
     the round's checkpoint: a failed video only warns and never leaves a partial MP4.
@@ -306,8 +317,17 @@ def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Reco
     evaluation, k = loop.last_evaluation, loop.counters.iteration
     if not cfg.video or evaluation is None or not evaluation.rollouts:
         return
-    if not loop.finished(schedule_of(cfg)) and not cfg.video_every_eval:
+    final = loop.finished(schedule_of(cfg))
+    if not final and not cfg.video_every_eval:
         return
+    episodes = [
+        (f"eval_iter{k}_ep{j}", f"eval_ep{j}", r) for j, r in enumerate(evaluation.rollouts)
+    ]
+    if final:  # and the oracle's episodes from the same starts
+        episodes += [
+            (f"oracle_ep{j}", f"oracle_ep{j}", r) for j, r in enumerate(loop.oracle_rollouts)
+        ]
+    task = _env_parts(cfg).task
     try:
         with VideoRecorder(
             loop.system.mj_model(),
@@ -315,32 +335,68 @@ def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Reco
             cfg.video_height,
             fps=1.0 / loop.system.control_dt,
             backend=resolve_backend(cfg.video_backend),
+            track_root=loop.system.layout.types[:1] == (FREE,),
         ) as video:
-            for j, rollout in enumerate(evaluation.rollouts):
-                path = video.record(
-                    run_dir / VIDEO_DIR / f"eval_iter{k}_ep{j}.mp4", *rollout_states(rollout)
-                )
+            for stem, key, rollout in episodes:
+                path = _record_episode(video, run_dir / VIDEO_DIR / f"{stem}.mp4", rollout, task)
                 log.info("video: %s", path)
-                recorder.log_video(f"video/eval_ep{j}", path, k)
+                recorder.log_video(f"video/{key}", path, k)
     except RENDER_ERRORS as err:
         name = type(err).__name__
         log.warning("no video of iteration %d (%s: %s); the run goes on", k, name, err)
 
 
-def _start_mechanics(model_cfg: DictConfig, model: DeLaN, system: System) -> None:
-    """`model.init_from`: M, V and the friction of a DeLaN fitted on motion capture."""
+# the fit's model keys that make up M, V and the friction (`Structure.MECHANICS`)
+FIT_STRUCTURE_KEYS = (
+    "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb",
+    "still_first_order", "tree_sparse", "armature",
+)  # fmt: skip
+
+
+def with_fit_structure(cfg: DictConfig) -> DictConfig:
+    """`model.init_from`: the loop's DeLaN takes the mocap fit's structure (the keys above,
+    its ``translation_invariant``, no ``yaw_invariant``), so that one key starts the loop
+    from the fit. Returns the config with those model keys set; logs the ones it changed."""
+    fit_cfg, _ = _read_mocap_fit(cfg.model)
+    wanted = {key: fit_cfg.model[key] for key in FIT_STRUCTURE_KEYS if key in fit_cfg.model}
+    wanted |= {
+        "translation_invariant": bool(fit_cfg.get("translation_invariant", False)),
+        "yaw_invariant": False,
+    }
+    changed = {key: value for key, value in wanted.items() if cfg.model[key] != value}
+    if changed:
+        cfg = cfg.copy()
+        for key, value in changed.items():
+            cfg.model[key] = value
+        log.info(
+            "model.init_from=%r: the DeLaN takes that fit's structure: %s",
+            cfg.model.init_from,
+            " ".join(f"model.{key}={value}" for key, value in changed.items()),
+        )
+    return cfg
+
+
+def _read_mocap_fit(model_cfg: DictConfig) -> tuple[DictConfig, dict[str, torch.Tensor]]:
+    """The config and model state of the DeLaN fit `model.init_from` names; a `ConfigError`
+    when the loop's model is not a DeLaN or the folder holds no DeLaN fit."""
     from mbrl_delan.fit import read_fit_run  # the mocap stack: only when asked for
 
-    source = model_cfg.init_from
-    where = f"model.init_from={source!r}"
+    where = f"model.init_from={model_cfg.init_from!r}"
     if model_cfg.name != "delan":
         raise ConfigError(f"{where} is for model=delan, not model={model_cfg.name}")
     try:
-        fit_cfg, state = read_fit_run(source)
+        fit_cfg, state = read_fit_run(model_cfg.init_from)
     except (FileNotFoundError, ValueError) as err:
         raise ConfigError(f"{where}: {err}") from err
     if fit_cfg.model.name != "delan":
         raise ConfigError(f"{where}: that fit is model={fit_cfg.model.name}, not a DeLaN")
+    return fit_cfg, state
+
+
+def _start_mechanics(model_cfg: DictConfig, model: DeLaN, system: System) -> None:
+    """`model.init_from`: M, V and the friction of a DeLaN fitted on motion capture."""
+    fit_cfg, state = _read_mocap_fit(model_cfg)
+    where = f"model.init_from={model_cfg.init_from!r}"
     ours = delan_structure(model_cfg, system)
     theirs = delan_structure(  # the mocap fit's DeLaN sees the root's heading
         fit_cfg.model,
@@ -357,7 +413,7 @@ def _start_mechanics(model_cfg: DictConfig, model: DeLaN, system: System) -> Non
         model.load_mechanics(delan_state)
     except ValueError as err:  # another system (env) than the fit's humanoid
         raise ConfigError(f"{where}: {err}") from err
-    log.info("started M, V and the friction from the mocap fit in %s", source)
+    log.info("started M, V and the friction from the mocap fit in %s", model_cfg.init_from)
 
 
 def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | None]:
@@ -387,6 +443,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     """
     cfg, run_dir, state = _resolve_run(cfg)
     cfg = validate_train_config(cfg)
+    if state is None and cfg.model.get("init_from") is not None:
+        cfg = with_fit_structure(cfg)
     _check_video(cfg)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)

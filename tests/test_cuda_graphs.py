@@ -57,6 +57,23 @@ def test_config_refuses_cuda_graph_without_cuda() -> None:
         validate_train_config(bad)
 
 
+@pytest.mark.parametrize("env", ["humanoid_stand", "cmu_track"])
+def test_model_rollouts_read_nothing_on_the_host(env: str) -> None:
+    """What a CUDA graph captures must not read a tensor's value on the host (`.item()`, a
+    0-dim index tensor): meta tensors have no values, so a rollout that runs on them, the
+    time-indexed tracking reward included, can be captured."""
+    data = Path(__file__).parent / "data"
+    options = {"clip": "09_06", "folders": [str(data)], "download": False}
+    env_parts = make_env_parts(env, task_options=options if env == "cmu_track" else None)
+    system = env_parts.system
+    model = build_delan(system).to("meta")
+    q0 = torch.zeros(system.layout.nq, device="meta")
+    qd0 = torch.zeros(system.layout.nv, device="meta")
+    actions = torch.zeros(8, 3, system.nu, device="meta")  # (N, H, nu)
+    objective = model_objective_factory(model, env_parts.task)(q0, qd0, 5)
+    assert objective(actions).shape == (8,)
+
+
 @needs_cuda
 @pytest.mark.parametrize("env", ["pendulum", "humanoid_stand"])
 def test_replays_score_fresh_actions_as_eager_calls(env: str) -> None:

@@ -30,13 +30,15 @@ from mbrl_delan.config import ConfigError, build_model
 from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.data.mocap import (
     ClipNotFoundError,
+    MocapFormatError,
     build_dataset,
     humanoid_cmu_xml,
+    random_poses,
     save_dataset,
 )
 from mbrl_delan.data.mocap.retarget import joint_layout
 from mbrl_delan.envs.registry import make_env_parts
-from mbrl_delan.fit import build_inverse_model, read_fit_run, run, validate_fit_config
+from mbrl_delan.fit import load_fit_model, run, validate_fit_config
 from mbrl_delan.fit_report import main as report_main
 from mbrl_delan.fit_report import seed_table
 from mbrl_delan.models.field import tree_entries
@@ -47,7 +49,7 @@ from mbrl_delan.models.inverse import (
     MLPInverse,
 )
 from mbrl_delan.systems.system import FREE, HINGE, JointLayout
-from mbrl_delan.train import _start_mechanics
+from mbrl_delan.train import _start_mechanics, with_fit_structure
 from mbrl_delan.training.fit import TrainingDivergedError
 from mbrl_delan.training.inverse_fit import evaluate_torques
 
@@ -154,6 +156,11 @@ def test_fit_report_table_and_shared_figure(fitted, tmp_path: Path, capsys) -> N
     assert len(rows) == 6  # two models x three splits
     assert all(any(f"| {s} |" in r for r in rows) for s in SPLITS)
     assert report_main([str(tmp_path)]) == 2  # no runs there
+    assert report_main([str(fitted["delan"]), "--clips"]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| delan")]
+    assert [row.split(" | ")[2:4] for row in rows] == [
+        ["train", CLIP], ["val_time", CLIP], ["val_clip", HELD_OUT]
+    ]  # fmt: skip
 
 
 def test_seed_table_means_and_paired_differences() -> None:
@@ -501,6 +508,30 @@ def test_nan_in_a_saved_dataset_is_named(clip_folder, tmp_path: Path) -> None:
     assert "'qdd'" in str(err.value) and "(7, 3)" in str(err.value)
 
 
+def test_bad_clips_are_left_out_and_listed_when_asked(clip_folder, tmp_path: Path) -> None:
+    """data.skip_bad_clips=true: a malformed clip and one too short to filter are left out
+    and listed with their errors in summary.json; without it the first one stops the fit."""
+    folder = tmp_path / "clips"
+    shutil.copytree(clip_folder, folder)
+    lines = (DATA / f"{CLIP}.amc").read_text(encoding="latin-1").splitlines()
+    (folder / "09_97.amc").write_text("\n".join(lines[:60]) + "\nlfemur 1.0\n")  # cut mid-frame
+    first = [i for i, line in enumerate(lines) if line.strip() == "4"][0]  # frames 1-3 kept
+    (folder / "09_96.amc").write_text("\n".join(lines[:first]) + "\n")
+    overrides = [
+        *small_overrides(folder),
+        "model=mlp",
+        f"data.clips=[{CLIP},09_97,09_96,{HELD_OUT}]",
+    ]
+    with pytest.raises(MocapFormatError, match="09_97.amc"):
+        run(config(*overrides), tmp_path / "strict")
+    run(config(*overrides, "data.skip_bad_clips=true"), tmp_path / "run")
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    skipped = summary["skipped_clips"]
+    assert sorted(skipped) == ["09_96", "09_97"]
+    assert "09_97.amc" in skipped["09_97"] and "too few" in skipped["09_96"]
+    assert summary["samples"]["val_clip"] == 120 and summary["samples"]["train"] > 50
+
+
 def test_divergence_is_named(clip_folder, tmp_path: Path) -> None:
     cfg = config(*small_overrides(clip_folder), "model=mlp", "lr=1e30", "max_grad_norm=null")
     with pytest.raises(TrainingDivergedError) as err:
@@ -516,32 +547,52 @@ def loop_model_config(*overrides: str) -> DictConfig:
         return compose(config_name="config", overrides=["env=cmu_track", *overrides])
 
 
-FIT_STRUCTURE = (  # the fit's settings (configs/fit, hidden 16) the loop's DeLaN must share
-    "model.hidden=16", "model.coulomb=false", "model.tree_sparse=true",
-    "model.still_first_order=true", "model.translation_invariant=true",
-)  # fmt: skip
+def test_mocap_fit_keeps_its_mass_matrix_conditioned_off_its_data(fitted) -> None:
+    """The default fit's M = L L^T + humanoid_CMU's rotor inertia stays positive definite,
+    its eigenvalues near the hinges' armature of 0.01 kg m^2 or above (the root's 6 DoFs
+    have none, so not exactly: half of it is the bound), and about as well conditioned as
+    MuJoCo's own M at random poses far from the one clip it saw (without the armature:
+    smallest eigenvalue ~3e-5, condition ~1e6 here); the summary reports the same check."""
+    fit_cfg, inverse = load_fit_model(fitted["delan"])
+    assert fit_cfg.model.armature  # the default
+    mj_model = mujoco.MjModel.from_xml_path(str(humanoid_cmu_xml()))
+    q = random_poses(mj_model, 64)
+    eigenvalues = torch.linalg.eigvalsh(inverse.double().mass_matrix(q))  # (64, 62)
+    assert eigenvalues[:, 0].min() >= 0.005
+    data, full = mujoco.MjData(mj_model), np.zeros((mj_model.nv, mj_model.nv))
+    mujoco_condition = []
+    for pose in q.numpy():
+        data.qpos[:] = pose
+        mujoco.mj_forward(mj_model, data)
+        mujoco.mj_fullM(mj_model, data, full)
+        values = np.linalg.eigvalsh(full)
+        mujoco_condition.append(values[-1] / values[0])
+    condition = eigenvalues[:, -1] / eigenvalues[:, 0]
+    assert condition.max() <= 10 * max(mujoco_condition)
+    check = json.loads((fitted["delan"] / "summary.json").read_text())["mass_matrix_random_poses"]
+    assert check["positive_definite_fraction"] == 1.0 and check["min_eigenvalue"] >= 0.005
+    assert check["max_condition"] <= 10 * max(mujoco_condition)
 
 
-def test_loop_delan_starts_from_the_mocap_fit_and_keeps_it(fitted, clip_folder) -> None:
-    """model.init_from: the loop's DeLaN (56 motors, a residual force) gets the fitted M, c,
-    g and friction of the mocap DeLaN (every generalized force as its action), and its first
-    refit's normalisation leaves them as they are."""
-    fit_cfg, state = read_fit_run(fitted["delan"])
+def test_loop_delan_starts_from_the_mocap_fit_and_keeps_it(fitted) -> None:
+    """model.init_from alone: the loop's DeLaN (56 motors, a residual force) takes the fit's
+    structure and gives the mocap DeLaN's inverse dynamics, M, c, g and friction at round 0
+    (every generalized force as its action), and its first refit's normalisation leaves
+    them as they are."""
+    _, inverse = load_fit_model(fitted["delan"])
     layout = joint_layout(mujoco.MjModel.from_xml_path(str(humanoid_cmu_xml())))
-    parents = mujoco.MjModel.from_xml_path(str(humanoid_cmu_xml())).dof_parentid.tolist()
-    inverse = build_inverse_model(
-        fit_cfg.model, layout, fit_cfg.loss.std_floor, fit_cfg.translation_invariant, parents
-    )
-    inverse.load_state_dict(state)
-    cfg = loop_model_config(*FIT_STRUCTURE, f"model.init_from={fitted['delan']}")
+    cfg = with_fit_structure(loop_model_config(f"model.init_from={fitted['delan']}"))
+    assert (cfg.model.hidden, cfg.model.armature, cfg.model.tree_sparse) == (16, True, True)
     system = make_env_parts("cmu_track", task_options=TEST_CLIP).system
     model = build_model(cfg.model, system).double()
     _start_mechanics(cfg.model, model, system)
-    q, qd, _ = random_batch(layout, 16)
-    q, qd = q.double(), qd.double()
+    q, qd, qdd = random_batch(layout, 16)
     expected, got = inverse.delan.double().terms(q, qd), model.terms(q, qd)
     for name in ("mass_matrix", "coriolis", "gravity", "dissipation"):
         torch.testing.assert_close(getattr(got, name), getattr(expected, name), msg=name)
+    torch.testing.assert_close(
+        model.dynamics.inverse_dynamics(q, qd, qdd), inverse.predict_torque(q, qd, qdd)
+    )
     assert model.dynamics.actuation.shape == (62, 56)  # its own B: the 56 motors
     # the loop's first refit sets loss scales and the residual's statistics, not M or V
     n = 32
@@ -560,14 +611,16 @@ def test_loop_delan_starts_from_the_mocap_fit_and_keeps_it(fitted, clip_folder) 
 
 
 def test_init_from_names_what_does_not_fit(fitted, tmp_path: Path) -> None:
-    system = make_env_parts("cmu_track", task_options=TEST_CLIP).system
     cases = [
-        ((f"model.init_from={fitted['delan']}",), "add model.hidden=16 model.coulomb=false"),
-        ((*FIT_STRUCTURE, f"model.init_from={fitted['mlp']}"), "that fit is model=mlp"),
-        ((*FIT_STRUCTURE, f"model.init_from={tmp_path}"), "no config.yaml in"),
+        ((f"model.init_from={fitted['mlp']}",), "that fit is model=mlp"),
+        ((f"model.init_from={tmp_path}",), "no config.yaml in"),
         (("model=ensemble", f"+model.init_from={fitted['delan']}"), "for model=delan"),
     ]  # fmt: skip
     for overrides, expected in cases:
-        cfg = loop_model_config(*overrides)
         with pytest.raises(ConfigError, match=re.escape(expected)):
-            _start_mechanics(cfg.model, build_model(cfg.model, system), system)
+            with_fit_structure(loop_model_config(*overrides))
+    # a DeLaN built with another structure than the fit's is named, with the overrides
+    system = make_env_parts("cmu_track", task_options=TEST_CLIP).system
+    cfg = loop_model_config(f"model.init_from={fitted['delan']}")
+    with pytest.raises(ConfigError, match=re.escape("add model.hidden=16 model.coulomb=false")):
+        _start_mechanics(cfg.model, build_model(cfg.model, system), system)

@@ -340,6 +340,29 @@ def test_local_folder_layouts(tmp_path) -> None:
     assert (files.amc, files.asf, files.source) == (nested / AMC.name, nested / ASF.name, "local")
 
 
+def test_skeleton_is_found_in_another_folder_than_the_clip(tmp_path) -> None:
+    """The subject's ASF beside the AMC first, else in any folder's layouts or the cache."""
+    clips, skeletons, cache = tmp_path / "clips", tmp_path / "skeletons", tmp_path / "cache"
+    clips.mkdir()
+    (clips / AMC.name).write_bytes(AMC.read_bytes())
+    (skeletons / SUBJECT).mkdir(parents=True)
+    (skeletons / SUBJECT / ASF.name).write_bytes(ASF.read_bytes())
+    files = find_clip(CLIP, folders=[clips, skeletons], cache_dir=cache, download=False)
+    assert (files.amc, files.asf, files.source) == (
+        clips / AMC.name,
+        skeletons / SUBJECT / ASF.name,
+        "local",
+    )
+    cache.mkdir()  # the cache's skeleton serves a local clip too
+    (cache / ASF.name).write_bytes(ASF.read_bytes())
+    files = find_clip(CLIP, folders=[clips], cache_dir=cache, download=False)
+    assert (files.amc, files.asf) == (clips / AMC.name, cache / ASF.name)
+    (clips / ASF.name).write_bytes(ASF.read_bytes())  # one beside the clip comes first
+    assert find_clip(CLIP, folders=[clips, skeletons], cache_dir=cache, download=False).asf == (
+        clips / ASF.name
+    )
+
+
 class _QuietHandler(http.server.SimpleHTTPRequestHandler):
     def log_message(self, format: str, *args: object) -> None:  # noqa: A002
         pass

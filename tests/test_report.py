@@ -7,7 +7,16 @@ from pathlib import Path
 
 import pytest
 
-from mbrl_delan.report import _oracles, find_runs, main, mean_ci, steps_to_fraction, table
+from mbrl_delan.report import (
+    _oracles,
+    curves,
+    find_runs,
+    group_label,
+    main,
+    mean_ci,
+    steps_to_fraction,
+    table,
+)
 from mbrl_delan.sweep import write_crash
 
 
@@ -40,11 +49,27 @@ def test_table_gives_mean_and_ci_over_seeds(tmp_path: Path) -> None:
     runs, incomplete = find_runs([tmp_path])
     assert not incomplete
     row = table(runs).splitlines()[2]
-    assert "| pendulum | delan | mppi | 0,1 | 2 |" in row
+    assert "| pendulum | delan | mppi | scratch | 0,1 | 2 |" in row
     # returns 40, 30: s = 7.071, t_{0.975, 1} = 12.706, half-width 12.706 * 7.071 / sqrt(2) = 63.5
     assert "35 ± 64" in row
     # fractions 1.0, 0.75: s = 0.1768, half-width 12.706 * 0.1768 / sqrt(2) = 1.59
     assert "0.875 ± 1.6" in row
+
+
+def test_runs_started_from_a_fit_are_their_own_group(tmp_path: Path) -> None:
+    """Runs of one env, model and planner, from scratch and from a mocap fit, are two rows
+    (not one pooled over repeated seeds), the fit's row and line named after it."""
+    for seed, ret in ((0, 40.0), (1, 30.0)):
+        make_run(tmp_path, f"scratch{seed}", summary(seed, ret, 40.0))
+        prior = make_run(tmp_path, f"prior{seed}", summary(seed, ret / 2, 40.0))
+        (prior / "config.yaml").write_text("seed: 0\nmodel:\n  init_from: runs/fit/walks\n")
+    runs, _ = find_runs([tmp_path])
+    lines = table(runs).splitlines()[2:]
+    assert len(lines) == 2
+    assert "| delan | mppi | from walks | 0,1 | 2 | 17.5 ± 32 |" in lines[0]
+    assert "| delan | mppi | scratch | 0,1 | 2 | 35 ± 64 |" in lines[1]
+    assert group_label(("pendulum", "delan", "mppi", "from walks")) == "delan + mppi, from walks"
+    assert group_label(("pendulum", "delan", "mppi", "scratch")) == "delan + mppi"
 
 
 def test_confidence_interval_of_known_values() -> None:
@@ -128,6 +153,16 @@ def write_metrics(run: Path, evals: dict[int, float], oracle: float) -> None:
     (run / "metrics.jsonl").write_text("\n".join(lines) + "\n")
 
 
+def test_curves_of_seeds_with_different_env_steps_share_one_grid(tmp_path: Path) -> None:
+    """Episodes that end early put each seed's evaluations at other env steps; every seed
+    then gives its value interpolated at the union of steps, within its own range."""
+    for seed, evals in ((0, {100: 1.0, 300: 3.0}), (1, {200: 5.0, 400: 7.0})):
+        write_metrics(make_run(tmp_path, f"r{seed}", summary(seed, 1.0, 10.0)), evals, 10.0)
+    runs, _ = find_runs([tmp_path])
+    (by_step,) = curves(runs, "eval_return_mean").values()
+    assert by_step == {100: [1.0], 200: [2.0, 5.0], 300: [3.0, 6.0], 400: [7.0]}
+
+
 def test_report_with_a_crashed_and_an_unfinished_run(tmp_path: Path, caplog) -> None:
     sweep = tmp_path / "sweep"
     for seed, (ret, evals) in enumerate(
@@ -158,15 +193,15 @@ def test_report_with_a_crashed_and_an_unfinished_run(tmp_path: Path, caplog) -> 
     assert f"`{unfinished}`: no summary.json" in text
     assert "2 incomplete" in text and "4 finished" in text and "fit_run" not in text
     assert "crashed: ValueError: model exploded" in caplog.text
-    assert "| pendulum | delan | cem | 0 | 1 | 20 ± n/a | 0.5 ± n/a |" in text
+    assert "| pendulum | delan | cem | scratch | 0 | 1 | 20 ± n/a | 0.5 ± n/a |" in text
     # steps to 45: seed 0 at 200, seed 1 at 400, seed 2 never -> mean 300 over 2 of 3
-    assert "| 300 (2/3) |" in text
+    assert " / 300 (2/3) |" in text
 
     with (out / "report.csv").open(newline="") as f:
         rows = {r["planner"]: r for r in csv.DictReader(f)}
     assert set(rows) == {"cem", "mppi"}
     mppi, cem = rows["mppi"], rows["cem"]
-    assert mppi["seeds"] == "0 1 2" and mppi["n"] == "3"
+    assert mppi["seeds"] == "0 1 2" and mppi["n"] == "3" and mppi["start"] == "scratch"
     # returns 48, 50, 40: mean 46, s = 5.292, t_{0.975, 2} = 4.303 -> half-width 13.15
     assert float(mppi["eval_return_mean"]) == pytest.approx(46.0)
     assert float(mppi["eval_return_ci95"]) == pytest.approx(4.303 * 5.2915 / math.sqrt(3), 1e-3)
@@ -187,7 +222,7 @@ def test_report_without_finished_runs_still_writes_the_table(tmp_path: Path) -> 
     assert main([str(tmp_path)]) == 0
     text = (tmp_path / "report.md").read_text()
     assert "| env | model | planner |" in text and "crashed: RuntimeError: out of memory" in text
-    assert (tmp_path / "report.csv").read_text().startswith("env,model,planner,seeds,n,")
+    assert (tmp_path / "report.csv").read_text().startswith("env,model,planner,start,seeds,n,")
 
 
 def test_report_of_a_single_run_dir_goes_to_its_report_folder(tmp_path: Path) -> None:

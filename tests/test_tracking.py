@@ -285,6 +285,14 @@ def test_initial_state_is_the_first_reference_frame(track) -> None:
     assert float((state.qd - task.ref_qd[0]).abs().max()) <= task.q_noise
 
 
+def test_reference_poses_follow_an_episode_and_hold_the_last_frame(track) -> None:
+    ref_q = track.task.ref_q  # (T+1, nq)
+    poses = track.task.reference_poses(ref_q.shape[0] + 3)  # an episode of T + 4 states
+    torch.testing.assert_close(poses[: ref_q.shape[0]], ref_q)
+    torch.testing.assert_close(poses[-3:], ref_q[-1].expand(3, -1))
+    torch.testing.assert_close(track.task.reference_poses(2), ref_q[:2])
+
+
 def test_bad_options_and_references_are_named(track) -> None:
     with pytest.raises(ValueError, match="takes no task option clip"):
         make_env_parts("pendulum", task_options={"clip": "02_01"})

@@ -89,6 +89,46 @@ def test_frame_from_live_data_matches_the_state(backend: str, pendulum: mujoco.M
     np.testing.assert_array_equal(from_data, from_state)
 
 
+FREE_BOX = """<mujoco><worldbody><body pos="0 0 1"><freejoint/>
+<geom type="box" size=".2 .1 .3" rgba="1 .2 .2 1"/></body></worldbody></mujoco>"""
+
+
+def test_tracking_camera_follows_the_root(backend: str) -> None:
+    """With track_root the free camera follows a travelling root, so a body moved 3 m looks
+    the same (nothing else is drawn, the light is the camera's); a fixed camera loses it."""
+    box = mujoco.MjModel.from_xml_string(FREE_BOX)
+    here = np.array([0, 0, 1, 1, 0, 0, 0], dtype=np.float64)
+    there = here + np.array([3.0, 0, 0, 0, 0, 0, 0])
+    still = np.zeros(6)
+    with VideoRecorder(box, W, H, fps=20.0, backend=backend, track_root=True) as rec:
+        followed = [rec.frame_from_state(q, still) for q in (here, there)]
+    with VideoRecorder(box, W, H, fps=20.0, backend=backend) as rec:
+        fixed = [rec.frame_from_state(q, still) for q in (here, there)]
+    assert followed[0].any()
+    np.testing.assert_allclose(followed[1], followed[0], atol=2)
+    assert np.abs(fixed[1].astype(int) - fixed[0]).mean() > 1.0
+
+
+def test_record_beside_puts_the_reference_right_of_the_episode(
+    backend: str, pendulum: mujoco.MjModel, tmp_path: Path
+) -> None:
+    q = torch.linspace(0.0, 1.0, 4, dtype=torch.float64)[:, None]  # (T, 1)
+    reference = torch.linspace(2.0, 3.0, 4, dtype=torch.float64)[:, None]
+    written = []
+    with VideoRecorder(pendulum, W, H, fps=20.0, backend=backend) as rec:
+        rec.write = lambda path, frames: written.append(frames) or Path(path)  # type: ignore[method-assign]
+        rec.record_beside(tmp_path / "beside.mp4", q, torch.zeros_like(q), reference)
+        expected = [
+            (rec.frame_from_state(a, np.zeros(1)), rec.frame_from_state(b, np.zeros(1)))
+            for a, b in zip(q.numpy(), reference.numpy(), strict=True)
+        ]
+    (frames,) = written
+    assert frames.shape == (4, H, 2 * W, 3)
+    for frame, (left, right) in zip(frames, expected, strict=True):
+        np.testing.assert_array_equal(frame[:, :W], left)
+        np.testing.assert_array_equal(frame[:, W:], right)
+
+
 def test_mp4_round_trip(backend: str, pendulum: mujoco.MjModel, tmp_path: Path) -> None:
     q = torch.linspace(0.0, 3.0, 7, dtype=torch.float64)[:, None]
     with VideoRecorder(pendulum, W, H, fps=20.0, backend=backend) as rec:
@@ -205,7 +245,8 @@ def test_train_with_video_writes_the_final_evaluation(backend: str, tmp_path: Pa
     out = _train(run_dir, "budget.iterations=2", f"video_backend={backend}")
     assert out.returncode == 0, out.stdout + out.stderr
     videos = sorted(p.name for p in (run_dir / "videos").iterdir())
-    assert videos == ["eval_iter2_ep0.mp4"]  # the final evaluation only (video_every_eval=false)
+    # the final evaluation only (video_every_eval=false), and the oracle's episode
+    assert videos == ["eval_iter2_ep0.mp4", "oracle_ep0.mp4"]
     reader = imageio.get_reader(run_dir / "videos" / videos[0], format="FFMPEG")
     try:
         frames = [frame for frame in reader]

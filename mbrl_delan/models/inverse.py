@@ -294,15 +294,15 @@ class DeLaNInverse(InverseDynamicsModel):
         return self.dynamics.inverse_dynamics(q, qd, qdd)  # (..., nv)
 
     def mass_matrix_cholesky(self, q: Tensor) -> Tensor:
-        """The learned factor L (M = L L^T, units included; triangular) at q (..., nq):
-        (..., nv, nv)."""
+        """The learned factor L (M = L L^T [+ armature], units included; triangular) at q
+        (..., nq): (..., nv, nv)."""
         qd = q.new_zeros(q.shape[:-1] + (self.nv,))
         return self.mechanics.jet(q, qd).L
 
     def mass_matrix(self, q: Tensor) -> Tensor:
-        """The learned M(q): (..., nv, nv)."""
+        """The learned M(q) = L L^T (+ the known armature): (..., nv, nv)."""
         L = self.mass_matrix_cholesky(q)
-        return L @ L.transpose(-1, -2)
+        return self.dynamics.with_armature(L @ L.transpose(-1, -2))
 
     @torch.no_grad()
     def fit_normalization(self, data: TensorDictBase) -> None:

@@ -241,6 +241,12 @@ class LagrangianDynamics(nn.Module):
         coriolis_gravity = self._add_euler_poincare(coriolis_gravity, jet.L, w, qd)
         return coriolis_gravity + self._dissipation(qd, jet.frame), jet
 
+    def with_armature(self, inner: Tensor) -> Tensor:
+        """M from the field's part L L^T (..., n, n): plus diag(armature) where there is one."""
+        if not self.has_armature:
+            return inner
+        return inner + torch.diag(self.armature.to(inner.dtype))
+
     def inverse_dynamics(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
         """Generalized force tau = M qdd + c + g + d. (..., n)"""
         bias, jet = self._bias_and_jet(q, qd)

@@ -141,6 +141,12 @@ class MotionTracking(Task):
         ee = xpos.index_select(-2, self.indices.on(q)["bodies"])
         return root, ee - root.unsqueeze(-2)
 
+    def reference_poses(self, states: int) -> Tensor:
+        """The reference beside an episode of `states` states (its start, then one per
+        step): ref_q[min(t, T)]. (states, nq)"""
+        index = torch.arange(states).clamp(max=self.ref_q.shape[0] - 1)
+        return self.ref_q[index]
+
     def reference_index(self, step: Tensor) -> Tensor:
         """Index of the reference state the action of `step` should reach: min(step + 1, T)."""
         return torch.clamp(step + 1, max=self.ref_q.shape[0] - 1)
@@ -149,14 +155,14 @@ class MotionTracking(Task):
         """Root (..., 3) and root-relative end-effector (..., E, 3) errors against ref_k."""
         ref = self.constants.on(q)
         root, ee = self._points(q)
-        return root - ref["ref_root"][k], ee - ref["ref_ee"][k]
+        return root - rows(ref["ref_root"], k), ee - rows(ref["ref_ee"], k)
 
     def terms(self, q: Tensor, qd: Tensor, step: Tensor) -> TrackingTerms:
         """The four terms of the reward. (..., nq), (..., nv), step -> each (...)."""
         k = self.reference_index(step.to(device=q.device, dtype=torch.long))
         ref = self.constants.on(q)
-        q, ref_q = torch.broadcast_tensors(q, ref["ref_q"][k])  # the state or the steps
-        qd, ref_qd = torch.broadcast_tensors(qd, ref["ref_qd"].to(qd)[k])  # may be batched
+        q, ref_q = torch.broadcast_tensors(q, rows(ref["ref_q"], k))  # the state or the steps
+        qd, ref_qd = torch.broadcast_tensors(qd, rows(ref["ref_qd"].to(qd), k))  # may be batched
         rot = slice(3, None)  # the root's rotation and the hinges, in velocity space
         pose_err = differentiate_pos(self.layout, ref_q, q, 1.0)[..., rot]
         vel_err = (qd - ref_qd)[..., rot]
@@ -213,6 +219,13 @@ class MotionTracking(Task):
         q[..., 7:] += noise(q.shape[-1] - 7)
         qd += noise(qd.shape[-1])
         return State(q=q, qd=qd)
+
+
+def rows(table: Tensor, index: Tensor) -> Tensor:
+    """table[index] for an integer index of any shape (...), without reading it on the host
+    (a 0-dim index tensor would be read with `.item()`, which a CUDA graph cannot capture).
+    (T, *row), (...) -> (..., *row)"""
+    return table.index_select(0, index.reshape(-1)).reshape(*index.shape, *table.shape[1:])
 
 
 def _check_reference(layout: JointLayout, ref_q: Tensor, ref_qd: Tensor) -> None:

@@ -237,6 +237,7 @@ class MBRLLoop:
         self.keep_eval_rollouts = keep_eval_rollouts  # e.g. for videos of evaluation episodes
         self.last_evaluation: Evaluation | None = None  # of the last `iterate`, if it evaluated
         self.oracle_returns: list[float] | None = None  # once `run` has evaluated the oracle
+        self.oracle_rollouts: list[TensorDict] = []  # its first `keep_eval_rollouts` episodes
         self.warmup_done = False  # once `run` has collected the random episodes and fitted
 
     def run(
@@ -251,7 +252,8 @@ class MBRLLoop:
                 schedule.oracle_episodes,
             )
             with self.timed():
-                self.oracle_returns = self.evaluate(oracle, schedule.oracle_episodes).returns
+                ev = self.evaluate(oracle, schedule.oracle_episodes, self.keep_eval_rollouts)
+            self.oracle_returns, self.oracle_rollouts = ev.returns, ev.rollouts
             hooks.checkpoint()
         if not self.warmup_done:
             with self.timed():

@@ -148,6 +148,8 @@ class VideoRecorder:
         elevation: free camera elevation in degrees.
         lookat: free camera target point (3,), or None (fit as above).
         distance: free camera distance, or None (fit as above).
+        track_root: the free camera follows the root body's subtree (MuJoCo's tracking
+            camera), for systems that travel (a walking humanoid leaves a fixed view).
 
     Raises:
         ValueError: a bad size, fps or camera.
@@ -166,6 +168,7 @@ class VideoRecorder:
         elevation: float = DEFAULT_ELEVATION,
         lookat: Sequence[float] | None = None,
         distance: float | None = None,
+        track_root: bool = False,
     ) -> None:
         for label, size in (("width", width), ("height", height)):
             if not isinstance(size, int | np.integer) or size < 2 or size % 2:
@@ -183,6 +186,9 @@ class VideoRecorder:
             self.model.vis.headlight.diffuse[:] = 0.75
         self.data = mujoco.MjData(self.model)
         self.camera = self._camera(camera, azimuth, elevation, lookat, distance)
+        if track_root and self.camera.type == mujoco.mjtCamera.mjCAMERA_FREE:
+            self.camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
+            self.camera.trackbodyid = 1 if self.model.nbody > 1 else 0
         self._gl: Any = None
         self._context: mujoco.MjrContext | None = None
         # Backends report the cause of a failure as warnings (glfw: "DISPLAY ... missing")
@@ -296,6 +302,20 @@ class VideoRecorder:
     def record(self, path: str | Path, q: Tensor | np.ndarray, qd: Tensor | np.ndarray) -> Path:
         """Render the state sequence (q (T, nq), qd (T, nv)) and write it to the MP4 `path`."""
         return self.write(path, self.frames_from_states(q, qd))
+
+    def record_beside(
+        self,
+        path: str | Path,
+        q: Tensor | np.ndarray,
+        qd: Tensor | np.ndarray,
+        reference_q: Tensor | np.ndarray,
+    ) -> Path:
+        """The state sequence (q (T, nq), qd (T, nv)) on the left and the reference poses
+        (T, nq) it follows on the right, each frame twice this recorder's width."""
+        reference = _numpy(reference_q)
+        still = np.zeros((reference.shape[0], self.model.nv))
+        frames = [self.frames_from_states(q, qd), self.frames_from_states(reference, still)]
+        return self.write(path, np.concatenate(frames, axis=2))  # (T, height, 2 width, 3)
 
     def _free_quietly(self) -> None:
         """`close` after a failed start: what is half made may not free cleanly."""

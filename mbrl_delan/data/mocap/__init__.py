@@ -47,6 +47,7 @@ from mbrl_delan.data.mocap.inverse import (
     dynamics_model,
     forward_accelerations,
     inverse_dynamics,
+    random_poses,
 )
 from mbrl_delan.data.mocap.retarget import (
     UNCAPTURED_BONES,
@@ -107,6 +108,7 @@ __all__ = [
     "forward_accelerations",
     "humanoid_cmu_xml",
     "inverse_dynamics",
+    "random_poses",
     "load_dataset",
     "read_amc",
     "read_asf",

@@ -3,9 +3,10 @@
 A clip is named ``subject_trial`` (``"02_01"``, ``"131_03"``); its skeleton is the ASF of the
 subject, the part of the name before the first underscore (``02.asf``). A clip is looked for,
 in order, in each local folder (flat, ``<folder>/<subject>/`` and ``<folder>/subjects/<subject>/``,
-the layouts of a flat copy and of CMU's own archive), then in the cache folder; when it is in
-none of them and downloading is allowed, its AMC and ASF are fetched from the CMU database's
-public URLs (``http://mocap.cs.cmu.edu/subjects/<subject>/<file>``) into the cache.
+the layouts of a flat copy and of CMU's own archive), then in the cache folder; its ASF beside
+the AMC first, then in any of those folders and layouts. When it is in none of them and
+downloading is allowed, its AMC and ASF are fetched from the CMU database's public URLs
+(``http://mocap.cs.cmu.edu/subjects/<subject>/<file>``) into the cache.
 
 `ClipNotFoundError` lists every place looked, and every URL tried with the reason it failed.
 """
@@ -77,24 +78,13 @@ def _candidates(folder: Path, subject: str, filename: str) -> list[Path]:
     ]
 
 
-def _find_pair(
-    folder: Path, name: str, subject: str, looked: list[Path]
-) -> tuple[Path, Path] | None:
-    """(amc, asf) in one of the folder's layouts; the ASF may sit in any of them."""
-    amc = None
-    for path in _candidates(folder, subject, f"{name}.amc"):
-        looked.append(path)
+def _first_file(paths: Sequence[Path], looked: list[Path]) -> Path | None:
+    """The first of `paths` that is a file; every path tried is added to `looked`."""
+    for path in paths:
+        if path not in looked:
+            looked.append(path)
         if path.is_file():
-            amc = path
-            break
-    if amc is None:
-        return None
-    asf_paths = [amc.parent / f"{subject}.asf"]
-    asf_paths += [p for p in _candidates(folder, subject, f"{subject}.asf") if p not in asf_paths]
-    for path in asf_paths:
-        looked.append(path)
-        if path.is_file():
-            return amc, path
+            return path
     return None
 
 
@@ -171,22 +161,27 @@ def find_clip(
     """
     subject = clip_subject(name)
     cache = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    places = [Path(folder).expanduser() for folder in folders] + [cache]
     looked: list[Path] = []
-    for folder in folders:
-        found = _find_pair(Path(folder).expanduser(), name, subject, looked)
-        if found is not None:
-            return ClipFiles(name=name, amc=found[0], asf=found[1], source="local")
-    found = _find_pair(cache, name, subject, looked)
-    if found is not None:
-        return ClipFiles(name=name, amc=found[0], asf=found[1], source="cache")
-    places = "\n  ".join(str(p) for p in looked)
+    for place in places:
+        amc = _first_file(_candidates(place, subject, f"{name}.amc"), looked)
+        if amc is None:
+            continue
+        # the subject's skeleton: beside the AMC, else in any folder's layouts or the cache
+        beside = [amc.parent / f"{subject}.asf"]
+        anywhere = [p for d in places for p in _candidates(d, subject, f"{subject}.asf")]
+        asf = _first_file(beside + anywhere, looked)
+        if asf is not None:
+            source = "cache" if place == cache else "local"
+            return ClipFiles(name=name, amc=amc, asf=asf, source=source)
+    where = "\n  ".join(str(p) for p in looked)
     if not download:
         raise ClipNotFoundError(
-            f"clip {name!r} not found (downloading is off); looked in:\n  {places}"
+            f"clip {name!r} not found (downloading is off); looked in:\n  {where}"
         )
     try:
         return download_clip(name, cache, url_template=url_template, timeout=timeout)
     except ClipNotFoundError as err:
         raise ClipNotFoundError(
-            f"clip {name!r} not found; looked in:\n  {places}\nand {err}"
+            f"clip {name!r} not found; looked in:\n  {where}\nand {err}"
         ) from err

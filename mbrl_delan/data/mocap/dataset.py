@@ -203,6 +203,7 @@ def build_dataset(
     seed: int = 0,
     torques: str = "inverse",
     tracking: TrackingSettings | None = None,
+    skip_bad_clips: bool = False,
 ) -> MocapDataset:
     """Build the mocap dataset from CMU clips.
 
@@ -229,6 +230,10 @@ def build_dataset(
             applied forces).
         tracking: PD settings for ``torques="pd"`` (`TrackingSettings()` if None; its
             ``passive`` is set to ``passive``).
+        skip_bad_clips: a clip that cannot be read or retargeted (a malformed file, too few
+            frames) is left out with a warning, and listed in the provenance's
+            ``skipped_clips`` with its error, instead of stopping the build. A clip found
+            nowhere still stops it.
     """
     settings = settings or FilterSettings()
     clips = tuple(clips)
@@ -244,10 +249,17 @@ def build_dataset(
     tracking = replace(tracking or TrackingSettings(), passive=passive)
     xml = Path(xml_path) if xml_path is not None else humanoid_cmu_xml()
     model = mujoco.MjModel.from_xml_path(str(xml))
-    parts, info = [], {}
+    parts, info, skipped = [], {}, {}
     for index, name in enumerate(clips):
         files = find_clip(name, folders, cache_dir, download, url_template)
-        clip = _retarget_files(files, model, settings, timestep)
+        try:
+            clip = _retarget_files(files, model, settings, timestep)
+        except ValueError as err:  # MocapFormatError, a clip too short to filter
+            if not skip_bad_clips:
+                raise
+            skipped[name] = str(err)
+            log.warning("clip %s left out (data.skip_bad_clips): %s", name, err)
+            continue
         applied, tracking_errors = None, None
         if torques == "pd":
             tracked = track_clip(model, clip, tracking)
@@ -294,12 +306,15 @@ def build_dataset(
             *counts,
             glitch_drop,
         )
+    if skipped and not parts:
+        raise ValueError(f"every clip was left out: {skipped}")
     data = torch.cat(parts, dim=0) if parts else TensorDict({}, batch_size=[0])
     provenance = {
         "format": FORMAT,
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "clips": list(clips),
         "clip_info": info,
+        "skipped_clips": skipped,
         "filter": settings.as_dict(),
         "timestep": float(model.opt.timestep if timestep is None else timestep),
         "model": {

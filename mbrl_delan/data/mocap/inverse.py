@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from mbrl_delan.systems.system import FREE
+from mbrl_delan.systems.system import BALL, FREE
 
 F64 = torch.float64
 _OFF = int(mujoco.mjtDisableBit.mjDSBL_CONTACT) | int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
@@ -50,6 +50,27 @@ def dynamics_model(model: mujoco.MjModel, passive: bool = True) -> mujoco.MjMode
 def copy_model(model: mujoco.MjModel) -> mujoco.MjModel:
     """An independent copy of an MjModel."""
     return model.__copy__()
+
+
+def random_poses(model: mujoco.MjModel, n: int, seed: int = 0) -> Tensor:
+    """Poses spread over the model's whole configuration space, far from any clip: a free
+    root anywhere near the origin (unit normal position) with a uniform orientation, ball
+    joints uniform, hinges and slides uniform in their range (unlimited: [-pi, pi]).
+    float64 (n, nq)."""
+    g = torch.Generator().manual_seed(seed)
+    q = torch.zeros(n, model.nq, dtype=torch.float64)
+    for j in range(model.njnt):
+        adr, kind = int(model.jnt_qposadr[j]), int(model.jnt_type[j])
+        if kind in (FREE, BALL):
+            if kind == FREE:
+                q[:, adr : adr + 3] = torch.randn(n, 3, generator=g, dtype=torch.float64)
+                adr += 3
+            quat = torch.randn(n, 4, generator=g, dtype=torch.float64)
+            q[:, adr : adr + 4] = quat / quat.norm(dim=1, keepdim=True)
+            continue
+        low, high = model.jnt_range[j] if model.jnt_limited[j] else (-np.pi, np.pi)
+        q[:, adr] = low + (high - low) * torch.rand(n, generator=g, dtype=torch.float64)
+    return q
 
 
 def root_dofs(model: mujoco.MjModel) -> tuple[int, ...]:
