@@ -190,6 +190,7 @@ def validate_fit_config(cfg: DictConfig) -> None:
     check_whole("seed", cfg.seed, 0)
     check_whole("threads", cfg.threads, 1, optional=True)
     check_number("epochs", cfg.epochs, 1)
+    check_whole("eval_every", cfg.eval_every, 0)
     check_number("batch_size", cfg.batch_size, 1)
     check_number("eval_batch_size", cfg.eval_batch_size, 1)
     check_number("lr", cfg.lr, 0.0, open_low=True)
@@ -367,6 +368,7 @@ def _train(
         batch_size=cfg.batch_size,
         eval_batch_size=cfg.eval_batch_size,
         max_grad_norm=cfg.max_grad_norm,
+        eval_every=cfg.eval_every,
     )
     generator = torch.Generator(device=device).manual_seed(cfg.seed)
     evaluated = {k: v for k, v in splits.items() if v.shape[0] > 0}

@@ -479,6 +479,8 @@ def test_new_fit_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was(
         ("seed=abc", "seed='abc' is not valid; it must be a whole number >= 0"),
         ("threads=1.5", "threads=1.5 is not valid"),
         ("lr=nan", "lr=nan is not valid"),
+        ("eval_every=-1", "eval_every=-1 is not valid"),
+        ("data.skip_bad_clips=maybe", "data.skip_bad_clips='maybe'"),
     ],
 )
 def test_config_values_are_checked(clip_folder, override: str, expected: str) -> None:
@@ -506,6 +508,19 @@ def test_nan_in_a_saved_dataset_is_named(clip_folder, tmp_path: Path) -> None:
     with pytest.raises(NonFiniteDataError) as err:
         run(cfg, tmp_path / "run")
     assert "'qdd'" in str(err.value) and "(7, 3)" in str(err.value)
+
+
+def test_eval_every_zero_evaluates_the_splits_after_the_last_epoch_only(
+    clip_folder, tmp_path: Path
+) -> None:
+    overrides = [*small_overrides(clip_folder), "model=mlp", "epochs=3", "eval_every=0"]
+    run(config(*overrides), tmp_path / "run")
+    recs = records(tmp_path / "run")
+    assert [r["epoch"] for r in recs] == [1, 2, 3]
+    assert all("train_loss" in r for r in recs)
+    assert [f"{split}_mse" in r for r in recs for split in SPLITS] == [False] * 6 + [True] * 3
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["final"]["val_clip"]["mse"] == pytest.approx(recs[-1]["val_clip_mse"])
 
 
 def test_bad_clips_are_left_out_and_listed_when_asked(clip_folder, tmp_path: Path) -> None:

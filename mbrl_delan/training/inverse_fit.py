@@ -121,10 +121,18 @@ class InverseFitSettings:
     batch_size: int = 256
     eval_batch_size: int = 2048
     max_grad_norm: float | None = 100.0  # clip the global gradient norm; None: no clipping
+    eval_every: int = 1  # evaluate the splits after every k-th epoch and the last; 0: the last
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch_size < 1 or self.eval_batch_size < 1:
             raise ValueError(f"epochs and batch sizes must be >= 1: {self}")
+        if self.eval_every < 0:
+            raise ValueError(f"eval_every must be >= 0: {self}")
+
+    def evaluates(self, epoch: int) -> bool:
+        """Whether the splits are evaluated after `epoch` (counted from 1)."""
+        every = self.eval_every > 0 and epoch % self.eval_every == 0
+        return every or epoch == self.epochs
 
 
 @dataclass
@@ -218,7 +226,7 @@ def _report(results: list[EpochResult], split_names: list[str]) -> FitReport:
     val = split_names[-1] if split_names else None
     return FitReport(
         train_loss=[r.train_loss for r in results],
-        val_loss=[r.errors[val].mse for r in results] if val else [],
+        val_loss=[r.errors[val].mse for r in results if val in r.errors] if val else [],
         best_epoch=len(results) - 1,
         epochs_run=len(results),
     )
@@ -234,7 +242,8 @@ def fit_inverse_model(
     on_epoch: Callable[[EpochResult], None] | None = None,
     scheduler: torch.optim.lr_scheduler.LRScheduler | None = None,
 ) -> list[EpochResult]:
-    """Train on ``train`` (N,) and evaluate every split in ``splits`` after each epoch.
+    """Train on ``train`` (N,) and evaluate every split in ``splits`` after the epochs
+    ``settings.evaluates`` names (each one by default, always the last).
 
     ``model.fit_normalization(train)`` is called first. ``on_epoch`` receives each epoch's
     result as soon as it is known (for logging). ``scheduler`` steps once per epoch.
@@ -262,7 +271,7 @@ def fit_inverse_model(
             scheduler.step()
         errors = {
             name: evaluate_torques(model, part, settings.eval_batch_size)
-            for name, part in splits.items()
+            for name, part in (splits.items() if settings.evaluates(epoch) else ())
         }
         result = EpochResult(epoch, train_loss, time.perf_counter() - start, errors)
         results.append(result)
