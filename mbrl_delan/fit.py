@@ -1,18 +1,21 @@
-"""`python -m mbrl_delan.fit data=cmu_mocap model=delan|mlp|ensemble`: inverse dynamics from mocap.
+"""`python -m mbrl_delan.fit [data=cmu_mocap|arrays] [model=delan|mlp|ensemble]`: inverse dynamics.
 
-The paper's experiment: learn a humanoid's inverse dynamics ``(q, qd, qdd) -> tau`` from CMU
-motion capture with DeLaN and with a feed-forward network, and compare their training and
-validation losses per epoch. The config tree is ``configs/fit`` (``model=`` names an
-inverse-dynamics model of `mbrl_delan.models.inverse` here).
+Learn ``(q, qd, qdd) -> tau`` from CMU motion capture retargeted onto a humanoid (the paper's
+experiment, ``data=cmu_mocap``) or from your own robot's logged arrays (``data=arrays
+data.path=FILE``, `mbrl_delan.data.arrays`), with DeLaN or a feed-forward network. The config
+tree is ``configs/fit`` (``model=`` names an inverse-dynamics model of
+`mbrl_delan.models.inverse` here). From Python: `fit_inverse_dynamics`.
 
-Builds (or loads) the mocap dataset, trains the model on its training part and evaluates it on
-every split after each epoch. The run dir (``runs/fit/...``) receives ``config.yaml``,
+Builds the dataset, trains the model on its training part (stages of falling learning rate
+and early stopping on a validation split where the data config says so) and evaluates it on
+every split. The run dir (``runs/fit/...``) receives ``config.yaml``,
 ``dataset_provenance.json``, ``metrics.jsonl`` (one record per epoch), ``summary.json``
-(final errors per split and body part; DeLaN's positive-definiteness check), ``model.pt``
-and ``loss_curves.png``. Compare runs with ``python -m mbrl_delan.fit_report``.
+(final errors per split, DoF group and clip or trajectory; DeLaN's positive-definiteness
+check), ``model.pt`` and ``loss_curves.png``. Compare runs with ``python -m
+mbrl_delan.fit_report``; evaluate a run on other data with ``python -m mbrl_delan.evaluate``.
 
-Exit codes: 0 done, 2 bad config value or missing clip/dataset, 1 bad data (NaN, malformed
-file, unstable PD tracking) or diverged training.
+Exit codes: 0 done, 2 bad config value, missing or malformed data file, missing clip or
+dataset, 1 bad mocap data (NaN, malformed AMC, unstable PD tracking) or diverged training.
 """
 
 from __future__ import annotations
@@ -22,12 +25,12 @@ import logging
 import pickle
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import hydra
-import mujoco
 import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -43,13 +46,22 @@ from mbrl_delan.config import (
     check_device,
     check_number,
     check_whole,
+    compose_config,
     exit_on_config_errors,
     refuse_used_run_dir,
 )
+from mbrl_delan.data.arrays import SPLITS as ARRAY_SPLITS
+from mbrl_delan.data.arrays import VAL_BY, ArrayFormatError, DerivativeSettings, save_arrays
 from mbrl_delan.data.buffer import NonFiniteDataError, check_finite
+from mbrl_delan.data.inverse_data import (
+    FitSystem,
+    InverseData,
+    array_inverse_data,
+    mocap_inverse_data,
+    system_of,
+)
 from mbrl_delan.data.mocap import (
     GAINS,
-    SPLIT_NAMES,
     TORQUE_SOURCES,
     ClipNotFoundError,
     FilterSettings,
@@ -58,13 +70,9 @@ from mbrl_delan.data.mocap import (
     TrackingSettings,
     TrackingUnstableError,
     build_dataset,
-    dof_groups,
-    humanoid_cmu_xml,
     load_dataset,
     random_poses,
-    split_dataset,
 )
-from mbrl_delan.data.mocap.retarget import joint_layout
 from mbrl_delan.models.inverse import (
     MLP_ACTIVATIONS,
     MODEL_NAMES,
@@ -75,7 +83,7 @@ from mbrl_delan.models.inverse import (
 )
 from mbrl_delan.models.structure import Structure
 from mbrl_delan.models.tangent_mlp import ACTIVATIONS as DELAN_ACTIVATIONS
-from mbrl_delan.systems.system import JointLayout
+from mbrl_delan.systems.system import JOINT_TYPES, JointLayout
 from mbrl_delan.training.fit import TrainingDivergedError
 from mbrl_delan.training.inverse_fit import (
     EpochResult,
@@ -92,22 +100,23 @@ from mbrl_delan.training.recorder import (
     Recorder,
     read_metrics,
 )
+from mbrl_delan.training.schedule import LearningRateStages, run_stages
 
 log = logging.getLogger("mbrl_delan.fit")
 
-DATA_NAMES = ("cmu_mocap",)
-LR_SCHEDULES = ("constant", "cosine")
+DATA_NAMES = ("cmu_mocap", "arrays")
+LR_SCHEDULES = ("constant", "cosine", "stages")
 PROVENANCE_FILE = "dataset_provenance.json"
 RANDOM_POSES = 1024  # poses over the whole joint space where the summary checks a DeLaN's M
 MODEL_FILE = "model.pt"
 # what a fit writes into its run dir; a new fit refuses a folder holding any of them
 RUN_FILES = (RUN_CONFIG, PROVENANCE_FILE, MODEL_FILE, METRICS_FILE, SUMMARY_FILE)
 FIT_CONFIG_DIR = CONFIG_DIR / "fit"  # this entry point's YAML files
-SPLITS = tuple(SPLIT_NAMES.values())  # ("train", "val_time", "val_clip")
-TAU_DEFINITION = (
-    "all nv generalized forces (humanoid_CMU: 62 = 6 root residual [world-frame force, "
-    "body-frame torque] + 56 hinge torques), the dataset's tau"
-)
+TAU_DEFINITION = {
+    "cmu_mocap": "all nv generalized forces (humanoid_CMU: 62 = 6 root residual [world-frame "
+    "force, body-frame torque] + 56 hinge torques), the dataset's tau",
+    "arrays": "the file's tau: all nv generalized forces applied",
+}
 
 
 # ---------------------------------------------------------------- config checking
@@ -154,17 +163,51 @@ def _validate_model(cfg: DictConfig) -> None:
         check_number("model.ensemble_size", cfg.ensemble_size, 1)
 
 
+def _validate_arrays(cfg: DictConfig) -> None:
+    if not isinstance(cfg.path, str) or not cfg.path:
+        raise ConfigError(f"data.path={cfg.path!r} is not valid; give the data file (npz/pt/csv)")
+    if (cfg.joints is None) == (cfg.mjcf is None):
+        raise ConfigError(
+            f"data.joints={cfg.joints!r}, data.mjcf={cfg.mjcf!r}: give one of them (the joint "
+            "types as a list, data.joints=[hinge,hinge,slide], or an MJCF file)"
+        )
+    if cfg.joints is not None:
+        if not isinstance(cfg.joints, list | ListConfig) or not cfg.joints:
+            raise ConfigError(f"data.joints={cfg.joints!r} is not valid; give a list of types")
+        for i, name in enumerate(cfg.joints):
+            _choice(f"data.joints[{i}]", name, tuple(JOINT_TYPES))
+    check_number("data.split.val_fraction", cfg.split.val_fraction, 0.0, 0.9, open_low=True)
+    check_number("data.split.test_fraction", cfg.split.test_fraction, 0.0, 0.9)
+    check_whole("data.split.seed", cfg.split.seed, 0)
+    _choice("data.split.val_by", cfg.split.val_by, VAL_BY)
+    if cfg.filter.cutoff_hz is not None:
+        check_number("data.filter.cutoff_hz", cfg.filter.cutoff_hz, 0.0, open_low=True)
+    check_whole("data.filter.order", cfg.filter.order, 1)
+
+
 def _validate_data(cfg: DictConfig) -> None:
     _choice("data.name", cfg.name, DATA_NAMES)
+    if cfg.name == "arrays":
+        _validate_arrays(cfg)
+        return
     _choice("data.torques", cfg.torques, TORQUE_SOURCES)
     _flag("data.skip_bad_clips", cfg.skip_bad_clips)
     if cfg.dataset_dir is not None:
         return
     clips = _clip_names("data.clips", cfg.clips)
     val = _clip_names("data.val_clips", cfg.val_clips, allow_empty=True)
-    unknown = [c for c in val if c not in clips]
-    if unknown:
-        raise ConfigError(f"data.val_clips={val} is not valid: {unknown} not in data.clips={clips}")
+    test = _clip_names("data.test_clips", cfg.get("test_clips", []), allow_empty=True)
+    for name, held in (("val_clips", val), ("test_clips", test)):
+        unknown = [c for c in held if c not in clips]
+        if unknown:
+            raise ConfigError(
+                f"data.{name}={held} is not valid: {unknown} not in data.clips={clips}"
+            )
+    if set(val) & set(test):
+        raise ConfigError(
+            f"data.test_clips={test} is not valid: {sorted(set(val) & set(test))} "
+            "also in data.val_clips"
+        )
     if len(set(clips)) != len(clips):
         raise ConfigError(f"data.clips={clips} is not valid: a clip is listed twice")
     if cfg.samples_per_clip is not None:
@@ -189,19 +232,32 @@ def validate_fit_config(cfg: DictConfig) -> None:
     check_device(cfg.device)
     check_whole("seed", cfg.seed, 0)
     check_whole("threads", cfg.threads, 1, optional=True)
-    check_number("epochs", cfg.epochs, 1)
+    check_whole("epochs", cfg.epochs, 1)
     check_whole("eval_every", cfg.eval_every, 0)
     check_number("batch_size", cfg.batch_size, 1)
     check_number("eval_batch_size", cfg.eval_batch_size, 1)
     check_number("lr", cfg.lr, 0.0, open_low=True)
     check_number("weight_decay", cfg.weight_decay, 0.0)
     _choice("lr_schedule", cfg.lr_schedule, LR_SCHEDULES)
+    check_whole("stages.count", cfg.stages.count, 1)
+    check_number("stages.decay", cfg.stages.decay, 0.0, 1.0, open_low=True)
+    check_whole("stages.warmup_steps", cfg.stages.warmup_steps, 0)
+    check_whole("patience", cfg.patience, 1, optional=True)
+    if cfg.stop_on is not None:
+        _choice("stop_on", cfg.stop_on, _split_names(cfg.data))
     if cfg.max_grad_norm is not None:
         check_number("max_grad_norm", cfg.max_grad_norm, 0.0, open_low=True)
     check_number("loss.std_floor", cfg.loss.std_floor, 0.0, 1.0, open_low=True)
     _flag("translation_invariant", cfg.translation_invariant)
     _validate_model(cfg.model)
     _validate_data(cfg.data)
+
+
+def _split_names(data: DictConfig) -> tuple[str, ...]:
+    """The splits a data config gives (`InverseData.splits`)."""
+    if data.name == "arrays":
+        return ARRAY_SPLITS
+    return ("train", "val_time", "val_clip", *(("test",) if data.get("test_clips") else ()))
 
 
 # ---------------------------------------------------------------- building the parts
@@ -216,9 +272,10 @@ def make_dataset(cfg: DictConfig) -> MocapDataset:
         )
         dataset = load_dataset(cfg.dataset_dir)
     else:
+        held_out = [*cfg.val_clips, *cfg.get("test_clips", [])]
         dataset = build_dataset(
             clips=_clip_names("data.clips", cfg.clips),
-            val_clips=_clip_names("data.val_clips", cfg.val_clips, allow_empty=True),
+            val_clips=_clip_names("data.val_clips", held_out, allow_empty=True),
             folders=list(cfg.folders),
             cache_dir=cfg.cache_dir,
             download=cfg.download,
@@ -247,6 +304,34 @@ def make_dataset(cfg: DictConfig) -> MocapDataset:
     return dataset
 
 
+def make_inverse_data(cfg: DictConfig) -> InverseData:
+    """The splits the data config describes: the mocap dataset or a logged-arrays file."""
+    if cfg.name == "arrays":
+        return array_inverse_data(
+            cfg.path,
+            FitSystem.of(cfg.mjcf if cfg.mjcf is not None else list(cfg.joints)),
+            derivative=DerivativeSettings(cutoff_hz=cfg.filter.cutoff_hz, order=cfg.filter.order),
+            val_fraction=cfg.split.val_fraction,
+            test_fraction=cfg.split.test_fraction,
+            seed=cfg.split.seed,
+            val_by=cfg.split.val_by,
+        )
+    dataset = make_dataset(cfg)
+    try:
+        return mocap_inverse_data(dataset, list(cfg.get("test_clips", [])))
+    except ValueError as err:  # test clips that a saved dataset does not hold out
+        raise ConfigError(f"data.test_clips: {err}") from err
+
+
+def branches(dof_parents: Sequence[int] | None) -> bool:
+    """Whether a kinematic tree (each DoF's parent, -1 for none) branches: only then does
+    tree sparsity leave entries of M out (a chain couples every pair of DoFs)."""
+    if dof_parents is None:
+        return False
+    parents = list(dof_parents)
+    return len(set(parents)) < len(parents)
+
+
 def build_inverse_model(
     cfg: DictConfig,
     layout: JointLayout,
@@ -257,7 +342,9 @@ def build_inverse_model(
 ) -> InverseDynamicsModel:
     """The inverse-dynamics model named by ``cfg.name``. `translation_invariant`: no model
     sees the root's position (DeLaN keeps gravity's exact w z potential in its height).
-    `dof_parents`: the kinematic tree, for DeLaN's ``model.tree_sparse``. `armature`: the
+    `dof_parents`: the kinematic tree, for DeLaN's ``model.tree_sparse`` (a tree that does not
+    branch, an arm's chain, gets the dense lower factor L L^T instead: the same matrices, and
+    the fit of the upper factor trains to a 7x larger torque error on arm2). `armature`: the
     model's ``dof_armature``, for DeLaN's ``model.armature``."""
     root_height = not translation_invariant
     if cfg.name == "delan":
@@ -270,7 +357,7 @@ def build_inverse_model(
             coulomb=cfg.coulomb,
             translation_invariant=translation_invariant,
             still_first_order=cfg.still_first_order,
-            dof_parents=dof_parents if cfg.tree_sparse else None,
+            dof_parents=dof_parents if cfg.tree_sparse and branches(dof_parents) else None,
             armature=armature if cfg.get("armature", False) else None,
         )
         return DeLaNInverse(layout, structure, std_floor=std_floor)
@@ -292,66 +379,75 @@ def build_inverse_model(
     )
 
 
-def _mujoco_model(provenance: dict[str, Any]) -> mujoco.MjModel:
-    """The model the data were retargeted onto (from their provenance, else humanoid_CMU)."""
-    xml = provenance.get("model", {}).get("xml")
-    path = Path(xml) if xml and Path(xml).is_file() else humanoid_cmu_xml()
-    return mujoco.MjModel.from_xml_path(str(path))
+def build_system_model(cfg: DictConfig, system: FitSystem) -> InverseDynamicsModel:
+    """`build_inverse_model` of a fit config (``model``, ``loss``, ``translation_invariant``)
+    for a system."""
+    return build_inverse_model(
+        cfg.model,
+        system.layout,
+        cfg.loss.std_floor,
+        cfg.get("translation_invariant", False),
+        system.dof_parents,
+        system.armature,
+    )
 
 
 def _tensors(td: TensorDictBase, device: torch.device, dtype: torch.dtype) -> TensorDict:
-    """Only q, qd, qdd, tau, on the device in the training dtype. (N,)"""
-    return td.select(keys.Q, keys.QD, keys.QDD, keys.TAU).to(device=device, dtype=dtype)
+    """The data's float fields on the device in the training dtype. (N,)"""
+    return td.to(device=device, dtype=dtype)
 
 
 # ---------------------------------------------------------------- the run
 
 
 def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
-    """Validate, build, train and evaluate; write everything into ``run_dir``. The summary."""
+    """Validate, build, train and evaluate; write everything into ``run_dir``. The summary.
+
+    The data are read before anything is written: a missing or malformed file leaves the
+    run dir as it was."""
+    return _run(cfg, run_dir)[0]
+
+
+def _run(cfg: DictConfig, run_dir: Path) -> tuple[dict[str, Any], InverseDynamicsModel]:
+    """`run`; the summary and the trained model."""
     validate_fit_config(cfg)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     device, dtype = check_device(cfg.device), DTYPES[cfg.dtype]
+    start = time.perf_counter()
+    data = make_inverse_data(cfg.data)
+    if cfg.stop_on is not None and data.splits[cfg.stop_on].shape[0] == 0:
+        raise ConfigError(f"stop_on={cfg.stop_on!r}: that split of the data is empty")
     run_dir.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(cfg, run_dir / RUN_CONFIG, resolve=True)
-    start = time.perf_counter()
-    dataset = make_dataset(cfg.data)
-    (run_dir / PROVENANCE_FILE).write_text(json.dumps(dataset.provenance, indent=1))
-    parts = split_dataset(dataset)
-    splits = {name: _tensors(getattr(parts, name), device, dtype) for name in SPLITS}
-    clip_ids = {name: getattr(parts, name)[keys.CLIP].reshape(-1) for name in SPLITS}  # (N,)
-    mj_model = _mujoco_model(dataset.provenance)
-    model = build_inverse_model(
-        cfg.model,
-        joint_layout(mj_model),
-        cfg.loss.std_floor,
-        cfg.translation_invariant,
-        mj_model.dof_parentid.tolist(),
-        mj_model.dof_armature.tolist(),
-    )
-    model = model.to(device=device, dtype=dtype)
+    (run_dir / PROVENANCE_FILE).write_text(json.dumps(data.provenance, indent=1))
+    splits = {name: _tensors(td, device, dtype) for name, td in data.splits.items()}
+    model = build_system_model(cfg, data.system).to(device=device, dtype=dtype)
     if cfg.model.get("compile_fit", False):
         compile_fit(model)
     container = OmegaConf.to_container(cfg, resolve=True)
     logger = cfg.logger
     with Recorder(run_dir, logger.wandb, logger.project, logger.group, container) as recorder:
         results = _train(cfg, model, splits, recorder, device)
-        summary = _summary(cfg, dataset, model, mj_model, splits, results)
-        for name, part in summary["final"].items():  # the evaluated (non-empty) splits
-            part["clips"] = _clip_errors(
-                model,
-                splits[name],
-                clip_ids[name],
-                dataset.provenance["clips"],
-                cfg.eval_batch_size,
-            )
+        summary = fit_summary(cfg, data, model, splits, results)
         summary["wall_time_s"] = time.perf_counter() - start
         recorder.write_summary(summary)
     _save_model_and_curves(cfg, model, run_dir)
     _log_summary(run_dir, summary)
-    return summary
+    return summary, model
+
+
+def _settings(cfg: DictConfig, epochs: int) -> InverseFitSettings:
+    return InverseFitSettings(
+        epochs=epochs,
+        batch_size=cfg.batch_size,
+        eval_batch_size=cfg.eval_batch_size,
+        max_grad_norm=cfg.max_grad_norm,
+        eval_every=cfg.eval_every,
+        stop_on=cfg.stop_on,
+        patience=cfg.patience,
+    )
 
 
 def _train(
@@ -361,27 +457,46 @@ def _train(
     recorder: Recorder,
     device: torch.device,
 ) -> list[EpochResult]:
-    """Adam on the training split; every non-empty split evaluated and logged per epoch."""
+    """Adam on the training split at ``cfg.lr`` (``lr_schedule``: constant, cosine down to 0,
+    or `LearningRateStages`); the non-empty splits evaluated and logged per epoch."""
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    settings = InverseFitSettings(
-        epochs=cfg.epochs,
-        batch_size=cfg.batch_size,
-        eval_batch_size=cfg.eval_batch_size,
-        max_grad_norm=cfg.max_grad_norm,
-        eval_every=cfg.eval_every,
-    )
     generator = torch.Generator(device=device).manual_seed(cfg.seed)
     evaluated = {k: v for k, v in splits.items() if v.shape[0] > 0}
-    scheduler = None
-    if cfg.lr_schedule == "cosine":  # from lr down to 0 over the epochs
-        scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=cfg.epochs)
+    results: list[EpochResult] = []
 
     def on_epoch(result: EpochResult) -> None:
         recorder.log(result.record(), result.epoch)
 
-    return fit_inverse_model(
-        model, optimizer, splits["train"], evaluated, settings, generator, on_epoch, scheduler
-    )
+    def fit(epochs: int, scheduler: Any = None) -> int:
+        done = fit_inverse_model(
+            model,
+            optimizer,
+            splits["train"],
+            evaluated,
+            _settings(cfg, epochs),
+            generator,
+            on_epoch,
+            scheduler,
+            first_epoch=len(results) + 1,
+            normalize=not results,
+        )
+        results.extend(done)
+        return len(done)
+
+    if cfg.lr_schedule == "stages":
+        schedule = LearningRateStages(
+            lr=cfg.lr,
+            stages=cfg.stages.count,
+            decay=cfg.stages.decay,
+            warmup_steps=cfg.stages.warmup_steps,
+            max_epochs=cfg.epochs,
+        )
+        run_stages(optimizer, schedule, lambda stage, epochs: fit(epochs))
+    elif cfg.lr_schedule == "cosine":  # from lr down to 0 over the epochs
+        fit(cfg.epochs, torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=cfg.epochs))
+    else:
+        fit(cfg.epochs)
+    return results
 
 
 def _save_model_and_curves(cfg: DictConfig, model: InverseDynamicsModel, run_dir: Path) -> None:
@@ -393,7 +508,8 @@ def _save_model_and_curves(cfg: DictConfig, model: InverseDynamicsModel, run_dir
     plot_loss_curves({cfg.model.name: records}, run_dir / LOSS_CURVES_PNG)
 
 
-def _split_summary(errors: TorqueErrors, groups: dict[str, tuple[int, ...]]) -> dict[str, Any]:
+def split_summary(errors: TorqueErrors, groups: dict[str, tuple[int, ...]]) -> dict[str, Any]:
+    """A split's errors: overall, of the joints (every group but the root) and per group."""
     joints = [i for name, dofs in groups.items() if name != "root" for i in dofs]
     return {
         "n": errors.n,
@@ -405,20 +521,21 @@ def _split_summary(errors: TorqueErrors, groups: dict[str, tuple[int, ...]]) -> 
     }
 
 
-def _clip_errors(
+def group_errors(
     model: InverseDynamicsModel,
     data: TensorDict,
-    clip_ids: Tensor,
-    clip_names: list[str],
+    group_ids: Tensor,
+    group_names: list[str],
     batch_size: int,
 ) -> dict[str, dict[str, float]]:
-    """The errors on each clip's samples of one split: n, mse, mse_si, r2 (R^2 against the
-    clip's own torque variance). data (N,), clip_ids (N,) indices into `clip_names`."""
+    """The errors on each clip's or trajectory's samples of one split: n, mse, mse_si, r2
+    (R^2 against the group's own torque variance). data (N,), group_ids (N,) indices into
+    `group_names`."""
     out = {}
-    for clip in clip_ids.unique().tolist():
-        mask = (clip_ids == clip).to(data.device)
+    for group in group_ids.unique().tolist():
+        mask = (group_ids == group).to(data.device)
         errors = evaluate_torques(model, data[mask], batch_size)
-        out[clip_names[clip]] = {
+        out[group_names[group]] = {
             "n": errors.n,
             "mse": errors.mse,
             "mse_si": errors.mse_si,
@@ -427,16 +544,23 @@ def _clip_errors(
     return out
 
 
-def _summary(
+def fit_summary(
     cfg: DictConfig,
-    dataset: MocapDataset,
+    data: InverseData,
     model: InverseDynamicsModel,
-    mj_model: mujoco.MjModel,
     splits: dict[str, TensorDict],
     results: list[EpochResult],
 ) -> dict[str, Any]:
-    groups = dof_groups(mj_model)
-    final = results[-1].errors
+    """summary.json: the kept weights' errors on every non-empty split (overall, per DoF group
+    and per clip or trajectory), sizes, and DeLaN's M checks."""
+    groups = data.system.dof_groups
+    final = {
+        name: evaluate_torques(model, td, cfg.eval_batch_size)
+        for name, td in splits.items()
+        if td.shape[0] > 0
+    }
+    best = min(results, key=lambda r: r.errors[cfg.stop_on].mse) if cfg.stop_on else results[-1]
+    provenance = data.provenance
     summary: dict[str, Any] = {
         "data": cfg.data.name,
         "model": cfg.model.name,
@@ -444,28 +568,42 @@ def _summary(
         "device": cfg.device,
         "dtype": cfg.dtype,
         "epochs": len(results),
+        "best_epoch": best.epoch,
+        "stop_on": cfg.stop_on,
         "n_parameters": sum(p.numel() for p in model.parameters()),
-        "clips": list(dataset.provenance.get("clips", [])),
-        "val_clips": list(dataset.provenance.get("split", {}).get("val_clips", [])),
-        "skipped_clips": dict(dataset.provenance.get("skipped_clips", {})),
-        "torques": dataset.provenance.get("torques", {}).get("source", "inverse"),
         "samples": {name: int(td.shape[0]) for name, td in splits.items()},
-        "tau": TAU_DEFINITION,
+        "tau": TAU_DEFINITION[cfg.data.name],
         "loss": f"per-DoF normalised torque MSE, std floored at {cfg.loss.std_floor} x the largest",
         "dof_groups": {name: len(dofs) for name, dofs in groups.items()},
-        "final": {name: _split_summary(err, groups) for name, err in final.items()},
+        "final": {name: split_summary(err, groups) for name, err in final.items()},
     }
-    for name, err in final.items():
-        summary[f"{name}_mse"] = err.mse
-        summary[f"{name}_mse_si"] = err.mse_si
-        summary[f"{name}_r2"] = err.r2
+    if cfg.data.name == "cmu_mocap":
+        test_clips = list(provenance.get("test_clips", []))
+        held_out = provenance.get("split", {}).get("val_clips", [])
+        summary |= {
+            "clips": list(provenance.get("clips", [])),
+            "val_clips": [c for c in held_out if c not in test_clips],
+            "test_clips": test_clips,
+            "skipped_clips": dict(provenance.get("skipped_clips", {})),
+            "torques": provenance.get("torques", {}).get("source", "inverse"),
+        }
+    else:
+        summary |= {"path": provenance["path"], "trajectories": len(data.group_names)}
+    for name, part in summary["final"].items():
+        part[data.group_kind] = group_errors(
+            model, splits[name], data.groups[name], data.group_names, cfg.eval_batch_size
+        )
+        summary[f"{name}_mse"] = part["mse"]
+        summary[f"{name}_mse_si"] = part["mse_si"]
+        summary[f"{name}_r2"] = part["r2"]
     if isinstance(model, DeLaNInverse):
         q_all = torch.cat([td[keys.Q] for td in splits.values()])
         check = check_mass_matrix(model, q_all, cfg.eval_batch_size)
         summary["mass_matrix"] = check.as_dict()
         summary["positive_definite_fraction"] = check.positive_definite_fraction
-        poses = random_poses(mj_model, RANDOM_POSES).to(q_all)  # off the data
-        summary["mass_matrix_random_poses"] = check_mass_matrix(model, poses).as_dict()
+        if data.system.mj_model is not None:
+            poses = random_poses(data.system.mj_model, RANDOM_POSES).to(q_all)  # off the data
+            summary["mass_matrix_random_poses"] = check_mass_matrix(model, poses).as_dict()
     return summary
 
 
@@ -502,6 +640,9 @@ def hydra_main(cfg: DictConfig) -> float | None:
         sys.exit(2)
     except (ClipNotFoundError, FileNotFoundError) as err:
         log.error("data not found: %s", err)
+        sys.exit(2)
+    except ArrayFormatError as err:
+        log.error("bad data file: %s", err)
         sys.exit(2)
     except (NonFiniteDataError, MocapFormatError, TrackingUnstableError) as err:
         log.error("bad data: %s", err)
@@ -545,18 +686,67 @@ def read_fit_run(run_dir: str | Path) -> tuple[DictConfig, dict[str, torch.Tenso
 
 
 def load_fit_model(run_dir: str | Path) -> tuple[DictConfig, InverseDynamicsModel]:
-    """A finished fit's config and its trained model (on the CPU, float32), built on the
-    MuJoCo model its data were retargeted onto (its tree and armature)."""
+    """A finished fit's config and its trained model (on the CPU, in the fit's dtype), built
+    on the system its data name (the MJCF's tree and armature, or the joint list)."""
     cfg, state = read_fit_run(run_dir)
-    provenance = Path(run_dir) / PROVENANCE_FILE
-    mj_model = _mujoco_model(json.loads(provenance.read_text()) if provenance.is_file() else {})
-    model = build_inverse_model(
-        cfg.model,
-        joint_layout(mj_model),
-        cfg.loss.std_floor,
-        cfg.get("translation_invariant", False),
-        mj_model.dof_parentid.tolist(),
-        mj_model.dof_armature.tolist(),
-    )
+    model = build_system_model(cfg, system_of(read_provenance(run_dir)))
+    model = model.to(DTYPES[cfg.get("dtype", "float32")])
     model.load_state_dict(state)
     return cfg, model
+
+
+def read_provenance(run_dir: str | Path) -> dict[str, Any]:
+    """A fit's ``dataset_provenance.json`` ({} when it has none)."""
+    path = Path(run_dir) / PROVENANCE_FILE
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+# ---------------------------------------------------------------- the Python API
+
+
+@dataclass
+class FitResult:
+    """What `fit_inverse_dynamics` returns: the run's config, trained model, summary, dir."""
+
+    config: DictConfig
+    model: InverseDynamicsModel
+    summary: dict[str, Any]
+    run_dir: Path
+
+
+def fit_inverse_dynamics(
+    data: str | Path | Mapping[str, Any],
+    joints: Sequence[str] | str,
+    run_dir: str | Path,
+    model: str = "delan",
+    overrides: Sequence[str] = (),
+) -> FitResult:
+    """``python -m mbrl_delan.fit data=arrays`` from Python, with its defaults.
+
+    Args:
+        data: a data file (`mbrl_delan.data.arrays`' schema) or its fields in memory (a dict
+            or TensorDict of arrays or tensors: q, qd, tau, ...; written to
+            ``run_dir/data.npz``).
+        joints: the joint types in order (``["hinge", "hinge"]``), or an MJCF file or the
+            stem of a shipped model (``"arm2"``).
+        run_dir: where the run's files go (refused if it holds a run already).
+        model: ``delan``, ``mlp`` or ``ensemble``.
+        overrides: further config overrides as on the command line (``["epochs=100"]``).
+
+    Raises ConfigError for a bad config value, FileNotFoundError and ArrayFormatError for a
+    missing or malformed data file, TrainingDivergedError when the fit diverges.
+    """
+    run_dir = Path(run_dir)
+    refuse_used_run_dir(run_dir, RUN_FILES, "give another run_dir")
+    if not isinstance(data, str | Path):
+        run_dir.mkdir(parents=True, exist_ok=True)
+        data = save_arrays(data, run_dir / "data.npz")
+    joint_key = (
+        f"data.mjcf={joints}"
+        if isinstance(joints, str)
+        else "data.joints=[" + ",".join(joints) + "]"
+    )
+    base = ["data=arrays", f"data.path={Path(data)}", joint_key, f"model={model}", "logger=none"]
+    cfg = compose_config(FIT_CONFIG_DIR, [*base, *overrides])
+    summary, trained = _run(cfg, run_dir)
+    return FitResult(config=cfg, model=trained, summary=summary, run_dir=run_dir)

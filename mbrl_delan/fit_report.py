@@ -22,7 +22,7 @@ from mbrl_delan.training.recorder import METRICS_FILE, SUMMARY_FILE, read_metric
 
 log = logging.getLogger(__name__)
 
-SPLIT_ORDER = ("train", "val_time", "val_clip")
+SPLIT_ORDER = ("train", "val", "val_time", "val_clip", "test")  # mocap and arrays splits
 
 
 def find_fit_runs(paths: list[Path]) -> list[dict[str, Any]]:
@@ -71,15 +71,18 @@ def table(runs: list[dict[str, Any]]) -> str:
 
 
 def clip_table(runs: list[dict[str, Any]]) -> str:
-    """Markdown: one row per run, split and clip, the final errors on that clip's samples
-    (``final.<split>.clips`` of summary.json; runs written before it have no rows)."""
+    """Markdown: one row per run, split and clip (or trajectory), the final errors on its
+    samples (``final.<split>.clips`` or ``.trajectories`` of summary.json; runs written
+    before them have no rows)."""
     lines = [
-        "| model | seed | split | clip | samples | MSE (normalised) | MSE (SI) | R^2 |",
+        "| model | seed | split | clip or trajectory | samples | MSE (normalised) | MSE (SI) "
+        "| R^2 |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for s in runs:
         for split in SPLIT_ORDER:
-            for clip, part in s["final"].get(split, {}).get("clips", {}).items():
+            final = s["final"].get(split, {})
+            for clip, part in final.get("clips", final.get("trajectories", {})).items():
                 lines.append(
                     f"| {_label(s, runs)} | {s.get('seed')} | {split} | {clip} | {part['n']} "
                     f"| {part['mse']:.4g} | {part['mse_si']:.4g} | {part['r2']:.3f} |"

@@ -28,3 +28,9 @@ CLIP = "clip"  # index of the source clip in the dataset's clip list, (..., 1) i
 FRAME = "frame"  # fractional frame number in the source AMC file, (..., 1) float64
 TIME = "time"  # seconds since the clip's first frame, (..., 1) float64
 SPLIT = "split"  # 0 train, 1 held-out time segment, 2 held-out clip, (..., 1) int64
+
+# Logged robot data (mbrl_delan.data.arrays)
+TRAJECTORY = "trajectory"  # index of the trajectory a sample belongs to, (..., 1) int64
+TAU_INERTIAL = "tau_inertial"  # the inertial part M(q) qdd of tau, (..., nv)
+TAU_CORIOLIS = "tau_coriolis"  # the Coriolis and centripetal part c(q, qd), (..., nv)
+TAU_GRAVITY = "tau_gravity"  # the gravity part g(q), (..., nv)

@@ -111,7 +111,7 @@ def _task_options(cfg: DictConfig) -> dict[str, Any] | None:
     return None if options is None else OmegaConf.to_container(options, resolve=True)
 
 
-def _env_parts(cfg: DictConfig) -> EnvParts:
+def env_parts(cfg: DictConfig) -> EnvParts:
     """The env's system and task; a bad env setting or a missing clip is a ConfigError."""
     env = cfg.env
     try:
@@ -209,7 +209,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
     """The MBRL loop and the oracle policy (the same planner over MuJoCo's true dynamics, or
     iLQR on MuJoCo's derivatives with `budget.oracle_planner=ilqr`)."""
     device, dtype = check_device(cfg.device), DTYPES[cfg.dtype]
-    parts = _env_parts(cfg)
+    parts = env_parts(cfg)
     system, task = parts.system, parts.task
     env_kw = dict(
         frame_skip=cfg.env.frame_skip,
@@ -327,7 +327,7 @@ def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Reco
         episodes += [
             (f"oracle_ep{j}", f"oracle_ep{j}", r) for j, r in enumerate(loop.oracle_rollouts)
         ]
-    task = _env_parts(cfg).task
+    task = env_parts(cfg).task
     try:
         with VideoRecorder(
             loop.system.mj_model(),

@@ -35,7 +35,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig
 
-from mbrl_delan import bench, fit_report, report
+from mbrl_delan import bench, evaluate, fit_report, report
 from mbrl_delan.benchmarks import figures
 from mbrl_delan.config import DTYPES, build_model, build_planner, validate_train_config
 from mbrl_delan.data.mocap.retarget import joint_layout
@@ -100,6 +100,7 @@ ARGPARSE_ENTRY_POINTS: dict[str, Callable[[list[str]], Any]] = {
     "mbrl_delan.report": report.main,  # main(argv) builds its parser and parses argv first
     "mbrl_delan.fit_report": fit_report.main,
     "mbrl_delan.benchmarks.figures": figures.main,
+    "mbrl_delan.evaluate": evaluate.main,
 }
 
 # Commands in the docs that are not meant to be run as written. Keep this list short.
@@ -453,14 +454,15 @@ python -m mbrl_delan.bench suite=no_such_suite
 python -m mbrl_delan.bench --no-such-flag
 python -m mbrl_delan.report runs --no-such-flag
 python -m mbrl_delan.fit_report --table
-python -m mbrl_delan.evaluate runs
+python -m mbrl_delan.evaluate runs colour=red
+python -m mbrl_delan.no_such_entry_point runs
 ```
 """
 
 
 def test_made_up_commands_are_rejected() -> None:
     commands = extract_commands(Path("bogus.md"), BOGUS)
-    assert len(commands) == 16
+    assert len(commands) == 17
     for command in commands:
         with pytest.raises(DocCommandError) as err:
             check_command(command)

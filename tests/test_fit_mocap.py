@@ -56,7 +56,7 @@ from mbrl_delan.training.inverse_fit import evaluate_torques
 ROOT = Path(__file__).parents[1]
 CONFIGS = ROOT / "configs" / "fit"
 DATA = Path(__file__).parent / "data"
-CLIP, HELD_OUT = "09_06", "09_99"
+CLIP, HELD_OUT, TEST = "09_06", "09_99", "09_98"
 TEST_CLIP = {"clip": CLIP, "folders": [str(DATA)], "download": False}  # env=cmu_track
 GROUP_SIZES = {"root": 6, "legs": 14, "spine_neck_head": 18, "arms": 14, "hands": 10}
 SPLITS = ("train", "val_time", "val_clip")
@@ -70,7 +70,7 @@ def clip_folder(tmp_path_factory) -> Path:
     except (ModuleNotFoundError, FileNotFoundError) as err:
         pytest.skip(f"humanoid_CMU.xml unavailable: {err}")
     folder = tmp_path_factory.mktemp("clips")
-    for name in (CLIP, HELD_OUT):
+    for name in (CLIP, HELD_OUT, TEST):
         (folder / f"{name}.amc").write_bytes((DATA / f"{CLIP}.amc").read_bytes())
     (folder / "09.asf").write_bytes((DATA / "09.asf").read_bytes())
     return folder
@@ -521,6 +521,28 @@ def test_eval_every_zero_evaluates_the_splits_after_the_last_epoch_only(
     assert [f"{split}_mse" in r for r in recs for split in SPLITS] == [False] * 6 + [True] * 3
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["final"]["val_clip"]["mse"] == pytest.approx(recs[-1]["val_clip_mse"])
+
+
+def test_test_clips_form_a_split_of_their_own(clip_folder, tmp_path: Path) -> None:
+    overrides = [*small_overrides(clip_folder), "model=mlp", "epochs=1"]
+    clips = [f"data.clips=[{CLIP},{HELD_OUT},{TEST}]", f"data.test_clips=[{TEST}]"]
+    summary = run(config(*overrides, *clips), tmp_path / "run")
+    assert summary["val_clips"] == [HELD_OUT] and summary["test_clips"] == [TEST]
+    assert set(summary["final"]) == {"train", "val_time", "val_clip", "test"}
+    assert list(summary["final"]["test"]["clips"]) == [TEST]
+    assert list(summary["final"]["val_clip"]["clips"]) == [HELD_OUT]
+    assert summary["samples"]["test"] == summary["samples"]["val_clip"] > 0  # the same clip
+    assert summary["final"]["test"]["mse"] == pytest.approx(summary["final"]["val_clip"]["mse"])
+    with pytest.raises(ConfigError, match="also in data.val_clips"):
+        validate_fit_config(config(*overrides, *clips, f"data.val_clips=[{HELD_OUT},{TEST}]"))
+
+
+def test_a_chain_gets_the_dense_factor_and_a_tree_the_sparse_one() -> None:
+    from mbrl_delan.fit import branches
+
+    humanoid = mujoco.MjModel.from_xml_path(str(humanoid_cmu_xml())).dof_parentid.tolist()
+    assert branches(humanoid) and branches([-1, -1])  # a tree; a forest
+    assert not branches([-1, 0, 1, 2]) and not branches(None)  # a chain; no tree known
 
 
 def test_bad_clips_are_left_out_and_listed_when_asked(clip_folder, tmp_path: Path) -> None:

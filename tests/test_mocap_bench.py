@@ -54,7 +54,7 @@ def test_quick_run_writes_every_metric(humanoid, tmp_path: Path) -> None:
     run(cfg)
     records = read_records(out)
     assert {r["metric"] for r in records} == set(METRICS)
-    assert len(records) == 2 + len(MODELS)
+    assert len(records) == 2 + 2 * len(MODELS)
     for r in records:
         assert r["suite"] == "mocap" and "note" not in r, r
         assert r["value"] is not None and math.isfinite(r["value"]) and r["value"] > 0, r
@@ -62,6 +62,9 @@ def test_quick_run_writes_every_metric(humanoid, tmp_path: Path) -> None:
     assert set(fits) == set(MODELS)
     for r in fits.values():
         assert r["batch_size"] == 16 and r["steps_per_epoch"] == math.ceil(r["train_samples"] / 16)
+    epochs = {r["model"]: r for r in records if r["metric"] == "fit_epoch_s"}
+    for name, r in epochs.items():  # one timing, two figures
+        assert r["value"] * fits[name]["value"] == pytest.approx(r["train_samples"])
     retarget = next(r for r in records if r["metric"] == "retarget_frames_per_s")
     assert retarget["clips"] == ["09_06"] and retarget["frames"] == 141
     build = next(r for r in records if r["metric"] == "dataset_build_s")
@@ -71,7 +74,7 @@ def test_quick_run_writes_every_metric(humanoid, tmp_path: Path) -> None:
 def test_missing_clips_give_null_records_with_a_note(humanoid, tmp_path: Path) -> None:
     cfg = mocap_config([*QUICK_OVERRIDES, "data.clips=['09_77']", f"data.folders=['{tmp_path}']"])
     records = list(run_mocap(cfg, OPTS))
-    assert {r.metric for r in records} == set(METRICS) and len(records) == 2 + len(MODELS)
+    assert {r.metric for r in records} == set(METRICS) and len(records) == 2 + 2 * len(MODELS)
     for r in records:
         assert r.value is None and "09_77" in r.extra["note"]
 

@@ -13,6 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from tiny import TINY_TRAIN
 
@@ -68,6 +69,30 @@ def test_tiny_training_run_writes_everything(finished_run: Path) -> None:
     assert all(r["model_error_1step"] >= 0.0 for r in recs)
     for name in ("returns.png", "model_error.png", "checkpoint.pt", "config.yaml"):
         assert (finished_run / name).is_file(), name
+
+
+def test_load_run_gives_the_train_runs_delan_and_evaluate_uses_it(finished_run, tmp_path) -> None:
+    """`load_run` of a train run: its world model with the checkpoint's weights; `evaluate`
+    scores that DeLaN's inverse dynamics on pendulum data of MuJoCo (tau = B a)."""
+    import numpy as np
+
+    from mbrl_delan.data.synthetic import dynamics_dataset
+    from mbrl_delan.evaluate import evaluate_run
+    from mbrl_delan.runs import load_run
+    from mbrl_delan.systems.system import load_system
+    from mbrl_delan.training.checkpoint import load_checkpoint
+
+    run = load_run(finished_run)
+    assert run.kind == "train" and run.summary["env"] == "pendulum"
+    saved = load_checkpoint(finished_run / "checkpoint.pt", weights_only=False)["loop"]["model"]
+    for key, value in run.model.state_dict().items():
+        torch.testing.assert_close(value, saved[key])
+    data = dynamics_dataset(load_system("pendulum"), 64, torch.Generator().manual_seed(0))
+    path = tmp_path / "pendulum.npz"
+    np.savez(path, **{k: data[k].numpy() for k in ("q", "qd", "qdd", "tau")})
+    result = evaluate_run(finished_run, data=path)["splits"]["data"]
+    assert result["n"] == 64 and result["r2"] <= 1.0 and result["mse_si"] >= 0.0
+    assert "components" in result and result["rollout"] == {}  # no times: no rollouts
 
 
 def test_schedule_ends_at_the_round_cap_or_the_env_step_budget() -> None:

@@ -30,6 +30,7 @@ _SUITES = {
     "planner": "mbrl_delan.benchmarks.planner:run_planner_suite",
     "humanoid": "mbrl_delan.benchmarks.humanoid:run_humanoid_suite",
     "realtime": "mbrl_delan.benchmarks.realtime:run_realtime_suite",
+    "fit_arrays": "mbrl_delan.benchmarks.fit_arrays:run_fit_arrays_suite",
 }
 SUITE_NAMES = tuple(_SUITES)
 # world-model cases of suite planner (here so the entry point can check names without

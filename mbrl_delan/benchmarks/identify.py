@@ -40,7 +40,6 @@ from typing import Any
 import torch
 from tensordict import TensorDict
 from torch import Tensor
-from torch.utils.hooks import RemovableHandle
 
 from mbrl_delan import keys
 from mbrl_delan.benchmarks import SuiteOptions, host_fields
@@ -52,6 +51,7 @@ from mbrl_delan.models.lagrangian import LagrangianDynamics
 from mbrl_delan.models.structure import Structure
 from mbrl_delan.systems.system import JointLayout, System, load_system
 from mbrl_delan.training.fit import FitConfig, FitReport, fit_model
+from mbrl_delan.training.schedule import LearningRateStages, run_stages
 
 log = logging.getLogger(__name__)
 
@@ -124,6 +124,16 @@ class IdentifyConfig:
         if not self.unactuated_scales or min(self.unactuated_scales) <= 0:
             raise ValueError(f"unactuated_scales must be > 0, got {self.unactuated_scales}")
 
+    def schedule(self) -> LearningRateStages:
+        """The learning-rate stages of the fit."""
+        return LearningRateStages(
+            lr=self.lr,
+            stages=self.stages,
+            decay=self.lr_decay,
+            warmup_steps=self.warmup_steps,
+            max_epochs=self.max_epochs,
+        )
+
     def unactuated_scale(self, stage: int) -> float:
         """The unactuated DoFs' torque-error scale in stage `stage` (from 0)."""
         return self.unactuated_scales[min(stage, len(self.unactuated_scales) - 1)]
@@ -179,67 +189,38 @@ class IdentifyFit:
 
 
 def fit_identification(model: DeLaN, data: TensorDict, cfg: IdentifyConfig) -> IdentifyFit:
-    """Fit `model` on `data` (N,) by `fit_model` in `cfg.stages` stages of falling lr.
+    """Fit `model` on `data` (N,) by `fit_model` in the stages of `cfg.schedule()`
+    (`mbrl_delan.training.schedule`: falling lr, a linear warm-up first).
 
-    Stage k (lr = cfg.lr * cfg.lr_decay^k, the first with a linear warm-up) may run an equal
-    share of the epochs left and ends early after `cfg.patience` epochs without a better
-    validation loss; it starts from the best weights of the stage before. Every stage splits
-    with the same seed, so the validation samples never enter training.
+    Each stage ends early after `cfg.patience` epochs without a better validation loss and
+    starts from the best weights of the stage before. Every stage splits with the same seed,
+    so the validation samples never enter training.
     """
     start = time.perf_counter()
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    warmup = _linear_warmup(optimizer, cfg.lr, cfg.warmup_steps)
     reports: list[FitReport] = []
-    remaining = cfg.max_epochs
-    for stage in range(cfg.stages):
-        lr = cfg.lr * cfg.lr_decay**stage
-        if stage > 0:
-            warmup.remove()
-            for group in optimizer.param_groups:
-                group["lr"] = lr
+
+    def fit_stage(stage: int, epochs: int) -> int:
         model.unactuated_torque_scale = cfg.unactuated_scale(stage)
-        share = math.ceil(remaining / (cfg.stages - stage))
-        if share <= 0:
-            break
         fit_cfg = FitConfig(
             batch_size=cfg.batch_size,
-            max_epochs=share,
+            max_epochs=epochs,
             val_fraction=cfg.val_fraction,
             patience=cfg.patience,
         )
         report = fit_model(model, optimizer, data, fit_cfg, torch.Generator().manual_seed(cfg.seed))
         reports.append(report)
-        remaining -= report.epochs_run
         log.info(
             "stage %d (lr %.2g): %d epochs, best validation loss %.3g",
             stage,
-            lr,
+            optimizer.param_groups[0]["lr"],
             report.epochs_run,
             report.best_val_loss,
         )
-    warmup.remove()
+        return report.epochs_run
+
+    run_stages(optimizer, cfg.schedule(), fit_stage)
     return IdentifyFit(model=model, reports=reports, seconds=time.perf_counter() - start)
-
-
-def _linear_warmup(optimizer: torch.optim.Optimizer, lr: float, steps: int) -> RemovableHandle:
-    """Sets the learning rate to lr * min(1, (k + 1) / steps) before optimizer step k.
-
-    Early in the fit, before g is learned, the torque is best explained by a small M (the
-    regression of tau on qdd alone); Adam's first steps at full lr overshoot into softplus's
-    flat region, where diag(L) and its gradient vanish and the fit never recovers.
-    """
-    steps = max(steps, 1)
-    taken = 0
-
-    def set_lr(*_: Any) -> None:
-        nonlocal taken
-        taken += 1
-        for group in optimizer.param_groups:
-            group["lr"] = lr * min(1.0, (taken + 1) / steps)
-
-    for group in optimizer.param_groups:
-        group["lr"] = lr / steps
-    return optimizer.register_step_post_hook(set_lr)
 
 
 # ----------------------------------------------------------------------------- metrics

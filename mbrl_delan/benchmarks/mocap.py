@@ -15,7 +15,8 @@ builders:
   second of one epoch of `train_epoch` (what `fit_inverse_model` runs each epoch: shuffled
   minibatches of the config's batch size, loss, backward, gradient clipping, Adam step) on
   the training split of the dataset just built, after `fit_normalization`; samples per epoch
-  / seconds per epoch.
+  / seconds per epoch;
+- `fit_epoch_s` (one record per model): the seconds of that epoch (the same timing).
 
 `SuiteOptions.quick`: the one small clip of tests/data (09_06) and tiny sizes
 (`QUICK_OVERRIDES`). Clips that are not found give `value: null` records with a note.
@@ -68,7 +69,7 @@ from mbrl_delan.training.inverse_fit import InverseFitSettings, train_epoch
 log = logging.getLogger(__name__)
 
 SUITE = "mocap"
-METRICS = ("retarget_frames_per_s", "dataset_build_s", "fit_samples_per_s")
+METRICS = ("retarget_frames_per_s", "dataset_build_s", "fit_samples_per_s", "fit_epoch_s")
 REPO_ROOT = Path(__file__).resolve().parents[2]
 TEST_DATA = REPO_ROOT / "tests" / "data"
 QUICK_CLIP = "09_06"
@@ -273,17 +274,18 @@ def _missing_records(
     yield _record(case, "dataset_build_s", "s", "cpu", fields, None, None, note)
     for name in cfg.models:
         fit_case = f"{name}-b{cfg.fit.batch_size}"
-        yield _record(fit_case, "fit_samples_per_s", "samples/s", device, fields, None, None, note)
+        for metric, unit in (("fit_samples_per_s", "samples/s"), ("fit_epoch_s", "s")):
+            yield _record(fit_case, metric, unit, device, fields, None, None, note)
 
 
-def _fit_record(
+def _fit_records(
     name: str,
     mj_model: mujoco.MjModel,
     train: TensorDict,
     cfg: MocapBenchConfig,
     opts: SuiteOptions,
     host: dict[str, Any],
-) -> BenchRecord:
+) -> Iterator[BenchRecord]:
     torch.manual_seed(cfg.fit.seed)
     layout, parents = joint_layout(mj_model), mj_model.dof_parentid.tolist()
     armature = mj_model.dof_armature.tolist()
@@ -304,9 +306,13 @@ def _fit_record(
         **host,
     }
     timing = time_call(epoch_call(model, train, cfg), opts.timing, synchronizer(opts.device))
-    value = n / timing.seconds_per_call
-    case = f"{name}-b{cfg.fit.batch_size}"
-    return _record(case, "fit_samples_per_s", "samples/s", str(opts.device), fields, timing, value)
+    seconds, case, device = (
+        timing.seconds_per_call,
+        f"{name}-b{cfg.fit.batch_size}",
+        str(opts.device),
+    )
+    yield _record(case, "fit_samples_per_s", "samples/s", device, fields, timing, n / seconds)
+    yield _record(case, "fit_epoch_s", "s", device, fields, timing, seconds)
 
 
 def run_mocap(cfg: MocapBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord]:
@@ -338,12 +344,13 @@ def run_mocap(cfg: MocapBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord
     train = training_split(dataset, opts.device, cfg.dtype)
     for name in cfg.models:
         log.info("mocap suite: one epoch of %s on %d samples", name, train.shape[0])
-        yield _fit_record(name, mj_model, train, cfg, opts, host)
+        yield from _fit_records(name, mj_model, train, cfg, opts, host)
 
 
 def suite_config(opts: SuiteOptions) -> MocapBenchConfig:
-    """The suite's settings: the fit's defaults, or `QUICK_OVERRIDES` under ``opts.quick``."""
-    return mocap_config(QUICK_OVERRIDES if opts.quick else ())
+    """The suite's settings: the fit's defaults, or `QUICK_OVERRIDES` under ``opts.quick``;
+    then the fit-config overrides ``opts.overrides``."""
+    return mocap_config([*(QUICK_OVERRIDES if opts.quick else ()), *opts.overrides])
 
 
 def run_mocap_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:

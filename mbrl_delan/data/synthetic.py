@@ -260,3 +260,86 @@ def inverse_dynamics_dataset(
         {keys.Q: q, keys.QD: qd, keys.QDD: qdd, keys.TAU: tau_t, keys.ACTION: tau_t.clone()},
         batch_size=[n],
     )
+
+
+def _smooth_path(
+    low: Tensor, high: Tensor, steps: int, dt: float, knot_s: float, generator: torch.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """A path (steps, k) through uniform random knots in [low, high] every `knot_s` seconds,
+    joined by a cubic spline (scipy's, not-a-knot), and its velocity (steps, k)."""
+    from scipy.interpolate import CubicSpline
+
+    n_knots = max(int(math.ceil(steps * dt / knot_s)) + 1, 4)
+    knots = _uniform(low, high, n_knots, generator).numpy()  # (K, k)
+    t = np.arange(steps) * dt
+    spline = CubicSpline(np.linspace(0.0, float(t[-1]), n_knots), knots)
+    return spline(t), spline(t, 1)
+
+
+def trajectory_dataset(
+    system: System,
+    trajectories: int,
+    steps: int,
+    generator: torch.Generator,
+    knot_s: float = 1.0,
+    q_scale: float = math.pi,
+    omega: float = 2.0 * math.pi,
+) -> TensorDict:
+    """Logged data of `trajectories` smooth random motions of `steps` control steps each.
+
+    Each trajectory tracks a smooth random reference (`_smooth_path`: positions within
+    [-q_scale, q_scale], or the joint range) from rest at its start by critically damped PD
+    control at natural frequency `omega` (rad/s): tau_pd = M (omega^2 (q_ref - q) + 2 omega
+    (qd_ref - qd)) with the mass matrix M(q), and a = B^-1 tau_pd clipped to the control range (one
+    actuator per joint), in MuJoCo with contacts off. Per sample, at the state before each
+    control step: q, qd, qdd (MuJoCo's qacc), tau = B a, the time t (s), the trajectory's
+    index, and MuJoCo's parts of tau = M qdd + c + g + D qd: ``tau_inertial`` = M qdd,
+    ``tau_coriolis`` = c(q, qd) and ``tau_gravity`` = g(q) (`qfrc_bias` at qd and at rest).
+    Hinge and slide joints only. A float64 TensorDict (trajectories x steps,) in the schema
+    of `mbrl_delan.data.arrays` (``t``, ``trajectory``).
+    """
+    if trajectories < 1 or steps < 2:
+        raise ValueError(f"need trajectories >= 1 and steps >= 2, got {trajectories}, {steps}")
+    _check_scalar_joints(system)
+    if system.nu != system.nv:
+        raise ValueError(f"{system.name}: PD tracking needs one actuator per joint")
+    model = _contact_free_model(system)
+    data = mujoco.MjData(model)
+    n, dt = trajectories * steps, system.control_dt
+    out = {name: np.zeros((n, model.nv)) for name in ("qd", "qdd", "tau", "ti", "tc")}
+    q = np.zeros((n, model.nq))
+    mass = np.zeros((model.nv, model.nv))
+    low, high = (x.numpy() for x in _control_box(system, 1.0))
+    B = system.actuation.to(F64).numpy()
+    for j in range(trajectories):
+        q_ref, qd_ref = _smooth_path(*_position_box(model, q_scale), steps, dt, knot_s, generator)
+        mujoco.mj_resetData(model, data)
+        data.qpos[:] = q_ref[0]
+        for k in range(steps):
+            i = j * steps + k
+            mujoco.mj_forward(model, data)
+            mujoco.mj_fullM(model, data, mass)
+            error = omega**2 * (q_ref[k] - data.qpos) + 2 * omega * (qd_ref[k] - data.qvel)
+            data.ctrl[:] = np.clip(np.linalg.solve(B, mass @ error), low, high)
+            mujoco.mj_forward(model, data)
+            q[i], out["qd"][i], out["qdd"][i] = data.qpos, data.qvel, data.qacc
+            out["tau"][i] = B @ data.ctrl
+            out["ti"][i] = mass @ data.qacc
+            out["tc"][i] = data.qfrc_bias
+            for _ in range(system.frame_skip):
+                mujoco.mj_step(model, data)
+    gravity = reference_terms(system, torch.from_numpy(q)).gravity.numpy()
+    return TensorDict(
+        {
+            keys.Q: torch.from_numpy(q),
+            keys.QD: torch.from_numpy(out["qd"]),
+            keys.QDD: torch.from_numpy(out["qdd"]),
+            keys.TAU: torch.from_numpy(out["tau"]),
+            keys.TAU_INERTIAL: torch.from_numpy(out["ti"]),
+            keys.TAU_CORIOLIS: torch.from_numpy(out["tc"] - gravity),
+            keys.TAU_GRAVITY: torch.from_numpy(gravity),
+            "t": torch.from_numpy(np.tile(np.arange(steps) * dt, trajectories)),
+            "trajectory": torch.arange(trajectories).repeat_interleave(steps),
+        },
+        batch_size=[n],
+    )

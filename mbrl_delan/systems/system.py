@@ -5,6 +5,7 @@ Nothing here learns; models and tasks read a `System` and never an `MjModel`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +22,9 @@ FREE, BALL, SLIDE, HINGE = (
     int(mujoco.mjtJoint.mjJNT_SLIDE),
     int(mujoco.mjtJoint.mjJNT_HINGE),
 )
+
+
+JOINT_TYPES = {"free": FREE, "ball": BALL, "slide": SLIDE, "hinge": HINGE}  # by MJCF name
 
 
 @dataclass
@@ -63,6 +67,39 @@ class JointLayout:
             for t, a, lim in zip(self.types, self.qpos_adr, self.limited, strict=True)
             if t == HINGE and not lim
         )
+
+
+def layout_from_names(names: Sequence[str]) -> JointLayout:
+    """The layout of joints named by type, in order (``["hinge", "hinge", "slide"]``), for a
+    system without a model file: hinges unlimited (their features are sin and cos), slides
+    limited (standardised as they are). Raises ValueError naming an unknown type."""
+    unknown = [n for n in names if n not in JOINT_TYPES]
+    if not names or unknown:
+        raise ValueError(
+            f"joint types {list(names)!r}: give a non-empty list of {', '.join(JOINT_TYPES)}"
+            + (f" ({unknown} unknown)" if unknown else "")
+        )
+    types = tuple(JOINT_TYPES[n] for n in names)
+    qpos_sizes = {FREE: 7, BALL: 4, SLIDE: 1, HINGE: 1}
+    dof_sizes = {FREE: 6, BALL: 3, SLIDE: 1, HINGE: 1}
+    qpos_adr = np.cumsum([0] + [qpos_sizes[t] for t in types[:-1]]).tolist()
+    dof_adr = np.cumsum([0] + [dof_sizes[t] for t in types[:-1]]).tolist()
+    return JointLayout(
+        types=types,
+        qpos_adr=tuple(int(a) for a in qpos_adr),
+        dof_adr=tuple(int(a) for a in dof_adr),
+        limited=tuple(t == SLIDE for t in types),
+    )
+
+
+def mujoco_layout(model: mujoco.MjModel) -> JointLayout:
+    """The `JointLayout` of an MjModel."""
+    return JointLayout(
+        types=tuple(int(t) for t in model.jnt_type),
+        qpos_adr=tuple(int(a) for a in model.jnt_qposadr),
+        dof_adr=tuple(int(a) for a in model.jnt_dofadr),
+        limited=tuple(bool(x) for x in model.jnt_limited),
+    )
 
 
 @dataclass
@@ -124,12 +161,7 @@ def load_system(xml_path: str | Path, frame_skip: int = 1, name: str | None = No
         raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
     model = mujoco.MjModel.from_xml_path(str(path))
     f64 = torch.float64
-    layout = JointLayout(
-        types=tuple(int(t) for t in model.jnt_type),
-        qpos_adr=tuple(int(a) for a in model.jnt_qposadr),
-        dof_adr=tuple(int(a) for a in model.jnt_dofadr),
-        limited=tuple(bool(x) for x in model.jnt_limited),
-    )
+    layout = mujoco_layout(model)
     low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
     unlimited = ~model.actuator_ctrllimited.astype(bool)
     low = np.where(unlimited, -np.inf, low)

@@ -3,9 +3,10 @@
 `fit_inverse_model` runs epochs of shuffled minibatches on the training part and, after every
 epoch, evaluates the model on each named split (``train``, ``val_time``, ``val_clip``) with
 `evaluate_torques`: normalised MSE (the loss), MSE in SI units and R^2, per DoF and overall.
-The weights after the last epoch are kept (the curves are the result; no early stopping).
-A NaN/inf loss or gradient restores the last completed epoch's weights and raises
-`TrainingDivergedError`.
+Without a stopping split the weights after the last epoch are kept; with one
+(``InverseFitSettings.stop_on``) training ends after ``patience`` epochs without a lower error
+on it and the weights of its lowest error are restored. A NaN/inf loss or gradient restores
+the last completed epoch's weights and raises `TrainingDivergedError`.
 """
 
 from __future__ import annotations
@@ -122,12 +123,16 @@ class InverseFitSettings:
     eval_batch_size: int = 2048
     max_grad_norm: float | None = 100.0  # clip the global gradient norm; None: no clipping
     eval_every: int = 1  # evaluate the splits after every k-th epoch and the last; 0: the last
+    stop_on: str | None = None  # split evaluated after every epoch: its lowest error is kept
+    patience: int | None = None  # with stop_on: epochs without a lower error that end the fit
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch_size < 1 or self.eval_batch_size < 1:
             raise ValueError(f"epochs and batch sizes must be >= 1: {self}")
         if self.eval_every < 0:
             raise ValueError(f"eval_every must be >= 0: {self}")
+        if self.patience is not None and self.patience < 1:
+            raise ValueError(f"patience must be >= 1 or None: {self}")
 
     def evaluates(self, epoch: int) -> bool:
         """Whether the splits are evaluated after `epoch` (counted from 1)."""
@@ -241,25 +246,38 @@ def fit_inverse_model(
     generator: torch.Generator,
     on_epoch: Callable[[EpochResult], None] | None = None,
     scheduler: torch.optim.lr_scheduler.LRScheduler | None = None,
+    first_epoch: int = 1,
+    normalize: bool = True,
 ) -> list[EpochResult]:
-    """Train on ``train`` (N,) and evaluate every split in ``splits`` after the epochs
-    ``settings.evaluates`` names (each one by default, always the last).
+    """Train on ``train`` (N,) for up to ``settings.epochs`` epochs and evaluate every split
+    in ``splits`` after the epochs ``settings.evaluates`` names (each one by default, always
+    the last); the split ``settings.stop_on`` (if set) after every epoch: the weights of its
+    lowest error are restored at the end, and ``settings.patience`` epochs without a lower
+    one end the fit.
 
-    ``model.fit_normalization(train)`` is called first. ``on_epoch`` receives each epoch's
-    result as soon as it is known (for logging). ``scheduler`` steps once per epoch.
+    ``model.fit_normalization(train)`` is called first when `normalize`. ``on_epoch``
+    receives each epoch's result as soon as it is known (for logging); epochs are numbered
+    from `first_epoch` (a later stage of a schedule continues the count). ``scheduler``
+    steps once per epoch.
 
     Raises:
         TrainingDivergedError: a loss or gradient norm became NaN/inf; the model holds the
             weights of the last completed epoch (or the initial ones).
-        ValueError: ``train`` is empty.
+        ValueError: ``train`` is empty, or ``stop_on`` is not among ``splits``.
     """
     if train.batch_dims != 1 or train.shape[0] == 0:
         raise ValueError(f"need a non-empty flat training batch (N,), got {train.batch_size}")
-    model.fit_normalization(train)
+    stop_on = settings.stop_on
+    if stop_on is not None and stop_on not in splits:
+        raise ValueError(f"stop_on={stop_on!r} is not among the splits {list(splits)}")
+    if normalize:
+        model.fit_normalization(train)
     results: list[EpochResult] = []
-    last_good = {k: v.detach().clone() for k, v in model.state_dict().items()}
+    last_good = _weights(model)
+    best, best_error, since_best = last_good, math.inf, 0
     start = time.perf_counter()
-    for epoch in range(1, settings.epochs + 1):
+    for k in range(settings.epochs):
+        epoch = first_epoch + k
         try:
             train_loss = train_epoch(model, optimizer, train, settings, generator)
         except Diverged as err:
@@ -269,13 +287,11 @@ def fit_inverse_model(
             ) from None
         if scheduler is not None:
             scheduler.step()
-        errors = {
-            name: evaluate_torques(model, part, settings.eval_batch_size)
-            for name, part in (splits.items() if settings.evaluates(epoch) else ())
-        }
+        names = [n for n in splits if settings.evaluates(k + 1) or n == stop_on]
+        errors = {n: evaluate_torques(model, splits[n], settings.eval_batch_size) for n in names}
         result = EpochResult(epoch, train_loss, time.perf_counter() - start, errors)
         results.append(result)
-        last_good = {k: v.detach().clone() for k, v in model.state_dict().items()}
+        last_good = _weights(model)
         log.info(
             "epoch %d: train loss %.4g; %s",
             epoch,
@@ -284,4 +300,18 @@ def fit_inverse_model(
         )
         if on_epoch is not None:
             on_epoch(result)
+        if stop_on is None:
+            continue
+        if errors[stop_on].mse < best_error:
+            best, best_error, since_best = last_good, errors[stop_on].mse, 0
+        else:
+            since_best += 1
+            if settings.patience is not None and since_best >= settings.patience:
+                break
+    if stop_on is not None:
+        model.load_state_dict(best)
     return results
+
+
+def _weights(model: InverseDynamicsModel) -> dict[str, Tensor]:
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}

@@ -49,7 +49,7 @@ from torch import Tensor
 from mbrl_delan.data.mocap.amc import AmcMotion, AsfSkeleton, read_amc, read_asf
 from mbrl_delan.systems.external import humanoid_cmu_xml
 from mbrl_delan.systems.posarith import differentiate_pos, quat_mul
-from mbrl_delan.systems.system import FREE, HINGE, JointLayout
+from mbrl_delan.systems.system import FREE, HINGE, JointLayout, mujoco_layout
 
 log = logging.getLogger(__name__)
 
@@ -63,12 +63,7 @@ _AXES = {"X": 0, "Y": 1, "Z": 2}
 
 def joint_layout(model: mujoco.MjModel) -> JointLayout:
     """The `JointLayout` of an MjModel (as `load_system` builds it)."""
-    return JointLayout(
-        types=tuple(int(t) for t in model.jnt_type),
-        qpos_adr=tuple(int(a) for a in model.jnt_qposadr),
-        dof_adr=tuple(int(a) for a in model.jnt_dofadr),
-        limited=tuple(bool(x) for x in model.jnt_limited),
-    )
+    return mujoco_layout(model)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,172 @@
+"""Suite `fit_arrays`: ``python -m mbrl_delan.fit data=arrays`` at its defaults on arms.
+
+For arm2 and arm3 (`mbrl_delan/systems/assets/`): 22 smooth random trajectories of 160
+control steps (4 s) each, tracked in MuJoCo by PD control
+(`mbrl_delan.data.synthetic.trajectory_dataset`), written to an ``.npz`` file; the fit's
+split holds out 4 whole trajectories for test and a 10% segment of each other one for
+validation (2,592 training samples). Fitted
+at the defaults with no other flag (`mbrl_delan.fit.fit_inverse_dynamics`): DeLaN and the
+MLP; beside them, the identify suite's model and recipe (`benchmarks.identify`: a plain
+DeLaN, hidden 64, float64, its own 10% validation split) on the same training and validation
+trajectories. On the test trajectories (case ``<system>_<setting>``, setting ``delan``,
+``mlp`` or ``identify``):
+
+- ``test_torque_mse_si``: mean over samples and DoFs of (tau_hat - tau)^2, N^2 m^2;
+- ``mass_matrix_rel_error_median`` (DeLaN settings): median over the test samples of
+  ||M_learned(q) - M(q)||_F / ||M(q)||_F, M from `mj_fullM`;
+- ``mse_ratio_to_identify`` (delan, mlp): the setting's test MSE / the identify recipe's;
+- ``fit_s``: wall time of the fit.
+
+``seed=N`` (the bench option) seeds the fits' weights and minibatches; the data stay the same.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+
+from mbrl_delan import keys
+from mbrl_delan.benchmarks import SuiteOptions, host_fields
+from mbrl_delan.benchmarks.identify import IdentifyConfig, fit_identification, make_model
+from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.data.arrays import save_arrays
+from mbrl_delan.data.inverse_data import FitSystem, array_inverse_data
+from mbrl_delan.data.synthetic import reference_terms, trajectory_dataset
+from mbrl_delan.fit import fit_inverse_dynamics
+from mbrl_delan.systems.system import System, load_system
+
+log = logging.getLogger(__name__)
+
+SUITE = "fit_arrays"
+SYSTEMS = ("arm2", "arm3")
+
+
+@dataclass(frozen=True)
+class FitArraysConfig:
+    """Sizes: trajectories x steps per system, generated with `seed`; the fits' weights and
+    minibatches from `fit_seed`; `overrides` go to every fit (quick: epochs)."""
+
+    trajectories: int = 22
+    steps: int = 160
+    seed: int = 0
+    fit_seed: int = 0
+    systems: tuple[str, ...] = SYSTEMS
+    overrides: tuple[str, ...] = ()
+    identify: IdentifyConfig = IdentifyConfig()
+
+    @classmethod
+    def quick(cls) -> FitArraysConfig:
+        return cls(
+            trajectories=6,
+            steps=20,
+            systems=("arm2",),
+            overrides=("epochs=2",),
+            identify=IdentifyConfig.quick(),
+        )
+
+
+def _mass_matrix_error(model: Any, system: System, q: torch.Tensor) -> float:
+    """Median relative Frobenius error of a DeLaN's M against `mj_fullM` at q (N, nq) of
+    hinge joints (nq = nv)."""
+    reference = reference_terms(system, q).mass_matrix
+    q = q.to(next(model.parameters()).dtype)
+    with torch.no_grad():
+        learned = model.dynamics.terms(q, torch.zeros_like(q)).mass_matrix.double()
+    error = (learned - reference).norm(dim=(-2, -1)) / reference.norm(dim=(-2, -1))
+    return float(error.median())
+
+
+def _identify_fit(system: System, data: Any, cfg: IdentifyConfig) -> tuple[Any, float]:
+    """The identify suite's DeLaN and recipe on the fit's training and validation samples."""
+    train = torch.cat([data.splits["train"], data.splits["val"]]).select(
+        keys.Q, keys.QD, keys.QDD, keys.TAU
+    )
+    train[keys.ACTION] = torch.linalg.solve(  # tau = B a
+        system.actuation.to(torch.float64), train[keys.TAU].T
+    ).T
+    model = make_model(system, cfg)
+    start = time.perf_counter()
+    fit = fit_identification(model, train.to(cfg.dtype), cfg)
+    return fit.model, time.perf_counter() - start
+
+
+def _test_mse(predict: Any, test: TensorDict) -> float:
+    with torch.no_grad():
+        tau_hat = predict(test[keys.Q], test[keys.QD], test[keys.QDD])
+    return float((tau_hat.double() - test[keys.TAU]).pow(2).mean())
+
+
+def run_system(name: str, cfg: FitArraysConfig, folder: Path) -> Iterator[BenchRecord]:
+    system = load_system(name)
+    data = trajectory_dataset(
+        system, cfg.trajectories, cfg.steps, torch.Generator().manual_seed(cfg.seed)
+    )
+    path = save_arrays(data, folder / f"{name}.npz")
+    split = array_inverse_data(path, FitSystem.of(name))
+    test = split.splits["test"]
+    host = host_fields(torch.device("cpu"))
+    samples = {k: int(v.shape[0]) for k, v in split.splits.items()}
+    fields = dict(system=name, samples=samples, data_seed=cfg.seed, fit_seed=cfg.fit_seed)
+    results: dict[str, dict[str, float]] = {}
+    for model_name in ("delan", "mlp"):
+        start = time.perf_counter()
+        overrides = [f"seed={cfg.fit_seed}", *cfg.overrides]
+        result = fit_inverse_dynamics(
+            path, name, folder / f"{name}_{model_name}", model_name, overrides
+        )
+        figures = {
+            "test_torque_mse_si": result.summary["final"]["test"]["mse_si"],
+            "fit_s": time.perf_counter() - start,
+        }
+        if model_name == "delan":
+            figures["mass_matrix_rel_error_median"] = _mass_matrix_error(
+                result.model, system, test[keys.Q]
+            )
+        results[model_name] = figures | {"epochs": result.summary["epochs"]}
+    identify_cfg = replace(cfg.identify, seed=cfg.fit_seed)
+    model, seconds = _identify_fit(system, split, identify_cfg)
+    results["identify"] = {
+        "test_torque_mse_si": _test_mse(model.dynamics.inverse_dynamics, test),
+        "mass_matrix_rel_error_median": _mass_matrix_error(model, system, test[keys.Q]),
+        "fit_s": seconds,
+    }
+    best = results["identify"]["test_torque_mse_si"]
+    for setting in ("delan", "mlp"):
+        results[setting]["mse_ratio_to_identify"] = results[setting]["test_torque_mse_si"] / best
+    units = {"test_torque_mse_si": "N^2 m^2", "fit_s": "s"}
+    for setting, figures in results.items():
+        extra = {k: v for k, v in figures.items() if k == "epochs"}
+        for metric, value in figures.items():
+            if metric == "epochs":
+                continue
+            log.info("%s %s: %s = %.4g", name, setting, metric, value)
+            yield BenchRecord(
+                SUITE,
+                f"{name}_{setting}",
+                metric,
+                value,
+                units.get(metric, "fraction"),
+                "cpu",
+                dict(fields, setting=setting, **extra, **host),
+            )
+
+
+def run_fit_arrays(cfg: FitArraysConfig) -> Iterator[BenchRecord]:
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in cfg.systems:
+            yield from run_system(name, cfg, Path(tmp))
+
+
+def run_fit_arrays_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
+    """The registered suite, on the CPU (`FitArraysConfig.quick` under `opts.quick`); the
+    fits' seed from `opts.seed` (the data stay those of seed 0)."""
+    cfg = FitArraysConfig.quick() if opts.quick else FitArraysConfig()
+    yield from run_fit_arrays(replace(cfg, fit_seed=opts.seed or 0))

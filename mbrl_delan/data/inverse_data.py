@@ -1,0 +1,223 @@
+"""What an inverse-dynamics fit needs from a dataset, whatever its source: `InverseData`.
+
+Two sources build it: the CMU mocap dataset (`mocap_inverse_data`: splits ``train``,
+``val_time``, ``val_clip`` and, with test clips, ``test``; groups are clips) and logged arrays
+from a file (`array_inverse_data`, `mbrl_delan.data.arrays`: splits ``train``, ``val``,
+``test``; groups are trajectories).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from hashlib import sha256
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import torch
+from tensordict import TensorDict
+from torch import Tensor
+
+from mbrl_delan import keys
+from mbrl_delan.data.arrays import (
+    COMPONENTS,
+    DerivativeSettings,
+    arrays_tensordict,
+    read_arrays,
+    split_trajectories,
+)
+from mbrl_delan.data.mocap import MocapDataset, dof_groups, humanoid_cmu_xml, split_dataset
+from mbrl_delan.systems.system import (
+    FREE,
+    JointLayout,
+    asset_path,
+    layout_from_names,
+    mujoco_layout,
+)
+
+ARRAYS_FORMAT = "mbrl_delan.arrays/1"
+_FIELDS = (keys.Q, keys.QD, keys.QDD, keys.TAU, keys.TIME, *COMPONENTS)
+
+
+@dataclass
+class FitSystem:
+    """What the models need to know of the system.
+
+    dof_groups: group of DoFs (body part, or joint) -> DoF indices, for per-group errors.
+    dof_parents, armature: MuJoCo's ``dof_parentid`` and ``dof_armature`` (None without an
+        MJCF). mj_model: the model, when there is one (random poses for the M check).
+    """
+
+    layout: JointLayout
+    dof_groups: dict[str, tuple[int, ...]]
+    source: dict[str, Any]  # {"mjcf": path} or {"joints": [types]}: how to build it again
+    dof_parents: list[int] | None = None
+    armature: list[float] | None = None
+    mj_model: mujoco.MjModel | None = None
+
+    @classmethod
+    def of_mjcf(cls, xml: Path, dof_groups: dict[str, tuple[int, ...]] | None = None) -> FitSystem:
+        """An MJCF file's joints, tree and armature; one DoF group per joint by default."""
+        if not xml.is_file():
+            raise FileNotFoundError(f"MJCF file not found: {xml}")
+        model = mujoco.MjModel.from_xml_path(str(xml))
+        return cls(
+            layout=mujoco_layout(model),
+            dof_groups=dof_groups(model) if callable(dof_groups) else _joint_groups(model),
+            source={"mjcf": str(xml.resolve())},
+            dof_parents=model.dof_parentid.tolist(),
+            armature=model.dof_armature.tolist(),
+            mj_model=model,
+        )
+
+    @classmethod
+    def of_joints(cls, joints: Sequence[str]) -> FitSystem:
+        """Joint types in order (``["hinge", "slide"]``); one DoF group per joint."""
+        layout = layout_from_names(list(joints))
+        ends = [*layout.dof_adr[1:], layout.nv]
+        groups = {
+            f"joint{j}": tuple(range(a, b))
+            for j, (a, b) in enumerate(zip(layout.dof_adr, ends, strict=True))
+        }
+        return cls(layout=layout, dof_groups=groups, source={"joints": list(joints)})
+
+    @classmethod
+    def of(cls, joints: Sequence[str] | str) -> FitSystem:
+        """`of_joints` for a list of types, `of_mjcf` for an MJCF file or a shipped model's
+        stem (``"arm2"``)."""
+        if isinstance(joints, str):
+            return cls.of_mjcf(mjcf_path(joints))
+        return cls.of_joints(joints)
+
+
+@dataclass
+class InverseData:
+    """Splits of (q, qd, qdd, tau) samples and their system.
+
+    splits: name -> float64 TensorDict (N_s,) with q, qd, qdd, tau (and any of the tau parts
+        of `mbrl_delan.data.arrays.COMPONENTS`); empty splits are kept.
+    groups: name -> (N_s,) int64 index into `group_names`: each sample's clip or trajectory.
+    group_kind: ``"clips"`` or ``"trajectories"`` (the summary's key for per-group errors).
+    """
+
+    splits: dict[str, TensorDict]
+    groups: dict[str, Tensor]
+    group_names: list[str]
+    group_kind: str
+    system: FitSystem
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+
+def system_of(provenance: dict[str, Any]) -> FitSystem:
+    """The system a dataset's provenance names: an arrays file's MJCF or joint list, else the
+    model mocap data were retargeted onto (its DoFs grouped by body part)."""
+    if provenance.get("format") != ARRAYS_FORMAT:
+        return FitSystem.of_mjcf(mocap_xml(provenance), dof_groups)
+    return FitSystem.of(provenance["system"].get("mjcf") or provenance["system"]["joints"])
+
+
+def mocap_xml(provenance: dict[str, Any]) -> Path:
+    """The model mocap data were retargeted onto (from their provenance, else humanoid_CMU)."""
+    xml = provenance.get("model", {}).get("xml")
+    return Path(xml) if xml and Path(xml).is_file() else Path(humanoid_cmu_xml())
+
+
+def mocap_inverse_data(dataset: MocapDataset, test_clips: Sequence[str] = ()) -> InverseData:
+    """The mocap dataset's splits; the held-out clips named in `test_clips` form ``test``.
+
+    Raises ValueError naming test clips that are not held-out clips of the dataset."""
+    parts = split_dataset(dataset)
+    clips = list(dataset.provenance["clips"])
+    held_out = set(dataset.provenance.get("split", {}).get("val_clips", []))
+    unknown = [c for c in test_clips if c not in held_out]
+    if unknown:
+        raise ValueError(f"test clips {unknown} are not held-out clips of the dataset")
+    splits = {"train": parts.train, "val_time": parts.val_time, "val_clip": parts.val_clip}
+    if test_clips:
+        test_ids = torch.tensor([clips.index(c) for c in test_clips])
+        in_test = torch.isin(parts.val_clip[keys.CLIP].reshape(-1), test_ids)
+        splits["val_clip"], splits["test"] = parts.val_clip[~in_test], parts.val_clip[in_test]
+    return InverseData(
+        splits={name: td.select(*_present(td)) for name, td in splits.items()},
+        groups={name: td[keys.CLIP].reshape(-1) for name, td in splits.items()},
+        group_names=clips,
+        group_kind="clips",
+        system=system_of(dataset.provenance),
+        provenance=dataset.provenance | {"test_clips": list(test_clips)},
+    )
+
+
+def _present(td: TensorDict) -> list[str]:
+    return [k for k in _FIELDS if k in td.keys()]
+
+
+def mjcf_path(name: str) -> Path:
+    """An MJCF file path, or the stem of a model shipped with the package (``arm2``)."""
+    path = Path(name)
+    return path if path.suffix == ".xml" else asset_path(name)
+
+
+def _joint_groups(model: mujoco.MjModel) -> dict[str, tuple[int, ...]]:
+    """One group per joint, named as in the MJCF (``joint<j>`` when unnamed)."""
+    groups = {}
+    for j in range(model.njnt):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}"
+        width = {FREE: 6, int(mujoco.mjtJoint.mjJNT_BALL): 3}.get(int(model.jnt_type[j]), 1)
+        start = int(model.jnt_dofadr[j])
+        groups[name] = tuple(range(start, start + width))
+    return groups
+
+
+def _derivative_note(derivative: DerivativeSettings | None) -> str:
+    derivative = derivative or DerivativeSettings()
+    low_pass = (
+        "no low-pass"
+        if derivative.cutoff_hz is None
+        else f"low-pass {derivative.cutoff_hz} Hz (order {derivative.order})"
+    )
+    return f"computed from qd: {low_pass}, central differences"
+
+
+def array_inverse_data(
+    path: str | Path,
+    system: FitSystem,
+    derivative: DerivativeSettings | None = None,
+    val_fraction: float = 0.1,
+    test_fraction: float = 0.2,
+    seed: int = 0,
+    val_by: str = "segments",
+) -> InverseData:
+    """Logged arrays (`mbrl_delan.data.arrays`) on the joints of `system`, split by
+    `split_trajectories`. Raises FileNotFoundError (a missing file) and ArrayFormatError (a
+    malformed one)."""
+    path = Path(path)
+    fields = read_arrays(path)
+    data = arrays_tensordict(path, fields, system.layout, derivative)
+    masks = split_trajectories(data[keys.TRAJECTORY], val_fraction, test_fraction, seed, val_by)
+    ids = data[keys.TRAJECTORY].reshape(-1)
+    unique = ids.unique()
+    index = torch.searchsorted(unique, ids)  # (N,) position of each sample's trajectory
+    provenance = {
+        "format": ARRAYS_FORMAT,
+        "path": str(path.resolve()),
+        "sha256": sha256(path.read_bytes()).hexdigest(),
+        "samples": int(data.shape[0]),
+        "trajectories": [str(int(i)) for i in unique],
+        "system": system.source,
+        "qdd": "from the file" if "qdd" in fields else _derivative_note(derivative),
+        "split": {
+            "val_fraction": val_fraction,
+            "test_fraction": test_fraction,
+            "seed": seed,
+            "val_by": val_by,
+        },
+    }
+    return InverseData(
+        splits={name: data[mask].select(*_present(data)) for name, mask in masks.items()},
+        groups={name: index[mask] for name, mask in masks.items()},
+        group_names=provenance["trajectories"],
+        group_kind="trajectories",
+        system=system,
+        provenance=provenance,
+    )

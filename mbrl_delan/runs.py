@@ -1,0 +1,68 @@
+"""`load_run(run_dir)`: the trained model and config of any finished ``fit`` or ``train`` run.
+
+A ``fit`` run (``python -m mbrl_delan.fit``) holds ``model.pt``: its inverse-dynamics model
+(`mbrl_delan.models.inverse`). A ``train`` run (``python -m mbrl_delan.train``) holds
+``checkpoint.pt``: its world model (a `DeLaN` or an ensemble) as of the last checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch import nn
+
+from mbrl_delan.training.checkpoint import CHECKPOINT_FILE, load_checkpoint
+from mbrl_delan.training.recorder import RUN_CONFIG, SUMMARY_FILE
+
+FIT_MODEL_FILE = "model.pt"  # `mbrl_delan.fit.MODEL_FILE`
+
+
+@dataclass
+class Run:
+    """A finished run: ``kind`` is ``"fit"`` or ``"train"``; ``summary`` is None when the run
+    wrote none (stopped before its end)."""
+
+    kind: str
+    run_dir: Path
+    config: DictConfig
+    model: nn.Module
+    summary: dict[str, Any] | None
+
+
+def load_run(run_dir: str | Path) -> Run:
+    """The config and trained model (on the CPU, in the run's dtype) of a fit or train run.
+
+    Raises FileNotFoundError when `run_dir` holds neither a fit's ``model.pt`` nor a train
+    run's ``config.yaml`` and ``checkpoint.pt``."""
+    run_dir = Path(run_dir)
+    summary_path = run_dir / SUMMARY_FILE
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else None
+    if (run_dir / FIT_MODEL_FILE).is_file():
+        from mbrl_delan.fit import load_fit_model
+
+        cfg, model = load_fit_model(run_dir)
+        return Run("fit", run_dir, cfg, model, summary)
+    if (run_dir / RUN_CONFIG).is_file() and (run_dir / CHECKPOINT_FILE).is_file():
+        return Run("train", run_dir, *_train_model(run_dir), summary)
+    raise FileNotFoundError(
+        f"{run_dir} is not a finished run: it holds neither {FIT_MODEL_FILE} (fit) nor "
+        f"{RUN_CONFIG} and {CHECKPOINT_FILE} (train)"
+    )
+
+
+def _train_model(run_dir: Path) -> tuple[DictConfig, nn.Module]:
+    """A train run's config and its world model with the checkpoint's weights."""
+    from mbrl_delan.config import DTYPES
+    from mbrl_delan.train import build_world_model, env_parts
+
+    cfg = OmegaConf.load(run_dir / RUN_CONFIG)
+    system = env_parts(cfg).system
+    model = build_world_model(cfg, system, torch.device("cpu"), DTYPES[cfg.dtype])
+    state = load_checkpoint(run_dir / CHECKPOINT_FILE, weights_only=False)
+    model.load_state_dict(state["loop"]["model"])
+    return cfg, model

@@ -1,0 +1,339 @@
+"""Fit your own robot: `python -m mbrl_delan.fit data=arrays`, its Python API, `load_run` and
+`python -m mbrl_delan.evaluate`, on arm data logged from MuJoCo by the tests themselves."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from mbrl_delan import keys
+from mbrl_delan.data.arrays import (
+    ArrayFormatError,
+    DerivativeSettings,
+    load_arrays,
+    save_arrays,
+    split_trajectories,
+)
+from mbrl_delan.data.inverse_data import FitSystem, array_inverse_data
+from mbrl_delan.data.synthetic import reference_terms, trajectory_dataset
+from mbrl_delan.evaluate import evaluate_run
+from mbrl_delan.evaluate import main as evaluate_main
+from mbrl_delan.fit import fit_inverse_dynamics
+from mbrl_delan.models.inverse import MLPInverse
+from mbrl_delan.runs import load_run
+from mbrl_delan.systems.system import layout_from_names, load_system
+from mbrl_delan.training.inverse_fit import InverseFitSettings, fit_inverse_model
+
+ROOT = Path(__file__).parents[1]
+SMALL = ("epochs=4", "threads=1", "model.hidden=16", "batch_size=64")
+
+
+@pytest.fixture(scope="module")
+def arm2_data() -> TensorDict:
+    """6 trajectories of 40 steps (1 s) of the two-link arm, with MuJoCo's parts of tau."""
+    return trajectory_dataset(load_system("arm2"), 6, 40, torch.Generator().manual_seed(0))
+
+
+@pytest.fixture(scope="module")
+def arm2_file(arm2_data, tmp_path_factory) -> Path:
+    return save_arrays(arm2_data, tmp_path_factory.mktemp("data") / "arm2.npz")
+
+
+@pytest.fixture(scope="module")
+def fitted(arm2_file, tmp_path_factory) -> Path:
+    """A small DeLaN fit from the .npz through the Python API (the MJCF's joints)."""
+    run_dir = tmp_path_factory.mktemp("fits") / "delan"
+    fit_inverse_dynamics(arm2_file, "arm2", run_dir, "delan", SMALL)
+    return run_dir
+
+
+# ---------------------------------------------------------------- the data
+
+
+def test_logged_torques_are_mujocos_parts(arm2_data) -> None:
+    """tau = M qdd + c + g + D qd with MuJoCo's M, c, g and the MJCF's damping."""
+    damping = load_system("arm2").damping
+    parts = sum(arm2_data[k] for k in (keys.TAU_INERTIAL, keys.TAU_CORIOLIS, keys.TAU_GRAVITY))
+    torch.testing.assert_close(arm2_data[keys.TAU], parts + damping * arm2_data[keys.QD])
+    gravity = reference_terms(load_system("arm2"), arm2_data[keys.Q][:5]).gravity
+    torch.testing.assert_close(arm2_data[keys.TAU_GRAVITY][:5], gravity)
+
+
+@pytest.mark.parametrize("suffix", [".pt", ".csv"])
+def test_every_file_type_reads_as_the_npz(arm2_data, arm2_file, tmp_path, suffix) -> None:
+    layout = load_system("arm2").layout
+    other = load_arrays(save_arrays(arm2_data, tmp_path / f"arm2{suffix}"), layout)
+    reference = load_arrays(arm2_file, layout)
+    for key in (keys.Q, keys.QD, keys.QDD, keys.TAU, keys.TRAJECTORY, keys.TIME):
+        torch.testing.assert_close(other[key], reference[key], rtol=1e-12, atol=1e-12)
+
+
+def test_qdd_is_computed_from_qd_when_the_file_has_none(tmp_path) -> None:
+    """Sampled at MuJoCo's own 2.5 ms, central differences of qd give MuJoCo's qacc."""
+    xml = (ROOT / "mbrl_delan" / "systems" / "assets" / "arm2.xml").read_text()
+    (tmp_path / "arm2_fine.xml").write_text(xml.replace('timestep="0.025"', 'timestep="0.0025"'))
+    system = load_system(tmp_path / "arm2_fine.xml")
+    data = trajectory_dataset(system, 2, 200, torch.Generator().manual_seed(1))
+    fields = {k: data[k] for k in ("q", "qd", "tau", "trajectory")} | {"dt": np.array(0.0025)}
+    loaded = load_arrays(save_arrays(fields, tmp_path / "noqdd.npz"), system.layout)
+    inner = torch.cat([torch.arange(2, 198), 200 + torch.arange(2, 198)])  # away from the ends
+    error = (loaded[keys.QDD][inner] - data[keys.QDD][inner]).norm()
+    assert error / data[keys.QDD][inner].norm() < 0.05
+    low_passed = load_arrays(tmp_path / "noqdd.npz", system.layout, DerivativeSettings(20.0))
+    assert low_passed[keys.QDD].shape == data[keys.QDD].shape
+
+
+def test_trajectories_are_never_cut() -> None:
+    ids = torch.arange(10).repeat_interleave(7)
+    masks = split_trajectories(ids, 0.1, 0.2, seed=3, val_by="trajectories")
+    for name, mask in masks.items():
+        held = ids[mask].unique()
+        assert bool(torch.isin(ids, held).eq(mask).all()), name  # whole trajectories only
+    assert [int(masks[n].sum()) // 7 for n in ("train", "val", "test")] == [7, 1, 2]
+    assert bool((masks["train"] ^ masks["val"] ^ masks["test"]).all())
+
+
+def test_segments_hold_out_one_block_of_each_training_trajectory() -> None:
+    ids = torch.arange(10).repeat_interleave(20)
+    masks = split_trajectories(ids, 0.1, 0.2, seed=3)
+    test_ids = ids[masks["test"]].unique()
+    assert bool(torch.isin(ids, test_ids).eq(masks["test"]).all()) and test_ids.numel() == 2
+    for i in set(range(10)) - set(test_ids.tolist()):
+        rows = torch.nonzero(masks["val"] & (ids == i)).reshape(-1)
+        assert rows.numel() == 2 and int(rows[1] - rows[0]) == 1  # one contiguous block
+    assert bool((masks["train"] ^ masks["val"] ^ masks["test"]).all())
+
+
+def test_one_trajectory_holds_out_its_end() -> None:
+    masks = split_trajectories(torch.zeros(100, dtype=torch.long), 0.1, 0.2, seed=0)
+    assert masks["train"][:70].all() and masks["val"][70:80].all() and masks["test"][80:].all()
+
+
+def test_joint_list_layout_is_the_mjcfs_for_unlimited_hinges() -> None:
+    assert layout_from_names(["hinge", "hinge"]) == load_system("arm2").layout
+    layout = layout_from_names(["free", "ball", "hinge", "slide"])
+    assert (layout.nq, layout.nv, layout.qpos_adr, layout.dof_adr) == (
+        13,
+        11,
+        (0, 7, 11, 12),
+        (0, 6, 9, 10),
+    )
+
+
+# ---------------------------------------------------------------- fitting
+
+
+def test_fit_from_an_npz_learns_the_arm(fitted, arm2_file) -> None:
+    summary = json.loads((fitted / "summary.json").read_text())
+    assert summary["data"] == "arrays"
+    assert summary["samples"] == {"train": 5 * 36, "val": 5 * 4, "test": 40}  # 1 test trajectory
+    assert set(summary["final"]) == {"train", "val", "test"}
+    assert set(summary["final"]["test"]["trajectories"]) | set(
+        summary["final"]["val"]["trajectories"]
+    ) | set(summary["final"]["train"]["trajectories"]) == {str(i) for i in range(6)}
+    assert set(summary["final"]["test"]["groups"]) == {"shoulder", "elbow"}
+    assert summary["positive_definite_fraction"] == 1.0
+    assert summary["mass_matrix_random_poses"]["positive_definite_fraction"] == 1.0
+    first = json.loads((fitted / "metrics.jsonl").read_text().splitlines()[0])
+    assert summary["final"]["train"]["mse"] < first["train_mse"]  # it learned
+    provenance = json.loads((fitted / "dataset_provenance.json").read_text())
+    assert provenance["path"] == str(arm2_file.resolve()) and provenance["qdd"] == "from the file"
+
+
+def test_fit_from_a_plain_joint_list_without_mjcf(arm2_data, tmp_path) -> None:
+    fields = {k: arm2_data[k] for k in ("q", "qd", "qdd", "tau", "t", "trajectory")}
+    result = fit_inverse_dynamics(fields, ["hinge", "hinge"], tmp_path / "run", "delan", SMALL)
+    assert result.summary["dof_groups"] == {"joint0": 1, "joint1": 1}
+    assert "mass_matrix_random_poses" not in result.summary  # no MJCF: no joint ranges to draw
+    run = load_run(tmp_path / "run")
+    assert run.kind == "fit" and run.config.data.joints == ["hinge", "hinge"]
+    q = arm2_data[keys.Q][:8]
+    with torch.no_grad():
+        torch.testing.assert_close(run.model.mass_matrix(q), result.model.mass_matrix(q))
+
+
+def test_early_stopping_keeps_the_lowest_validation_error(arm2_data) -> None:
+    torch.manual_seed(0)
+    model = MLPInverse(load_system("arm2").layout, hidden=8).double()
+    train, val = arm2_data[:160], arm2_data[160:]
+    settings = InverseFitSettings(epochs=12, batch_size=32, stop_on="val", patience=3)
+    optimizer = torch.optim.Adam(model.parameters(), lr=0.3)  # large: the error goes up and down
+    results = fit_inverse_model(
+        model, optimizer, train, {"val": val}, settings, torch.Generator().manual_seed(0)
+    )
+    best = min(r.errors["val"].mse for r in results)
+    from mbrl_delan.training.inverse_fit import evaluate_torques
+
+    assert evaluate_torques(model, val).mse == pytest.approx(best, rel=1e-9)
+
+
+# ---------------------------------------------------------------- reading a run back
+
+
+def test_load_run_and_evaluate_reproduce_the_summary(fitted) -> None:
+    summary = json.loads((fitted / "summary.json").read_text())
+    result = evaluate_run(fitted)
+    for name, part in summary["final"].items():
+        again = result["splits"][name]
+        assert again["mse"] == pytest.approx(part["mse"], rel=1e-12)
+        assert again["r2"] == pytest.approx(part["r2"], rel=1e-12)
+        for trajectory, errors in part["trajectories"].items():
+            assert again["trajectories"][trajectory] == pytest.approx(errors, rel=1e-12)
+        assert set(again["components"]) == {"tau_inertial", "tau_coriolis", "tau_gravity"}
+        assert again["rollout"]["median_rollout_s"] >= 0.0
+
+
+def test_evaluate_on_another_file_from_the_command_line(fitted, arm2_data, tmp_path) -> None:
+    other = save_arrays(arm2_data[:80], tmp_path / "other.csv")
+    out = tmp_path / "eval.json"
+    assert evaluate_main([str(fitted), f"data={other}", f"out={out}"]) == 0
+    result = json.loads(out.read_text())
+    assert list(result["splits"]) == ["data"] and result["splits"]["data"]["n"] == 80
+    assert set(result["splits"]["data"]["trajectories"]) == {"0", "1"}
+    assert evaluate_main([str(fitted), "data=nowhere.npz"]) == 2
+    with pytest.raises(SystemExit) as bad_option:
+        evaluate_main([str(fitted), "colour=red"])
+    assert bad_option.value.code == 2
+
+
+def test_component_errors_are_zero_for_the_true_parts(fitted, arm2_data) -> None:
+    """The figure compares the model's M qdd, c and g with the logged ones: fed the model's own
+    parts as data, every error is 0."""
+    from mbrl_delan.evaluate import component_errors
+
+    model = load_run(fitted).model
+    data = arm2_data[:20].clone()
+    with torch.no_grad():
+        terms = model.dynamics.terms(data[keys.Q], data[keys.QD])
+    data[keys.TAU_CORIOLIS] = terms.coriolis
+    data[keys.TAU_GRAVITY] = terms.gravity
+    errors = component_errors(model.dynamics, data)
+    assert errors["tau_coriolis"]["rel_error"] == 0.0 and errors["tau_gravity"]["rel_error"] == 0.0
+    assert errors["tau_inertial"]["rel_error"] > 0.0  # not fitted to convergence
+
+
+# ---------------------------------------------------------------- bad files
+
+
+def _fields(arm2_data) -> dict[str, np.ndarray]:
+    return {k: arm2_data[k].numpy().copy() for k in ("q", "qd", "tau", "t", "trajectory")}
+
+
+def _missing_tau(f):
+    del f["tau"]
+
+
+def _short_qd(f):
+    f["qd"] = f["qd"][:-3]
+
+
+def _nan_q(f):
+    f["q"][17, 1] = np.nan
+
+
+def _inf_tau(f):
+    f["tau"][5, 0] = np.inf
+
+
+def _three_joints(f):
+    f["qd"] = np.concatenate([f["qd"], f["qd"][:, :1]], axis=1)
+
+
+BAD = {
+    "missing": (_missing_tau, "'tau': missing"),
+    "lengths": (_short_qd, "'qd': 237 rows, but q has 240"),
+    "nan": (_nan_q, "'q': 1 NaN or inf values (first: row 17)"),
+    "inf": (_inf_tau, "'tau': 1 NaN or inf values (first: row 5)"),
+    "joints": (_three_joints, "'qd': 3 columns; the joints give 2"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD))
+def test_malformed_file_names_the_file_and_the_field(arm2_data, tmp_path, case) -> None:
+    spoil, expected = BAD[case]
+    fields = _fields(arm2_data)
+    spoil(fields)
+    path = tmp_path / "bad.npz"
+    np.savez(path, **fields)
+    with pytest.raises(ArrayFormatError) as err:
+        array_inverse_data(path, FitSystem.of("arm2"))
+    assert str(err.value).startswith(f"{path}: field ") and expected in str(err.value)
+
+
+def test_malformed_file_exits_2_and_writes_nothing(arm2_data, tmp_path) -> None:
+    """At start, before the run writes anything: only Hydra's own record is in the folder.
+    (A run dir that holds a run is refused before the data are read:
+    test_fit_mocap.py::test_new_fit_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was.)"""
+    fields = _fields(arm2_data)
+    _nan_q(fields)
+    path = tmp_path / "bad.npz"
+    np.savez(path, **fields)
+    run_dir = tmp_path / "new"
+    cmd = [sys.executable, "-m", "mbrl_delan.fit", "data=arrays", f"data.path={path}"]
+    cmd += ["data.joints=[hinge,hinge]", "logger=none", f"hydra.run.dir={run_dir}"]
+    env = {**os.environ, "WANDB_MODE": "disabled"}
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
+    text = out.stdout + out.stderr
+    assert out.returncode == 2, text
+    assert f"{path}: field 'q': 1 NaN or inf values (first: row 17)" in text
+    assert "Traceback" not in text
+    written = {p.name for p in run_dir.iterdir()} if run_dir.exists() else set()
+    assert written <= {".hydra", "fit.log"}, written
+
+
+# ---------------------------------------------------------------- the docs' worked example
+
+
+def _log_arm():
+    spec = importlib.util.spec_from_file_location("log_arm", ROOT / "examples/own_robot/log_arm.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_worked_example(tmp_path) -> None:
+    """docs/own_robot.md's three commands, smaller: log, fit from the command line, evaluate."""
+    log_arm = _log_arm()
+    data = log_arm.main(
+        ["arm3", str(tmp_path / "arm3.npz"), "--trajectories", "6", "--steps", "30"]
+    )
+    more = log_arm.main(
+        [
+            "arm3",
+            str(tmp_path / "more.npz"),
+            "--trajectories",
+            "2",
+            "--steps",
+            "30",
+            "--seed",
+            "1",
+            "--no-qdd",
+        ]
+    )
+    run_dir = tmp_path / "run"
+    cmd = [sys.executable, "-m", "mbrl_delan.fit", "data=arrays", f"data.path={data}"]
+    cmd += [
+        "data.joints=[hinge,hinge,hinge]",
+        "epochs=3",
+        "logger=none",
+        f"hydra.run.dir={run_dir}",
+    ]
+    env = {**os.environ, "WANDB_MODE": "disabled"}
+    out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, cwd=tmp_path)
+    assert out.returncode == 0, out.stdout + out.stderr
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["samples"] == {"train": 135, "val": 15, "test": 30}
+    report = tmp_path / "eval.json"
+    assert evaluate_main([str(run_dir), f"data={more}", f"out={report}"]) == 0
+    result = json.loads(report.read_text())["splits"]["data"]
+    assert result["n"] == 60 and set(result["rollout"]["trajectories"]) == {"0", "1"}
+    assert set(result["components"]) == {"tau_inertial", "tau_coriolis", "tau_gravity"}
