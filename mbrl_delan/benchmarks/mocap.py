@@ -303,6 +303,7 @@ def _fit_records(
         "n_parameters": sum(p.numel() for p in model.parameters()),
         "dtype": str(cfg.dtype).removeprefix("torch."),
         "lr": cfg.fit.lr,
+        "compile_fit": bool(cfg.models[name].get("compile_fit", False)),
         **host,
     }
     timing = time_call(epoch_call(model, train, cfg), opts.timing, synchronizer(opts.device))
