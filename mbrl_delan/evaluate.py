@@ -20,8 +20,8 @@ Per split (JSON on stdout, or in ``out=FILE``):
   (q_model - q_logged) / std(q_logged), first exceeds ``threshold`` (the whole trajectory when
   it never does: ``reached_end``).
 
-Exit codes: 0 done, 2 a missing or malformed run dir or data file, or a model that does
-not give torques (a train run's ensemble).
+Exit codes: 0 done, 2 a missing or malformed run dir, checkpoint or data file (one line
+naming it), or a model that does not give torques (a train run's ensemble).
 """
 
 from __future__ import annotations
@@ -40,13 +40,15 @@ from tensordict import TensorDict
 from torch import Tensor, nn
 
 from mbrl_delan import keys
-from mbrl_delan.data.arrays import COMPONENTS, ArrayFormatError
+from mbrl_delan.data.arrays import COMPONENTS
 from mbrl_delan.data.inverse_data import FitSystem, InverseData, array_inverse_data, system_of
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.integrators import integrate
 from mbrl_delan.models.inverse import DeLaNInverse, InverseDynamicsModel
 from mbrl_delan.models.lagrangian import LagrangianDynamics
 from mbrl_delan.runs import Run, load_run
+from mbrl_delan.systems.system import JointLayout
+from mbrl_delan.training.checkpoint import CheckpointError
 from mbrl_delan.training.inverse_fit import evaluate_torques
 
 log = logging.getLogger("mbrl_delan.evaluate")
@@ -127,7 +129,7 @@ def component_errors(dynamics: LagrangianDynamics, data: TensorDict) -> dict[str
 
 def rollout_time(
     dynamics: LagrangianDynamics,
-    layout: Any,
+    layout: JointLayout,
     data: TensorDict,
     q_std: Tensor,
     threshold: float,
@@ -152,7 +154,7 @@ def rollout_time(
 @torch.no_grad()
 def rollouts(
     dynamics: LagrangianDynamics,
-    layout: Any,
+    layout: JointLayout,
     data: TensorDict,
     ids: Tensor,
     names: Sequence[str],
@@ -285,7 +287,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not threshold > 0 or batch_size < 1:
             raise ValueError(f"need threshold > 0 and batch_size >= 1: {threshold}, {batch_size}")
         result = evaluate_run(run_dir, options.get("data"), batch_size, threshold)
-    except (FileNotFoundError, ArrayFormatError, ValueError) as err:
+    except (FileNotFoundError, ValueError, CheckpointError) as err:  # data, run, checkpoint
         log.error("%s", err)
         return 2
     for name, split in result["splits"].items():
