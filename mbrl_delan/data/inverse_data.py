@@ -8,7 +8,7 @@ from a file (`array_inverse_data`, `mbrl_delan.data.arrays`: splits ``train``, `
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from hashlib import sha256
 from pathlib import Path
@@ -31,8 +31,8 @@ from mbrl_delan.data.mocap import MocapDataset, dof_groups, humanoid_cmu_xml, sp
 from mbrl_delan.systems.system import (
     FREE,
     JointLayout,
-    asset_path,
     layout_from_names,
+    mjcf_path,
     mujoco_layout,
 )
 
@@ -57,14 +57,18 @@ class FitSystem:
     mj_model: mujoco.MjModel | None = None
 
     @classmethod
-    def of_mjcf(cls, xml: Path, dof_groups: dict[str, tuple[int, ...]] | None = None) -> FitSystem:
-        """An MJCF file's joints, tree and armature; one DoF group per joint by default."""
-        if not xml.is_file():
-            raise FileNotFoundError(f"MJCF file not found: {xml}")
+    def of_mjcf(
+        cls,
+        xml: str | Path,
+        groups: Callable[[mujoco.MjModel], dict[str, tuple[int, ...]]] | None = None,
+    ) -> FitSystem:
+        """An MJCF file's (or a shipped model's) joints, tree and armature; DoF groups by
+        `groups` of the model, one per joint by default."""
+        xml = mjcf_path(xml)
         model = mujoco.MjModel.from_xml_path(str(xml))
         return cls(
             layout=mujoco_layout(model),
-            dof_groups=dof_groups(model) if callable(dof_groups) else _joint_groups(model),
+            dof_groups=(groups or _joint_groups)(model),
             source={"mjcf": str(xml.resolve())},
             dof_parents=model.dof_parentid.tolist(),
             armature=model.dof_armature.tolist(),
@@ -87,7 +91,7 @@ class FitSystem:
         """`of_joints` for a list of types, `of_mjcf` for an MJCF file or a shipped model's
         stem (``"arm2"``)."""
         if isinstance(joints, str):
-            return cls.of_mjcf(mjcf_path(joints))
+            return cls.of_mjcf(joints)
         return cls.of_joints(joints)
 
 
@@ -150,12 +154,6 @@ def mocap_inverse_data(dataset: MocapDataset, test_clips: Sequence[str] = ()) ->
 
 def _present(td: TensorDict) -> list[str]:
     return [k for k in _FIELDS if k in td.keys()]
-
-
-def mjcf_path(name: str) -> Path:
-    """An MJCF file path, or the stem of a model shipped with the package (``arm2``)."""
-    path = Path(name)
-    return path if path.suffix == ".xml" else asset_path(name)
 
 
 def _joint_groups(model: mujoco.MjModel) -> dict[str, tuple[int, ...]]:

@@ -128,6 +128,16 @@ class System:
         return mujoco.MjModel.from_xml_path(str(self.xml_path))
 
 
+def mjcf_path(name: str | Path) -> Path:
+    """An MJCF file (``.xml``) or the stem of a model shipped with the package (``arm2``) as
+    the path of an existing file; FileNotFoundError naming it otherwise."""
+    path = Path(name)
+    path = path if path.suffix == ".xml" else asset_path(str(name))
+    if not path.is_file():
+        raise FileNotFoundError(f"MJCF file not found: {path}")
+    return path
+
+
 def asset_path(name: str) -> Path:
     """Path of an MJCF file shipped with the package, by stem (e.g. 'pendulum')."""
     path = ASSETS / f"{name}.xml"
@@ -152,11 +162,7 @@ def actuation_matrix(model: mujoco.MjModel) -> np.ndarray:
 
 def load_system(xml_path: str | Path, frame_skip: int = 1, name: str | None = None) -> System:
     """Read an MJCF into a `System`. `xml_path` may be an asset stem or a file path."""
-    path = Path(xml_path)
-    if path.suffix != ".xml":
-        path = asset_path(str(xml_path))
-    if not path.is_file():
-        raise FileNotFoundError(f"MJCF file not found: {path}")
+    path = mjcf_path(xml_path)
     if frame_skip < 1:
         raise ValueError(f"frame_skip must be >= 1, got {frame_skip}")
     model = mujoco.MjModel.from_xml_path(str(path))
