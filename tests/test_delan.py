@@ -91,15 +91,46 @@ def reference_terms(m: DeLaN, q, qd):
     return torch.stack(cs), torch.stack(gs)
 
 
-@pytest.mark.parametrize(("n", "slide_first"), [(3, True), (1, False), (1, True)])
-def test_coriolis_and_gravity_match_autograd(n: int, slide_first: bool) -> None:
-    """Also with one DoF (a hinge; a slide), where the pullback reuses the forward tangent."""
-    m = model(n, slide_first=slide_first)
+TREE8 = (-1, 0, 1, 0, 3, 4, 0, 6)  # three branches off DoF 0, as a humanoid's limbs
+
+
+@pytest.mark.parametrize(
+    ("n", "slide_first", "parents"),
+    [(3, True, None), (1, False, None), (1, True, None), (8, False, None), (8, False, TREE8)],
+)
+def test_coriolis_and_gravity_match_autograd(n: int, slide_first: bool, parents) -> None:
+    """Also with one DoF (a hinge; a slide), where the pullback reuses the forward tangent,
+    and with 8, whose factor's head computes L's entries only (dense, and a tree's)."""
+    m = model(n, slide_first=slide_first, dof_parents=parents)
     q, qd = random_state(n, batch=8)
     t = m.terms(q, qd)
     c_ref, g_ref = reference_terms(m, q, qd)
     torch.testing.assert_close(t.coriolis, c_ref, rtol=1e-9, atol=1e-10)
     torch.testing.assert_close(t.gravity, g_ref, rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.parametrize("parents", [None, TREE8])
+def test_entry_head_equals_matrix_head(monkeypatch, parents) -> None:
+    """The factor's head over L's entries (more than `MATRIX_HEAD_MAX_N` DoFs) and the
+    matrix-layout head give the same terms, torques and weight gradients."""
+    from mbrl_delan.models import field
+
+    m = model(8, dof_parents=parents)
+    q, qd = random_state(8, batch=16)
+    qdd = torch.randn(16, 8, generator=torch.Generator().manual_seed(2))
+
+    def outputs() -> list[torch.Tensor]:
+        m.zero_grad()
+        t = m.terms(q, qd)
+        tau = m.dynamics.inverse_dynamics(q, qd, qdd)
+        tau.square().sum().backward()
+        grads = [p.grad.clone() for p in m.parameters() if p.grad is not None]
+        return [t.mass_matrix, t.coriolis, t.gravity, tau, *grads]
+
+    by_entries = outputs()
+    monkeypatch.setattr(field, "MATRIX_HEAD_MAX_N", 8)
+    for a, b in zip(by_entries, outputs(), strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
 
 
 def test_coriolis_is_quadratic_in_velocity_and_power_neutral() -> None:

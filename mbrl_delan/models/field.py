@@ -3,16 +3,20 @@ and the unstructured residual force (`ResidualForce`)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
 from mbrl_delan.models.features import QFeatures
-from mbrl_delan.models.kernels import linear
+from mbrl_delan.models.kernels import linear, linear_t
 from mbrl_delan.models.lagrangian import MechanicsField, MechanicsJet, root_frame_jet
-from mbrl_delan.models.tangent_mlp import TangentMLP
+from mbrl_delan.models.tangent_mlp import MLPPass, TangentMLP
+
+# up to this many DoFs, L's head is laid out as the matrix (`LagrangianNetwork._matrix_head`):
+# no per-sample scatter in the small systems' compiled planners; above, over L's entries only
+MATRIX_HEAD_MAX_N = 6
 
 
 class LagrangianNetwork(MechanicsField):
@@ -83,6 +87,8 @@ class LagrangianNetwork(MechanicsField):
         layout[rows * n + cols] = n + torch.arange(n_off)
         self.register_buffer("layout", layout, persistent=False)
         self.register_buffer("rows", rows, persistent=False)
+        entry_index = torch.cat([torch.arange(n) * (n + 1), rows * n + cols])  # [diag; others]
+        self.register_buffer("entry_index", entry_index, persistent=False)
         self.register_buffer("cols", cols, persistent=False)
         # per-row scale of L (M = D L~ L~^T D, D = diag(row_scale)) and scale of V: constant
         # changes of units, set from data (`DeLaN.fit_normalization`), 1 by default
@@ -136,7 +142,7 @@ class LagrangianNetwork(MechanicsField):
         """The L head laid out as the matrix L, row-major: weight (n*n, hidden), bias (n*n,).
 
         Entries above the diagonal get zero rows, so `linear(h, W, b)` gives the raw L
-        directly (no per-sample gather), and a cotangent on all of L maps back with one
+        directly (no per-sample scatter), and a cotangent on all of L maps back with one
         matmul (the entries above the diagonal meet zero rows). Costs one gather of the
         weights per call, independent of the batch.
         """
@@ -147,17 +153,48 @@ class LagrangianNetwork(MechanicsField):
         weight = weight.index_select(0, self.layout) * scale.unsqueeze(-1)
         return weight, bias.index_select(0, self.layout) * scale
 
-    def jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
-        """L, V and their derivatives; with ``root_frame``, L = S L_b (`root_frame_jet`)."""
-        jet = self._network_jet(q, qd)
-        return root_frame_jet(jet, q, qd) if self.root_frame else jet
+    def _entry_head(self) -> tuple[Tensor, Tensor]:
+        """The L head over L's entries only, [diagonal (n); the others (n_off)], in units:
+        weight (n + n_off, hidden), bias (n + n_off,). The diagonal rows are unscaled."""
+        head, rows = self.trunk.head, self.v_row
+        scale = torch.cat([self.row_scale.new_ones(self.n), self.row_scale[self.rows]])
+        return head.weight[:rows] * scale.unsqueeze(-1), head.bias[:rows] * scale
 
-    def _network_jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
-        """The jet through the trunk: a tangent along qd forward, one reverse pass back."""
-        if self.n == 1 and not self.still_potential and not self.height_q.numel():
-            return self._scalar_jet(q, qd)
+    def _factor(self, body: MLPPass) -> tuple[Tensor, Tensor, Callable[[Tensor], Tensor]]:
+        """L and L_dot (..., n, n) from the trunk's output and tangent, and the map of a
+        cotangent on L (..., n, n) to one on the trunk's output (..., hidden).
+
+        Up to `MATRIX_HEAD_MAX_N` DoFs the head is laid out as the matrix (`_matrix_head`);
+        above, it computes only L's entries and scatters them into the matrix
+        (`_entry_head`): on humanoid_CMU's tree 952 of 3,844 entries, a quarter of the
+        head's products.
+        """
+        if self.n <= MATRIX_HEAD_MAX_N:
+            return self._matrix_factor(body)
+        n = self.n
+        weight, bias = self._entry_head()
+        raw, d_raw = linear(body.out, weight, bias), linear(body.d_out, weight)  # (..., E)
+        raw_diag = raw[..., :n]
+        diag_slope = self.row_scale * torch.sigmoid(raw_diag)  # d L_ii / d raw_ii
+        diag = self.row_scale * (F.softplus(raw_diag) + self.diag_shift)
+        L = self._scatter(torch.cat([diag, raw[..., n:]], dim=-1))
+        L_dot = self._scatter(torch.cat([diag_slope * d_raw[..., :n], d_raw[..., n:]], dim=-1))
+
+        def to_hidden(d_L: Tensor) -> Tensor:
+            d_entries = d_L.flatten(-2).index_select(-1, self.entry_index)  # (..., E)
+            d_raw = torch.cat([diag_slope * d_entries[..., :n], d_entries[..., n:]], dim=-1)
+            return linear_t(d_raw, weight)
+
+        return L, L_dot, to_hidden
+
+    def _scatter(self, entries: Tensor) -> Tensor:
+        """L's entries (..., n + n_off) into the matrix (..., n, n), zeros elsewhere."""
+        flat = entries.new_zeros(*entries.shape[:-1], self.n * self.n)
+        return flat.index_copy(-1, self.entry_index, entries).unflatten(-1, (self.n, self.n))
+
+    def _matrix_factor(self, body: MLPPass) -> tuple[Tensor, Tensor, Callable[[Tensor], Tensor]]:
+        """`_factor` through the matrix-layout head."""
         n, head = self.n, self.trunk.head
-        body = self.trunk.body(self.features(q), self.features.jvp(q, qd))
         weight, bias = self._matrix_head()
         raw = linear(body.out, weight, bias).unflatten(-1, (n, n))  # (..., n, n), 0 above
         d_raw = linear(body.d_out, weight).unflatten(-1, (n, n))
@@ -168,6 +205,27 @@ class LagrangianNetwork(MechanicsField):
         torch.diagonal(L, dim1=-2, dim2=-1).copy_(diag)
         L_dot = d_raw
         torch.diagonal(L_dot, dim1=-2, dim2=-1).mul_(diag_slope)
+
+        def to_hidden(d_L: Tensor) -> Tensor:
+            d_diag = torch.diagonal(d_L, dim1=-2, dim2=-1)  # (..., n)
+            return (
+                linear(d_L.flatten(-2), weight.T)  # every entry as if raw; diagonal fixed here
+                + linear((diag_slope - 1.0) * d_diag, head.weight[:n].T)
+            )
+
+        return L, L_dot, to_hidden
+
+    def jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
+        """L, V and their derivatives; with ``root_frame``, L = S L_b (`root_frame_jet`)."""
+        jet = self._network_jet(q, qd)
+        return root_frame_jet(jet, q, qd) if self.root_frame else jet
+
+    def _network_jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
+        """The jet through the trunk: a tangent along qd forward, one reverse pass back."""
+        if self.n == 1 and not self.still_potential and not self.height_q.numel():
+            return self._scalar_jet(q, qd)
+        body = self.trunk.body(self.features(q), self.features.jvp(q, qd))
+        L, L_dot, factor_to_hidden = self._factor(body)
         v_weight, v_bias = self._potential_head()
         potential = linear(body.out, v_weight.unsqueeze(0), v_bias).squeeze(-1)
         if self.height_q.numel():
@@ -178,12 +236,7 @@ class LagrangianNetwork(MechanicsField):
             potential = potential + (still_offset * still_force).sum(-1)
 
         def pullback(d_L: Tensor, d_V: Tensor) -> Tensor:
-            d_diag = torch.diagonal(d_L, dim1=-2, dim2=-1)  # (..., n)
-            d_hidden = (
-                linear(d_L.flatten(-2), weight.T)  # every entry as if raw; diagonal fixed below
-                + linear((diag_slope - 1.0) * d_diag, head.weight[:n].T)
-                + d_V.unsqueeze(-1) * v_weight
-            )
+            d_hidden = factor_to_hidden(d_L) + d_V.unsqueeze(-1) * v_weight
             if self.still_potential:
                 d_hidden = d_hidden + linear(d_V.unsqueeze(-1) * still_offset, still_weight.T)
             grad = self.features.vjp(q, self.trunk.body_vjp(body, d_hidden))

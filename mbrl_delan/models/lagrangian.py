@@ -27,7 +27,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from mbrl_delan.models.features import rotation_matrix, skew, unskew_of_rt
-from mbrl_delan.models.kernels import cholesky_solve, linear
+from mbrl_delan.models.kernels import cholesky_solve, linear, matvec, matvec_t
 
 
 @dataclass
@@ -183,7 +183,7 @@ class LagrangianDynamics(nn.Module):
         if not self.rotational_dofs.numel():
             return force
         idx = self.rotational_dofs  # (K, 3)
-        momentum = (L @ w.unsqueeze(-1)).squeeze(-1)
+        momentum = matvec(L, w)
         if self.has_armature:
             momentum = momentum + self.armature * qd
         term = torch.linalg.cross(qd[..., idx], momentum[..., idx], dim=-1)  # (..., K, 3)
@@ -192,10 +192,8 @@ class LagrangianDynamics(nn.Module):
     @staticmethod
     def _velocity_products(jet: MechanicsJet, qd: Tensor) -> tuple[Tensor, Tensor]:
         """w = L^T qd and Mdot qd = Ldot w + L Ldot^T qd. (..., n) each"""
-        w = (jet.L.transpose(-1, -2) @ qd.unsqueeze(-1)).squeeze(-1)
-        w_dot = (jet.L_dot.transpose(-1, -2) @ qd.unsqueeze(-1)).squeeze(-1)
-        m_dot_qd = (jet.L_dot @ w.unsqueeze(-1) + jet.L @ w_dot.unsqueeze(-1)).squeeze(-1)
-        return w, m_dot_qd
+        w, w_dot = matvec_t(jet.L, qd), matvec_t(jet.L_dot, qd)
+        return w, matvec(jet.L_dot, w) + matvec(jet.L, w_dot)
 
     def _dissipation(self, qd: Tensor, frame: Tensor | None = None) -> Tensor:
         """d(qd); with a root `frame` R, in the root's frame: S d(S^T qd) (still qd^T d >= 0)."""
@@ -251,7 +249,7 @@ class LagrangianDynamics(nn.Module):
         """Generalized force tau = M qdd + c + g + d. (..., n)"""
         bias, jet = self._bias_and_jet(q, qd)
         L = jet.L
-        m_qdd = (L @ (L.transpose(-1, -2) @ qdd.unsqueeze(-1))).squeeze(-1)
+        m_qdd = matvec(L, matvec_t(L, qdd))
         if self.has_armature:
             m_qdd = m_qdd + self.armature * qdd
         return m_qdd + bias
