@@ -94,6 +94,7 @@ from mbrl_delan.training.inverse_fit import (
     fit_inverse_model,
 )
 from mbrl_delan.training.recorder import (
+    LOGGERS,
     METRICS_FILE,
     RUN_CONFIG,
     SUMMARY_FILE,
@@ -249,6 +250,7 @@ def validate_fit_config(cfg: DictConfig) -> None:
         check_number("max_grad_norm", cfg.max_grad_norm, 0.0, open_low=True)
     check_number("loss.std_floor", cfg.loss.std_floor, 0.0, 1.0, open_low=True)
     _flag("translation_invariant", cfg.translation_invariant)
+    _choice("logger.backend", cfg.logger.backend, LOGGERS)
     _validate_model(cfg.model)
     _validate_data(cfg.data)
 
@@ -428,12 +430,14 @@ def _run(cfg: DictConfig, run_dir: Path) -> tuple[dict[str, Any], InverseDynamic
         compile_fit(model)
     container = OmegaConf.to_container(cfg, resolve=True)
     logger = cfg.logger
-    with Recorder(run_dir, logger.wandb, logger.project, logger.group, container) as recorder:
+    with Recorder(
+        run_dir, logger.backend, logger.project, logger.group, container, step_key="epoch"
+    ) as recorder:
         results = _train(cfg, model, splits, recorder, device)
         summary = fit_summary(cfg, data, model, splits, results)
         summary["wall_time_s"] = time.perf_counter() - start
         recorder.write_summary(summary)
-    _save_model_and_curves(cfg, model, run_dir)
+        recorder.log_image("loss_curves", _save_model_and_curves(cfg, model, run_dir))
     _log_summary(run_dir, summary)
     return summary, model
 
@@ -499,13 +503,14 @@ def _train(
     return results
 
 
-def _save_model_and_curves(cfg: DictConfig, model: InverseDynamicsModel, run_dir: Path) -> None:
-    """``model.pt`` (state dict) and ``loss_curves.png`` from ``metrics.jsonl``."""
+def _save_model_and_curves(cfg: DictConfig, model: InverseDynamicsModel, run_dir: Path) -> Path:
+    """``model.pt`` (state dict) and ``loss_curves.png`` from ``metrics.jsonl`` (returned)."""
     from mbrl_delan.training.fit_plots import LOSS_CURVES_PNG, plot_loss_curves  # matplotlib
 
     torch.save({"model": cfg.model.name, "state_dict": model.state_dict()}, run_dir / MODEL_FILE)
     records = read_metrics(run_dir / METRICS_FILE)
     plot_loss_curves({cfg.model.name: records}, run_dir / LOSS_CURVES_PNG)
+    return run_dir / LOSS_CURVES_PNG
 
 
 def split_summary(errors: TorqueErrors, groups: dict[str, tuple[int, ...]]) -> dict[str, Any]:

@@ -29,6 +29,7 @@ from mbrl_delan.benchmarks import (
 )
 from mbrl_delan.planners.spline import INTERPOLATIONS
 from mbrl_delan.training.fit import FitConfig
+from mbrl_delan.training.recorder import LOGGERS
 
 
 def rule(
@@ -247,9 +248,9 @@ class PredictiveConfig(PlannerConfig):
 
 @dataclass
 class LoggerConfig:
-    """``logger``: wandb (offline unless the user logs in) or none."""
+    """``logger``: none, wandb (offline unless the user logs in), TorchRL's csv or tensorboard."""
 
-    wandb: bool = MISSING
+    backend: str = rule(choices=LOGGERS)
     project: str = "mbrl_delan"
     group: str | None = None
 

@@ -340,7 +340,7 @@ def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Reco
             for stem, key, rollout in episodes:
                 path = _record_episode(video, run_dir / VIDEO_DIR / f"{stem}.mp4", rollout, task)
                 log.info("video: %s", path)
-                recorder.log_video(f"video/{key}", path, k)
+                recorder.log_video(f"video/{key}", path, loop.counters.env_steps)
     except RENDER_ERRORS as err:
         name = type(err).__name__
         log.warning("no video of iteration %d (%s: %s); the run goes on", k, name, err)
@@ -467,19 +467,19 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         )
     recorder = Recorder(
         run_dir,
-        cfg.logger.wandb,
+        cfg.logger.backend,
         cfg.logger.project,
         cfg.logger.group,
         OmegaConf.to_container(cfg, resolve=True),
         resume_iteration=loop.counters.iteration if state else None,
+        step_key="env_steps",
     )
-    try:
+    with recorder:
         _run(cfg, run_dir, loop, oracle, recorder)
-    finally:
-        recorder.finish()
-    summary = _summary(cfg, run_dir, loop)
-    recorder.write_summary(summary)
-    plot_run(run_dir)
+        summary = _summary(cfg, run_dir, loop)
+        recorder.write_summary(summary)
+        for path in plot_run(run_dir):
+            recorder.log_image(path.stem, path)
     _print_summary(run_dir, summary)
     return summary
 

@@ -153,8 +153,8 @@ def test_rng_missing_generator_is_an_error():
 # --- recorder ----------------------------------------------------------------------------
 
 
-def _recorder(run_dir, resume=None, use_wandb=False):
-    return Recorder(run_dir, use_wandb, "test", None, {"seed": 0}, resume_iteration=resume)
+def _recorder(run_dir, resume=None, backend="none"):
+    return Recorder(run_dir, backend, "test", None, {"seed": 0}, resume_iteration=resume)
 
 
 def test_metrics_jsonl_and_resume_truncation(tmp_path):
@@ -197,9 +197,13 @@ class _FakeRun:
         self.logged: list = []
         self.summary: dict = {}
         self.finished = False
+        self.metrics: list = []
 
-    def log(self, data, step):
-        self.logged.append((step, data))
+    def define_metric(self, name, step_metric=None):
+        self.metrics.append((name, step_metric))
+
+    def log(self, data):
+        self.logged.append(data)
 
     def finish(self):
         self.finished = True
@@ -211,18 +215,19 @@ def test_wandb_offline_by_default(tmp_path, monkeypatch):
     fake.init = lambda **kw: runs.append(_FakeRun(**kw)) or runs[-1]
     monkeypatch.setitem(sys.modules, "wandb", fake)
     monkeypatch.delenv("WANDB_MODE", raising=False)
-    rec = Recorder(tmp_path, True, "proj", "grp", {"lr": 0.1})
-    rec.log({"loss": 1.0, "name": "x"}, iteration=3)
+    rec = Recorder(tmp_path, "wandb", "proj", "grp", {"lr": 0.1}, step_key="env_steps")
+    rec.log({"loss": 1.0, "name": "x", "env_steps": 40}, iteration=3)
     rec.write_summary({"env_steps": 10})
     rec.finish()
     (run,) = runs
     assert run.kwargs["mode"] == "offline" and run.kwargs["dir"] == str(tmp_path)
     assert (run.kwargs["project"], run.kwargs["group"]) == ("proj", "grp")
-    assert run.logged == [(3, {"iteration": 3, "loss": 1.0})]
+    assert run.logged == [{"iteration": 3, "loss": 1.0, "env_steps": 40}]
+    assert run.metrics == [("env_steps", None), ("*", "env_steps")]  # charts against env steps
     assert run.summary == {"env_steps": 10} and run.finished
 
     monkeypatch.setenv("WANDB_MODE", "disabled")
-    Recorder(tmp_path, True, "proj", None, {}, resume_iteration=3).finish()
+    Recorder(tmp_path, "wandb", "proj", None, {}, resume_iteration=3).finish()
     assert runs[-1].kwargs["mode"] == "disabled"
     assert runs[-1].kwargs["id"] == "abc123"  # resumed runs continue the same wandb run
 
@@ -236,7 +241,7 @@ def test_wandb_failure_warns_and_continues(tmp_path, monkeypatch, caplog):
     fake.init = broken_init
     monkeypatch.setitem(sys.modules, "wandb", fake)
     with caplog.at_level(logging.WARNING):
-        rec = Recorder(tmp_path, True, "proj", None, {})
+        rec = Recorder(tmp_path, "wandb", "proj", None, {})
     assert not rec.wandb_active and "no wandb service" in caplog.text
     rec.log({"loss": 1.0}, iteration=0)
     rec.finish()
@@ -270,3 +275,36 @@ def test_plots_skip_missing_metrics(tmp_path):
         rec.log({"env_steps": 100, "train_return": 1.0}, iteration=0)
     assert [p.name for p in plot_run(tmp_path)] == ["returns.png"]
     assert plot_run(tmp_path / "empty") == []
+
+
+@pytest.mark.parametrize("backend", ["csv", "tensorboard"])
+def test_torchrl_loggers_get_every_number_against_env_steps(tmp_path, backend):
+    """`logger=csv` and `logger=tensorboard` go through TorchRL's loggers: each number of a
+    record at the record's env_steps, the figures as images (TensorBoard)."""
+    import matplotlib.pyplot as plt
+
+    figure = tmp_path / "returns.png"
+    plt.figure(figsize=(2, 2))
+    plt.savefig(figure)
+    plt.close()
+    rec = Recorder(tmp_path, backend, "test", None, {"seed": 0}, step_key="env_steps")
+    for it, steps in enumerate((15, 30)):
+        rec.log({"env_steps": steps, "train_return": 2.0 * it, "planner": "mppi"}, iteration=it)
+    rec.log_image("returns", figure)
+    rec.finish()
+    if backend == "csv":
+        rows = (tmp_path / "csv" / "scalars" / "train_return.csv").read_text().splitlines()
+        assert rows == ["15,0.0", "30,2.0"]
+        return
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(tmp_path / "tensorboard"))  # (the hyperparameters: a subfolder)
+    acc.Reload()
+    scalars = acc.Scalars("train_return")
+    assert [(s.step, s.value) for s in scalars] == [(15, 0.0), (30, 2.0)]
+    assert acc.Tags()["images"] == ["returns"]
+
+
+def test_unknown_logger_is_named(tmp_path):
+    with pytest.raises(ValueError, match="'mlflow' is not one of none, wandb, csv, tensorboard"):
+        Recorder(tmp_path, "mlflow", "test", None, {})

@@ -25,10 +25,10 @@ DATA = Path(__file__).parent / "data"  # holds the CMU clip 09_06 (a run)
 
 
 def train(
-    run_dir: Path, *overrides: str, wait: bool = True
+    run_dir: Path, *overrides: str, wait: bool = True, wandb_mode: str = "disabled"
 ) -> subprocess.Popen | subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "mbrl_delan.train", *TINY, f"hydra.run.dir={run_dir}", *overrides]
-    env = {**os.environ, "WANDB_MODE": "disabled", "PYTHONUNBUFFERED": "1"}
+    env = {**os.environ, "WANDB_MODE": wandb_mode, "WANDB_SILENT": "true", "PYTHONUNBUFFERED": "1"}
     if wait:
         return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
     return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
@@ -45,6 +45,53 @@ def finished_run(tmp_path_factory) -> Path:
     out = train(run_dir, "budget.env_steps=50", "budget.iterations=10")
     assert out.returncode == 0, out.stdout + out.stderr
     return run_dir
+
+
+@pytest.mark.slow
+def test_offline_wandb_run_holds_the_summary_and_figures(tmp_path: Path) -> None:
+    """logger=wandb: the summary (fraction_of_oracle included) reaches the wandb run before
+    it finishes, the charts run against env steps, the returns figure is logged."""
+    pytest.importorskip("wandb")
+    run_dir = tmp_path / "wandb_run"
+    out = train(run_dir, "logger=wandb", "budget.iterations=1", wandb_mode="offline")
+    assert out.returncode == 0, out.stdout + out.stderr
+    (log_file,) = (run_dir / "wandb").glob("offline-run-*/run-*.wandb")
+    summary: dict = {}
+    x_axes = set()
+    for record in wandb_records(log_file):
+        kind = record.WhichOneof("record_type")
+        if kind == "summary":
+            summary |= {u.key: json.loads(u.value_json) for u in record.summary.update}
+        elif kind == "metric":
+            x_axes.add((record.metric.glob_name, record.metric.step_metric))
+    local = json.loads((run_dir / "summary.json").read_text())
+    assert summary["fraction_of_oracle"] == pytest.approx(local["fraction_of_oracle"])
+    assert summary["env_steps"] == local["env_steps"]
+    assert ("*", "env_steps") in x_axes  # every chart against env steps
+    assert list(log_file.parent.glob("files/media/images/returns_*.png"))
+
+
+def wandb_records(path: Path):
+    """The protobuf records of an offline run's ``.wandb`` file: a 7-byte header, then
+    LevelDB's log format (32 KiB blocks of chunks, each with a 7-byte header: CRC, length,
+    type 1 full, 2 first, 3 middle, 4 last)."""
+    from wandb.proto.wandb_internal_pb2 import Record
+
+    data, block, pos, parts = path.read_bytes(), 32768, 7, b""
+    assert data[:4] == b":W&B", path
+    while pos + 7 <= len(data):
+        left = block - pos % block
+        length, kind = int.from_bytes(data[pos + 4 : pos + 6], "little"), data[pos + 6]
+        if left < 7 or (kind == 0 and length == 0):  # the block's zero padding
+            pos += left
+            continue
+        parts += data[pos + 7 : pos + 7 + length]
+        pos += 7 + length
+        if kind in (1, 4):
+            record = Record()
+            record.ParseFromString(parts)
+            parts = b""
+            yield record
 
 
 def test_tiny_training_run_writes_everything(finished_run: Path) -> None:

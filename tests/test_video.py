@@ -216,7 +216,7 @@ def test_video_logged_to_offline_wandb(
     q = torch.zeros(4, 1)
     with VideoRecorder(pendulum, W, H, fps=20.0, backend=backend) as rec:
         path = rec.record(tmp_path / "videos" / "eval_iter1_ep0.mp4", q, q)
-    with Recorder(tmp_path, True, "test", None, {}) as recorder:
+    with Recorder(tmp_path, "wandb", "test", None, {}) as recorder:
         assert recorder.wandb_active
         recorder.log({"x": 1.0}, 1)
         recorder.log_video("video/eval_ep0", path, 1)

@@ -1,8 +1,10 @@
-"""Metric logging of a run: ``metrics.jsonl`` in the run dir, and wandb in offline mode.
+"""Metric logging of a run: ``metrics.jsonl`` in the run dir, and one logger beside it
+(`LOGGERS`): wandb in offline mode, or TorchRL's CSV or TensorBoard logger.
 
-Every record carries the loop ``iteration`` it belongs to. On resume from a checkpoint taken at
-iteration ``k``, records with ``iteration > k`` are dropped from ``metrics.jsonl`` (they will be
-logged again), so the file never holds the same step twice.
+Every record carries the loop ``iteration`` it belongs to; the loggers plot each record
+against its `step_key` field (the train loop's ``env_steps``, the fit's ``epoch``). On resume
+from a checkpoint taken at iteration ``k``, records with ``iteration > k`` are dropped from
+``metrics.jsonl`` (they will be logged again), so the file never holds the same step twice.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ import json
 import logging
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import IO, Any
 
@@ -24,6 +26,7 @@ METRICS_FILE = "metrics.jsonl"
 SUMMARY_FILE = "summary.json"
 WANDB_ID_FILE = "wandb_id.txt"
 ITERATION = "iteration"  # step key of every metrics record
+LOGGERS = ("none", "wandb", "csv", "tensorboard")  # `logger.backend`
 
 
 def _jsonable(value: Any) -> Any:
@@ -79,37 +82,46 @@ def _truncate_metrics(path: Path, resume_iteration: int | None) -> None:
 
 
 class Recorder:
-    """Writes metric records to ``run_dir/metrics.jsonl`` and (optionally) to wandb.
+    """Writes metric records to ``run_dir/metrics.jsonl`` and to one logger of `LOGGERS`.
 
     Args:
         run_dir: the run's folder (created if missing).
-        use_wandb: also log to wandb, in offline mode unless ``WANDB_MODE`` is set.
-        wandb_project: wandb project name.
-        wandb_group: wandb group (e.g. a sweep name), or None.
-        config: the run's resolved configuration, stored with the wandb run.
+        backend: ``none``; ``wandb`` (offline unless ``WANDB_MODE`` is set, the run inside
+            ``run_dir/wandb``); ``csv`` or ``tensorboard`` (TorchRL's ``CSVLogger`` and
+            ``TensorboardLogger``, under ``run_dir/csv`` and ``run_dir/tensorboard``).
+        project: wandb project name.
+        group: wandb group (e.g. a sweep name), or None.
+        config: the run's resolved configuration, stored with the logger's run.
         resume_iteration: the iteration of the checkpoint a resumed run starts from; records
             after it are removed. ``None`` starts a fresh ``metrics.jsonl``.
+        step_key: the record field the loggers plot against (the iteration when absent).
     """
 
     def __init__(
         self,
         run_dir: Path,
-        use_wandb: bool,
-        wandb_project: str,
-        wandb_group: str | None,
+        backend: str,
+        project: str,
+        group: str | None,
         config: dict[str, Any],
         resume_iteration: int | None = None,
+        step_key: str = ITERATION,
     ):
-        self.run_dir = Path(run_dir)
+        if backend not in LOGGERS:
+            raise ValueError(f"logger {backend!r} is not one of {', '.join(LOGGERS)}")
+        self.run_dir, self.step_key = Path(run_dir), step_key
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.metrics_path = self.run_dir / METRICS_FILE
         _truncate_metrics(self.metrics_path, resume_iteration)
         self._file: IO[str] | None = self.metrics_path.open("a", encoding="utf-8")
         self._wandb_run: Any = None
-        if use_wandb:
+        self._scalars: Any = None  # a TorchRL logger (csv, tensorboard)
+        if backend == "wandb":
             self._wandb_run = self._init_wandb(
-                wandb_project, wandb_group, config, resume=resume_iteration is not None
+                project, group, config, resume=resume_iteration is not None
             )
+        elif backend != "none":
+            self._scalars = _torchrl_logger(backend, self.run_dir, config)
 
     def _init_wandb(
         self, project: str, group: str | None, config: dict[str, Any], resume: bool
@@ -129,6 +141,8 @@ class Recorder:
                 id=run_id,
                 resume="allow" if run_id else None,
             )
+            run.define_metric(self.step_key)
+            run.define_metric("*", step_metric=self.step_key)
         # wandb raises many error types (usage, network, service); logging must not stop a run.
         except Exception as err:  # noqa: BLE001
             log.warning(
@@ -148,37 +162,49 @@ class Recorder:
         return self._wandb_run is not None
 
     def log(self, metrics: Mapping[str, Any], iteration: int) -> None:
-        """Append one record ``{"iteration": iteration, **metrics}`` and flush it."""
+        """Append one record ``{"iteration": iteration, **metrics}`` and flush it; its numbers
+        go to the logger against the record's `step_key`."""
         if self._file is None:
             raise RuntimeError("Recorder.log called after finish()")
         record = {ITERATION: int(iteration), **_jsonable(dict(metrics))}
         self._file.write(json.dumps(record) + "\n")
         self._file.flush()
-        if self._wandb_run is not None:
-            self._wandb_log(record, iteration)
-
-    def _wandb_log(self, record: dict[str, Any], iteration: int) -> None:
         numbers = {k: v for k, v in record.items() if isinstance(v, int | float)}
+        step = int(numbers.get(self.step_key, iteration))
+        if self._wandb_run is not None:
+            self._wandb_call("log", lambda: numbers)
+        if self._scalars is not None:
+            for name, value in numbers.items():
+                self._scalars.log_scalar(name, float(value), step=step)
+
+    def _wandb_call(self, what: str, data: Callable[[], dict[str, Any]]) -> None:
+        """``run.log(data())``; a failure warns and turns wandb off (see `_init_wandb`)."""
         try:
-            self._wandb_run.log(numbers, step=int(iteration))
+            self._wandb_run.log(data())
         except Exception as err:  # noqa: BLE001 - see _init_wandb
-            log.warning("wandb.log failed (%s); wandb logging is off for this run", err)
+            log.warning("wandb could not %s (%s); wandb logging is off for this run", what, err)
             self._wandb_run = None
 
-    def log_video(self, key: str, path: str | Path, iteration: int) -> None:
-        """Log the video file `path` (e.g. MP4) to wandb as ``wandb.Video`` under `key`.
+    def log_video(self, key: str, path: str | Path, step: int) -> None:
+        """Log the video file `path` (e.g. MP4) to wandb as ``wandb.Video`` under `key`, at
+        `step` of `step_key`. Without wandb a no-op (the file stays in the run dir, which
+        TorchRL's CSV and TensorBoard loggers would otherwise copy as raw frames)."""
+        if self._wandb_run is not None:
+            self._wandb_call(
+                f"log the video {path}",
+                lambda: {key: _wandb_media("Video", path), self.step_key: int(step)},
+            )
 
-        A no-op without wandb; a wandb failure only warns (the file stays in the run dir).
-        """
-        if self._wandb_run is None:
-            return
-        try:
-            import wandb
+    def log_image(self, key: str, path: str | Path) -> None:
+        """Log the figure `path` (PNG) under `key`: to wandb as ``wandb.Image``, to
+        TensorBoard as an image; the CSV logger keeps only scalars (the file is in the run dir)."""
+        if self._wandb_run is not None:
+            self._wandb_call(f"log the figure {path}", lambda: {key: _wandb_media("Image", path)})
+        if self._scalars is not None and hasattr(self._scalars.experiment, "add_image"):
+            import matplotlib.image
 
-            video = wandb.Video(str(path), caption=Path(path).name, format="mp4")
-            self._wandb_run.log({key: video}, step=int(iteration))
-        except Exception as err:  # noqa: BLE001 - see _init_wandb
-            log.warning("wandb could not log the video %s (%s)", path, err)
+            pixels = matplotlib.image.imread(str(path))[..., :3]  # (H, W, 3) in [0, 1]
+            self._scalars.experiment.add_image(key, pixels, dataformats="HWC")
 
     def write_summary(self, summary: Mapping[str, Any]) -> Path:
         """Write ``run_dir/summary.json`` atomically (and the wandb run summary)."""
@@ -203,9 +229,56 @@ class Recorder:
             except Exception as err:  # noqa: BLE001 - see _init_wandb
                 log.warning("wandb finish failed (%s)", err)
             self._wandb_run = None
+        if self._scalars is not None:
+            writer = self._scalars.experiment
+            if hasattr(writer, "close"):  # TensorBoard's SummaryWriter: flush the events
+                writer.close()
+            self._scalars = None
 
     def __enter__(self) -> Recorder:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.finish()
+
+
+def _wandb_media(kind: str, path: str | Path) -> Any:
+    """``wandb.Video`` (MP4) or ``wandb.Image`` of the file `path`."""
+    import wandb
+
+    if kind == "Video":
+        return wandb.Video(str(path), caption=Path(path).name, format="mp4")
+    return wandb.Image(str(path), caption=Path(path).name)
+
+
+def _torchrl_logger(backend: str, run_dir: Path, config: dict[str, Any]) -> Any:
+    """TorchRL's ``CSVLogger`` or ``TensorboardLogger`` writing under ``run_dir/<backend>``,
+    with the run's config as its hyperparameters."""
+    from torchrl.record.loggers import CSVLogger, TensorboardLogger
+
+    if backend == "tensorboard":
+        try:
+            import tensorboard  # noqa: F401 - TorchRL's logger needs it, and says so late
+        except ImportError as err:
+            raise ImportError(
+                "logger=tensorboard needs the tensorboard package: pip install tensorboard"
+            ) from err
+        logger = TensorboardLogger(exp_name=backend, log_dir=str(run_dir))
+    else:
+        logger = CSVLogger(exp_name=backend, log_dir=str(run_dir))
+    logger.log_hparams(_flat_numbers(config))
+    return logger
+
+
+def _flat_numbers(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested config as one level of ``a.b`` keys with plain values (numbers, strings)."""
+    flat: dict[str, Any] = {}
+    for key, value in config.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            flat.update(_flat_numbers(value, f"{name}."))
+        elif isinstance(value, int | float | str | bool):
+            flat[name] = value
+        else:
+            flat[name] = str(value)
+    return flat
