@@ -2,8 +2,10 @@
 
 Finds the training run dirs below the given folders (a sweep dir, ``runs/multirun``, single
 run dirs), groups the finished runs (those with a ``summary.json``) by (env, model, planner,
-start: ``scratch``, or the fit a DeLaN started from with ``model.init_from``) and writes
-into ``--out`` (default: the first DIR; ``<DIR>/report`` when DIR is itself a run):
+start: ``scratch``, or the fit a DeLaN started from with ``model.init_from``; config: every
+other value of ``config.yaml`` that differs between the group's runs, such as two budgets,
+apart from the seed and how a run ran, `RAN_WITH`) and writes into ``--out`` (default: the
+first DIR; ``<DIR>/report`` when DIR is itself a run):
 
 * ``report.md`` and ``report.csv``: per group the seeds, n, mean and 95% confidence interval
   (Student t over seeds) of the final evaluation return and of the fraction of the oracle, the
@@ -43,7 +45,14 @@ log = logging.getLogger(__name__)
 
 SUMMARY = "summary.json"
 RUN_FILES = (RUN_CONFIG, SUMMARY, CRASH_FILE)
-GROUP_KEYS = ("env", "model", "planner", "start")
+GROUP_KEYS = ("env", "model", "planner", "start", "config")
+# config keys (and prefixes, ending in "."): how a run ran, not what it measured; runs that
+# differ only in these (and the seed) are seeds of one group
+RAN_WITH = (
+    "seed", "device", "threads", "resume", "logger.", "video", "video_width", "video_height",
+    "video_episodes", "video_every_eval", "video_backend", "buffer.memmap", "buffer.device",
+    "buffer.device_fraction",
+)  # fmt: skip
 REQUIRED_KEYS = ("env", "model", "planner", "seed")
 ORACLE_FRACTION = 0.9
 REACH_FRACTIONS = (0.5, 0.8, ORACLE_FRACTION)  # the table's "env steps to x of the oracle"
@@ -71,7 +80,7 @@ COLUMNS = (
     "wall_time_s_mean",
 )
 
-Group = tuple[str, str, str, str]
+Group = tuple[str, str, str, str, str]
 
 
 # --- finding runs -------------------------------------------------------------------------
@@ -127,7 +136,7 @@ def _load_summary(run: Path) -> dict[str, Any] | None:
         return None
     if not isinstance(summary, dict) or any(k not in summary for k in REQUIRED_KEYS):
         return None
-    return {**summary, "run_dir": str(run), "start": run_start(run)}
+    return {**summary, "run_dir": str(run), "start": run_start(run), "config": run_config(run)}
 
 
 def run_start(run: Path) -> str:
@@ -139,6 +148,37 @@ def run_start(run: Path) -> str:
     except (OSError, KeyError, TypeError, AttributeError, yaml.YAMLError):
         source = None
     return f"from {Path(source).name}" if source else SCRATCH
+
+
+def run_config(run: Path) -> dict[str, str]:
+    """The run's ``config.yaml`` as ``{"a.b": "value"}`` (values as YAML text); {} when it is
+    missing or unreadable."""
+    try:
+        cfg = yaml.safe_load((run / RUN_CONFIG).read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError):
+        return {}
+    return _flat(cfg) if isinstance(cfg, dict) else {}
+
+
+def _flat(tree: dict[str, Any], prefix: str = "") -> dict[str, str]:
+    flat: dict[str, str] = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:  # YAML text of a scalar ends with the document end marker "..."
+            text = yaml.safe_dump(value, default_flow_style=True)
+            flat[f"{prefix}{key}"] = text.removesuffix("...\n").strip()
+    return flat
+
+
+def _ran_with(key: str) -> bool:
+    return any(key.startswith(k) if k.endswith(".") else key == k for k in RAN_WITH)
+
+
+def differing_keys(configs: list[dict[str, str]]) -> list[str]:
+    """The config keys whose values differ between ``configs``, apart from `RAN_WITH`."""
+    keys = sorted({k for c in configs for k in c})
+    return [k for k in keys if not _ran_with(k) and len({c.get(k) for c in configs}) > 1]
 
 
 def find_runs(roots: list[Path]) -> tuple[list[dict[str, Any]], list[Path]]:
@@ -212,9 +252,17 @@ def steps_to_fraction(
 
 
 def _groups(summaries: list[dict[str, Any]]) -> dict[Group, list[dict[str, Any]]]:
-    groups: dict[Group, list[dict[str, Any]]] = defaultdict(list)
+    """Runs by (env, model, planner, start), split by the config values that differ between
+    them (``config``: ``key=value`` pairs, empty when none do)."""
+    by_kind: dict[tuple[str, ...], list[dict[str, Any]]] = defaultdict(list)
     for s in summaries:
-        groups[(str(s["env"]), str(s["model"]), str(s["planner"]), str(s["start"]))].append(s)
+        by_kind[(str(s["env"]), str(s["model"]), str(s["planner"]), str(s["start"]))].append(s)
+    groups: dict[Group, list[dict[str, Any]]] = defaultdict(list)
+    for kind, runs in by_kind.items():
+        keys = differing_keys([r.get("config", {}) for r in runs])
+        for r in runs:
+            config = " ".join(f"{k}={r.get('config', {}).get(k)}" for k in keys)
+            groups[(*kind, config)].append(r)  # type: ignore[arg-type]
     return {k: sorted(v, key=lambda s: s["seed"]) for k, v in sorted(groups.items())}
 
 
@@ -225,7 +273,7 @@ def _row(group: Group, runs: list[dict[str, Any]]) -> dict[str, Any]:
     records = [read_metrics(Path(r["run_dir"]) / METRICS_FILE) for r in runs]
     seeds = [r["seed"] for r in runs]
     if len(set(seeds)) < len(seeds):
-        log.warning("%s: seeds %s repeat; runs of different sweeps are pooled", group, seeds)
+        log.warning("%s: seeds %s repeat: runs of the same config are pooled", group, seeds)
     row: dict[str, Any] = dict(zip(GROUP_KEYS, group, strict=True))
     row.update(seeds=" ".join(map(str, seeds)), n=len(runs))
     for key, name in (
@@ -249,8 +297,8 @@ def _row(group: Group, runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def rows(summaries: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One dict per (env, model, planner, start) with the keys of ``COLUMNS``; None where
-    n/a."""
+    """One dict per (env, model, planner, start, config) with the keys of ``COLUMNS``; None
+    where n/a."""
     return [_row(group, runs) for group, runs in _groups(summaries).items()]
 
 
@@ -268,18 +316,18 @@ def _plain(value: float | None, spec: str = ".3g") -> str:
 
 
 def table(summaries: list[dict[str, Any]]) -> str:
-    """Markdown: one row per (env, model, planner, start), mean ± 95% CI half-width over
-    seeds."""
+    """Markdown: one row per (env, model, planner, start, config), mean ± 95% CI half-width
+    over seeds."""
     return markdown_table(rows(summaries))
 
 
 def markdown_table(table_rows: list[dict[str, Any]]) -> str:
     """The Markdown table of ``rows``' output."""
     lines = [
-        "| env | model | planner | start | seeds | n | eval return | fraction of oracle "
+        "| env | model | planner | start | config | seeds | n | eval return | fraction of oracle "
         "| oracle return | env steps to 50% / 80% / 90% of oracle (seeds reaching) "
         "| env steps | wall time (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in table_rows:
         cells = [
@@ -287,6 +335,7 @@ def markdown_table(table_rows: list[dict[str, Any]]) -> str:
             r["model"],
             r["planner"],
             r["start"],
+            f"`{r['config']}`" if r["config"] else "",
             r["seeds"].replace(" ", ","),
             str(r["n"]),
             _pm(r["eval_return_mean"], r["eval_return_ci95"]),
@@ -326,7 +375,8 @@ def markdown(table_rows: list[dict[str, Any]], incomplete: list[Path], figures: 
         "n/a for one seed). Fraction of oracle: final evaluation return / the same planner's "
         "return on MuJoCo's dynamics, per seed. Env steps to x of oracle: first evaluation "
         "reaching it, mean over the seeds that did. Start: scratch, or the fit the model "
-        "started from (`model.init_from`).",
+        "started from (`model.init_from`). Config: the settings that differ between runs of "
+        "the same env, model, planner and start (none: they differ only in the seed).",
         "## Incomplete runs",
         "\n".join(f"- `{run}`: {incomplete_reason(run)}" for run in incomplete) or "None.",
     ]
@@ -366,9 +416,12 @@ def _series(metrics: Path, key: str) -> tuple[list[int], list[float]]:
 
 
 def group_label(group: Group) -> str:
-    """``model + planner``, and the start when the model started from a fit."""
-    _, model, planner, start = group
-    return f"{model} + {planner}" + ("" if start == SCRATCH else f", {start}")
+    """``model + planner``, the start when the model started from a fit, and the config
+    values that set the group apart."""
+    _, model, planner, start, config = group
+    return f"{model} + {planner}" + ("" if start == SCRATCH else f", {start}") + (
+        f", {config}" if config else ""
+    )
 
 
 def _draw_band(ax: Any, by_step: dict[int, list[float]], label: str) -> str:

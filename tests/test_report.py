@@ -49,7 +49,7 @@ def test_table_gives_mean_and_ci_over_seeds(tmp_path: Path) -> None:
     runs, incomplete = find_runs([tmp_path])
     assert not incomplete
     row = table(runs).splitlines()[2]
-    assert "| pendulum | delan | mppi | scratch | 0,1 | 2 |" in row
+    assert "| pendulum | delan | mppi | scratch |  | 0,1 | 2 |" in row
     # returns 40, 30: s = 7.071, t_{0.975, 1} = 12.706, half-width 12.706 * 7.071 / sqrt(2) = 63.5
     assert "35 ± 64" in row
     # fractions 1.0, 0.75: s = 0.1768, half-width 12.706 * 0.1768 / sqrt(2) = 1.59
@@ -66,10 +66,31 @@ def test_runs_started_from_a_fit_are_their_own_group(tmp_path: Path) -> None:
     runs, _ = find_runs([tmp_path])
     lines = table(runs).splitlines()[2:]
     assert len(lines) == 2
-    assert "| delan | mppi | from walks | 0,1 | 2 | 17.5 ± 32 |" in lines[0]
-    assert "| delan | mppi | scratch | 0,1 | 2 | 35 ± 64 |" in lines[1]
-    assert group_label(("pendulum", "delan", "mppi", "from walks")) == "delan + mppi, from walks"
-    assert group_label(("pendulum", "delan", "mppi", "scratch")) == "delan + mppi"
+    assert "| delan | mppi | from walks |  | 0,1 | 2 | 17.5 ± 32 |" in lines[0]
+    assert "| delan | mppi | scratch |  | 0,1 | 2 | 35 ± 64 |" in lines[1]
+    label = group_label(("pendulum", "delan", "mppi", "from walks", ""))
+    assert label == "delan + mppi, from walks"
+    assert group_label(("pendulum", "delan", "mppi", "scratch", "")) == "delan + mppi"
+
+
+def test_runs_with_two_budgets_are_two_rows_named_by_the_budget(tmp_path: Path) -> None:
+    """Seeds of different budgets are not pooled: each config value that differs between
+    runs (here budget.env_steps) splits them and names the row; how a run ran (threads,
+    logger) does not."""
+    for seed, ret in ((0, 40.0), (1, 30.0)):
+        for steps in (50, 400):
+            run = make_run(tmp_path, f"s{steps}_{seed}", summary(seed, ret * steps / 400, 40.0))
+            config = f"seed: {seed}\nthreads: {seed + 1}\nlogger:\n  backend: none\n"
+            (run / "config.yaml").write_text(config + f"budget:\n  env_steps: {steps}\n")
+    runs, _ = find_runs([tmp_path])
+    lines = table(runs).splitlines()[2:]
+    assert len(lines) == 2
+    assert "| scratch | `budget.env_steps=400` | 0,1 | 2 | 35 ± 64 |" in lines[0]
+    assert "| scratch | `budget.env_steps=50` | 0,1 | 2 | 4.38 ± 7.9 |" in lines[1]
+    assert {group_label(g) for g in curves(runs, "eval_return_mean")} == {
+        "delan + mppi, budget.env_steps=50",
+        "delan + mppi, budget.env_steps=400",
+    }
 
 
 def test_confidence_interval_of_known_values() -> None:
@@ -193,7 +214,7 @@ def test_report_with_a_crashed_and_an_unfinished_run(tmp_path: Path, caplog) -> 
     assert f"`{unfinished}`: no summary.json" in text
     assert "2 incomplete" in text and "4 finished" in text and "fit_run" not in text
     assert "crashed: ValueError: model exploded" in caplog.text
-    assert "| pendulum | delan | cem | scratch | 0 | 1 | 20 ± n/a | 0.5 ± n/a |" in text
+    assert "| pendulum | delan | cem | scratch |  | 0 | 1 | 20 ± n/a | 0.5 ± n/a |" in text
     # steps to 45: seed 0 at 200, seed 1 at 400, seed 2 never -> mean 300 over 2 of 3
     assert " / 300 (2/3) |" in text
 
@@ -222,7 +243,7 @@ def test_report_without_finished_runs_still_writes_the_table(tmp_path: Path) -> 
     assert main([str(tmp_path)]) == 0
     text = (tmp_path / "report.md").read_text()
     assert "| env | model | planner |" in text and "crashed: RuntimeError: out of memory" in text
-    assert (tmp_path / "report.csv").read_text().startswith("env,model,planner,start,seeds,n,")
+    assert (tmp_path / "report.csv").read_text().startswith("env,model,planner,start,config,seeds,n,")
 
 
 def test_report_of_a_single_run_dir_goes_to_its_report_folder(tmp_path: Path) -> None:
