@@ -419,8 +419,10 @@ def group_label(group: Group) -> str:
     """``model + planner``, the start when the model started from a fit, and the config
     values that set the group apart."""
     _, model, planner, start, config = group
-    return f"{model} + {planner}" + ("" if start == SCRATCH else f", {start}") + (
-        f", {config}" if config else ""
+    return (
+        f"{model} + {planner}"
+        + ("" if start == SCRATCH else f", {start}")
+        + (f", {config}" if config else "")
     )
 
 
