@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import torch
 from torchrl.collectors import Collector  # torchrl 0.14 name of SyncDataCollector
-from torchrl.envs import InitTracker, TransformedEnv
+import pytest
+from torchrl.envs import InitTracker, SerialEnv, TransformedEnv
 
 from mbrl_delan import keys
 from mbrl_delan.envs import ModelEnv, make_env_parts, make_real_env
@@ -48,6 +49,39 @@ def test_collector_with_the_oracle_planner() -> None:
         assert torch.isfinite(batch[keys.NEXT_REWARD]).all()
         # the planner acted: it did not just return its initial (zero) plan
         assert action.abs().max() > 0.0
+
+
+def pendulum_env() -> TransformedEnv:
+    return TransformedEnv(make_real_env("pendulum", episode_len=12), InitTracker())
+
+
+def test_planner_policy_collects_from_a_serial_env_with_one_plan_per_env() -> None:
+    """SerialEnv(2): one plan per env; env 0 acts exactly as a lone env of the same seed."""
+    oracle = mujoco_objective_factory(
+        make_env_parts("pendulum").system, make_env_parts("pendulum").task, nthread=1
+    )
+    batched = SerialEnv(2, pendulum_env)
+    batched.set_seed(0)
+    policy = pendulum_policy(oracle)
+    td = batched.rollout(6, policy=policy)
+    batched.close()
+    assert td.shape == (2, 6) and td[keys.ACTION].shape == (2, 6, 1)
+    assert len(policy._per_env) == 2 and policy.plan_mean is None  # the envs' own plans
+    assert not torch.equal(td[0][keys.Q], td[1][keys.Q])  # two envs, two starts
+    lone = pendulum_env()
+    lone.set_seed(0)
+    alone = lone.rollout(6, policy=pendulum_policy(oracle))
+    torch.testing.assert_close(td[0][keys.ACTION], alone[keys.ACTION])
+    torch.testing.assert_close(td[0][keys.NEXT_Q], alone[keys.NEXT_Q])
+
+
+def test_an_env_without_q_and_qd_gets_their_names() -> None:
+    from tensordict import TensorDict
+
+    policy = pendulum_policy(lambda q, qd: None)
+    with pytest.raises(KeyError, match="lacks .*'observation'.*q and qd") as err:
+        policy(TensorDict({"observation": torch.zeros(3)}))
+    assert "'q', 'qd'" in str(err.value)
 
 
 def test_model_env_rollout_with_a_planner_policy() -> None:

@@ -21,6 +21,14 @@ log = logging.getLogger(__name__)
 
 def read_state(tensordict: TensorDictBase, policy: str) -> tuple[Tensor, Tensor]:
     """The unbatched state q (nq,), qd (nv,) a receding-horizon `policy` acts on."""
+    missing = [key for key in (keys.Q, keys.QD) if key not in tensordict.keys()]
+    if missing:
+        raise KeyError(
+            f"{policy} reads the keys {', '.join(map(repr, missing))}, which the env's "
+            f"tensordict lacks (it has {', '.join(map(repr, sorted(tensordict.keys())))}): "
+            "an env of its own gives its generalized positions and velocities as q and qd "
+            "(a TorchRL transform can rename them)"
+        )
     q, qd = tensordict.get(keys.Q), tensordict.get(keys.QD)
     if q.ndim != 1 or qd.ndim != 1:
         raise ValueError(
@@ -68,6 +76,11 @@ class PlannerPolicy(TensorDictModuleBase):
     Call `reset()` at the start of each episode (it is also called automatically when the
     input carries TorchRL's `step_count` equal to 0). `state_dict()` holds the current plan,
     the step counter and the generator state, so a checkpointed run resumes identically.
+
+    A batched tensordict (B envs: TorchRL's `SerialEnv`, `ParallelEnv`) gets one plan per env:
+    env i is acted on by a policy of its own like this one, seeded `seed + i` (env 0's acts as
+    this policy would on that env alone), whose episodes start by the env's own `is_init` or
+    `step_count`.
     A factory with a `planning_threads` count (rollouts on worker threads) has the plan run
     on that many intra-op threads (`intra_op_threads`).
 
@@ -96,6 +109,8 @@ class PlannerPolicy(TensorDictModuleBase):
                 f"replan_every must be in [1, horizon={planner.horizon}], got {replan_every}"
             )
         self.in_keys = [keys.Q, keys.QD]
+        self.seed = seed
+        self._per_env: list[PlannerPolicy] = []  # a batched input's envs (`_forward_batched`)
         self.out_keys = [keys.ACTION]
         self.planner = planner
         self.objective_factory = objective_factory
@@ -117,6 +132,8 @@ class PlannerPolicy(TensorDictModuleBase):
         self._episode_step = 0
         self._carried = {}
         self.last_result = None
+        for policy in self._per_env:
+            policy.reset()
 
     @property
     def plan_mean(self) -> Tensor | None:
@@ -154,6 +171,8 @@ class PlannerPolicy(TensorDictModuleBase):
         self._steps_since_plan = 0
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if tensordict.batch_dims:
+            return self._forward_batched(tensordict)
         q, qd = read_state(tensordict, "PlannerPolicy")
         if episode_starts(tensordict):
             self.reset()
@@ -162,6 +181,27 @@ class PlannerPolicy(TensorDictModuleBase):
         dtype = self.action_dtype or q.dtype
         tensordict.set(keys.ACTION, action.to(device=device, dtype=dtype).clone())
         return tensordict
+
+    def _forward_batched(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """One action per env of a batched tensordict (*B): each env's own policy."""
+        flat = tensordict.reshape(-1)
+        if len(self._per_env) != flat.shape[0]:
+            self._per_env = [self._for_env(i) for i in range(flat.shape[0])]
+        actions = [policy(flat[i])[keys.ACTION] for i, policy in enumerate(self._per_env)]
+        action = torch.stack(actions).reshape(*tensordict.batch_size, -1)  # (*B, nu)
+        tensordict.set(keys.ACTION, action)
+        return tensordict
+
+    def _for_env(self, i: int) -> PlannerPolicy:
+        """The policy of env i of a batch: this one's planner and objective, seed + i."""
+        return PlannerPolicy(
+            self.planner,
+            self.objective_factory,
+            self.replan_every,
+            seed=self.seed + i,
+            device=self.plan_device,
+            action_dtype=self.action_dtype,
+        )
 
     # ---------------------------------------------------------------- checkpointing
     def get_extra_state(self) -> dict[str, Any]:
@@ -172,6 +212,7 @@ class PlannerPolicy(TensorDictModuleBase):
             "episode_step": self._episode_step,
             "generator_state": self.generator.get_state().clone(),
             "carried": {k: v.clone() for k, v in self._carried.items()},
+            "per_env": [policy.get_extra_state() for policy in self._per_env],
         }
 
     def set_extra_state(self, state: dict[str, Any]) -> None:
@@ -182,3 +223,7 @@ class PlannerPolicy(TensorDictModuleBase):
         self.generator.set_state(state["generator_state"].cpu())
         self._carried = {k: v.to(self.plan_device) for k, v in state.get("carried", {}).items()}
         self.last_result = None
+        per_env = state.get("per_env", [])
+        self._per_env = [self._for_env(i) for i in range(len(per_env))]
+        for policy, env_state in zip(self._per_env, per_env, strict=True):
+            policy.set_extra_state(env_state)
