@@ -54,7 +54,7 @@ from mbrl_delan.planners.humanoid_residual import HUMANOID_ILQR, humanoid_ilqr_p
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, tracking_ilqr_policy
 from mbrl_delan.sweep import exit_or_raise, marks_crash, with_sweep_group
-from mbrl_delan.systems.system import FREE, System
+from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.humanoid import HumanoidTask
 from mbrl_delan.tasks.tracking import MotionTracking
@@ -82,6 +82,7 @@ from mbrl_delan.training.video import (
     check_backend,
     resolve_backend,
     rollout_states,
+    root_travels,
 )
 
 log = logging.getLogger("mbrl_delan.train")
@@ -335,7 +336,7 @@ def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Reco
             cfg.video_height,
             fps=1.0 / loop.system.control_dt,
             backend=resolve_backend(cfg.video_backend),
-            track_root=loop.system.layout.types[:1] == (FREE,),
+            track_root=root_travels(loop.system.layout.types),
         ) as video:
             for stem, key, rollout in episodes:
                 path = _record_episode(video, run_dir / VIDEO_DIR / f"{stem}.mp4", rollout, task)

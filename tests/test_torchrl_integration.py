@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from torchrl.collectors import Collector  # torchrl 0.14 name of SyncDataCollector
-import pytest
 from torchrl.envs import InitTracker, SerialEnv, TransformedEnv
 
 from mbrl_delan import keys

@@ -33,6 +33,7 @@ from mbrl_delan.training.video import (
     default_backend,
     resolve_backend,
     rollout_states,
+    root_travels,
     write_mp4,
 )
 
@@ -267,3 +268,49 @@ def test_train_with_an_unusable_backend_stops_before_training(tmp_path: Path) ->
     assert "OpenGL backend 'glfw'" in text and "MUJOCO_GL" in text, text
     assert "Traceback" not in text
     assert not (run_dir / "checkpoint.pt").exists() and not (run_dir / "metrics.jsonl").exists()
+
+
+def test_cart_stays_in_view_while_it_travels_two_metres(backend: str) -> None:
+    """The cart-pole's video tracks its cart (a slide root): drawn magenta, the cart shows in
+    every frame of an episode in which it travels 2 m; a fixed camera loses it."""
+    from mbrl_delan.systems.system import load_system
+
+    system = load_system("cartpole")
+    model = system.mj_model()
+    model.geom_rgba[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "cart")] = (1, 0, 1, 1)
+    x = np.linspace(0.0, 2.0, 9)
+    q = np.stack([x, np.pi * x / 2.0], axis=1)  # (T, 2): the cart moves, the pole turns
+    qd = np.zeros_like(q)
+
+    def cart_pixels(track_root: bool) -> list[int]:
+        with VideoRecorder(model, W, H, fps=20.0, backend=backend, track_root=track_root) as rec:
+            frames = rec.frames_from_states(q, qd).astype(int)  # (T, H, W, 3)
+        magenta = (frames[..., 0] - frames[..., 1] > 60) & (frames[..., 2] - frames[..., 1] > 60)
+        return magenta.sum(axis=(1, 2)).tolist()
+
+    assert root_travels(system.layout.types)
+    assert min(cart_pixels(True)) > 20
+    assert min(cart_pixels(False)) == 0
+
+
+def test_gym_env_renders_rgb_frames(backend: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """render_mode="rgb_array": gymnasium's render contract (uint8 (H, W, 3) frames at the
+    control rate), the frame changes as the env steps."""
+    import gymnasium as gym
+
+    from mbrl_delan.envs.real import MujocoTaskEnv, gym_id, register_envs
+
+    monkeypatch.setenv("MUJOCO_GL", backend)
+    register_envs()
+    env = gym.make(gym_id("pendulum"), render_mode="rgb_array", width=W, height=H)
+    env.reset(seed=0)
+    first = env.render()
+    for _ in range(5):
+        env.step(env.action_space.high)
+    later = env.render()
+    env.close()
+    assert env.metadata["render_fps"] == pytest.approx(20.0)
+    assert first.shape == (H, W, 3) and first.dtype == np.uint8
+    assert np.abs(later.astype(int) - first).mean() > 0.5
+    with pytest.raises(ValueError, match="render_mode='depth'"):
+        MujocoTaskEnv("pendulum", render_mode="depth")

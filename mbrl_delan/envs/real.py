@@ -18,6 +18,7 @@ from mbrl_delan import keys
 from mbrl_delan.envs.registry import EnvParts, TaskOptions, make_env_parts
 from mbrl_delan.registry import ENVS
 from mbrl_delan.systems.system import State
+from mbrl_delan.training.video import VideoRecorder, root_travels
 
 log = logging.getLogger(__name__)
 
@@ -37,9 +38,14 @@ class MujocoTaskEnv(gym.Env):
 
     `physics_frame_skip` is an alias of `frame_skip` for `make_real_env`: TorchRL's GymEnv
     consumes a `frame_skip` keyword itself (as action repeat), so it cannot reach this class.
+
+    ``render_mode="rgb_array"``: `render` returns the current frame, uint8 (height, width, 3),
+    drawn by a `VideoRecorder` (the backend of ``MUJOCO_GL``; a travelling root tracked), so
+    gymnasium's ``RecordVideo`` and TorchRL's video recorders work; ``metadata["render_fps"]``
+    is the control rate.
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 20}
 
     def __init__(
         self,
@@ -49,7 +55,12 @@ class MujocoTaskEnv(gym.Env):
         *,
         physics_frame_skip: int | None = None,
         task_options: TaskOptions | None = None,
+        render_mode: str | None = None,
+        width: int = 320,
+        height: int = 240,
     ) -> None:
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"render_mode={render_mode!r}: the env renders only 'rgb_array'")
         if frame_skip is not None and physics_frame_skip is not None:
             raise ValueError("give frame_skip or physics_frame_skip, not both")
         skip = physics_frame_skip if frame_skip is None else frame_skip
@@ -61,6 +72,9 @@ class MujocoTaskEnv(gym.Env):
         self._low = system.ctrl_low.numpy()
         self._high = system.ctrl_high.numpy()
         self._steps = 0
+        self.render_mode, self._size = render_mode, (width, height)
+        self._video: VideoRecorder | None = None  # made at the first `render`
+        self.metadata = {**self.metadata, "render_fps": 1.0 / system.control_dt}
         inf = np.inf
         self.observation_space = gym.spaces.Dict(
             {
@@ -127,6 +141,28 @@ class MujocoTaskEnv(gym.Env):
         terminated = bool(task.terminated_at(state.q, state.qd, step))
         truncated = self._steps >= task.episode_len
         return self._obs(), reward, terminated, truncated, {}
+
+    def render(self) -> np.ndarray | None:
+        """The current frame (``render_mode="rgb_array"``), uint8 (height, width, 3); None
+        without a render mode."""
+        if self.render_mode is None:
+            return None
+        if self._video is None:
+            width, height = self._size
+            self._video = VideoRecorder(
+                self._model,
+                width,
+                height,
+                fps=self.metadata["render_fps"],
+                track_root=root_travels(self.env_parts.system.layout.types),
+            )
+        return self._video.frame_from_state(self._data.qpos, self._data.qvel)  # its own MjData
+
+    def close(self) -> None:
+        """Free the renderer, if one was made."""
+        if self._video is not None:
+            self._video.close()
+            self._video = None
 
 
 def register_envs() -> None:

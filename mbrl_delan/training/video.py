@@ -34,6 +34,7 @@ from tensordict import TensorDictBase
 from torch import Tensor
 
 from mbrl_delan import keys
+from mbrl_delan.systems.system import FREE, SLIDE
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +126,13 @@ def make_gl_context(backend: str, width: int, height: int) -> Any:
     except Exception as err:  # noqa: BLE001
         raise _backend_error(name, err) from err
     return context
+
+
+def root_travels(types: Sequence[int]) -> bool:
+    """Whether a system with these joint types (`JointLayout.types`) moves its root through
+    space: a free or slide first joint (a humanoid, the cart-pole's cart). Its videos track
+    the root (`VideoRecorder`'s ``track_root``); a fixed base keeps a fixed view."""
+    return bool(types) and types[0] in (FREE, SLIDE)
 
 
 class VideoRecorder:
