@@ -593,3 +593,41 @@ def test_mkdocs_build_strict(tmp_path: Path) -> None:
         timeout=300,
     )
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_no_page_mentions_a_session() -> None:
+    """The docs describe the code as it is: no development history by session."""
+    hits = [
+        f"{page.relative_to(REPO)}:{i}"
+        for page in DOC_FILES
+        for i, line in enumerate(page.read_text(encoding="utf-8").splitlines(), start=1)
+        if re.search(r"\bsessions?\b", line, flags=re.IGNORECASE)
+    ]
+    assert not hits, hits
+
+
+def _section_of(lines: list[str], i: int) -> str:
+    """The text of the section (from its heading to the next) holding line i."""
+    start = max((j for j in range(i + 1) if lines[j].startswith("#")), default=0)
+    end = next((j for j in range(i + 1, len(lines)) if lines[j].startswith("#")), len(lines))
+    return "\n".join(lines[start:end])
+
+
+def test_every_figure_is_shown_beside_the_command_that_makes_it() -> None:
+    """Every image and video under docs/ appears on a page, and each section that shows it
+    holds a `python -m mbrl_delan...` command (the one that produced it)."""
+    media = sorted(p for p in DOCS.rglob("*") if p.suffix in (".png", ".svg", ".gif", ".mp4"))
+    unused, without_command = [], []
+    for item in media:
+        shown = False
+        for page in DOC_FILES:
+            lines = page.read_text(encoding="utf-8").splitlines()
+            for i, line in enumerate(lines):
+                if f"{item.parent.name}/{item.name}" in line:
+                    shown = True
+                    if f"python -m {PACKAGE}" not in _section_of(lines, i):
+                        without_command.append(f"{page.relative_to(REPO)}:{i + 1}")
+        if not shown:
+            unused.append(str(item.relative_to(REPO)))
+    assert not unused, f"figures no page shows: {unused}"
+    assert not without_command, f"figures without their command: {without_command}"
