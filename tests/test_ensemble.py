@@ -261,8 +261,10 @@ def oscillator_data(n: int, seed: int) -> TensorDict:
     return transitions(q, qd, u, q_next, qd_next)
 
 
-def test_training_on_a_damped_oscillator_beats_no_change():
-    torch.manual_seed(0)
+def train_on_oscillator(seed: int, steps: int = 200, lr: float = 3e-3):
+    """An ensemble trained on the noiseless damped oscillator with Adam: the model, the NLL
+    of every minibatch, and the metrics of the first minibatch."""
+    torch.manual_seed(seed)
     model = GaussianEnsemble(
         SLIDE_1D,
         nu=1,
@@ -271,23 +273,37 @@ def test_training_on_a_damped_oscillator_beats_no_change():
         hidden=32,
         layers=2,
         propagation="mean",
-        seed=0,
+        seed=seed,
     )
-    train, test = oscillator_data(1024, seed=0), oscillator_data(256, seed=1)
+    train = oscillator_data(1024, seed=seed)
     model.fit_normalization(train)
-    opt = torch.optim.Adam(model.parameters(), lr=1e-2)
-    g = torch.Generator().manual_seed(0)
-    first = None
-    for _ in range(200):
-        batch = train[torch.randint(len(train), (128,), generator=g)]
-        out = model.loss(batch)
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    g = torch.Generator().manual_seed(seed)
+    first, nll = None, []
+    for _ in range(steps):
+        out = model.loss(train[torch.randint(len(train), (128,), generator=g)])
         first = out.metrics if first is None else first
+        nll.append(out.metrics["nll"])
         opt.zero_grad()
         out.loss.backward()
         opt.step()
-    assert out.metrics["mse"] < 0.02 * first["mse"]
-    assert out.metrics["nll"] < first["nll"] - 1.0
+    return model, nll, first
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_nll_training_is_stable_and_learns_the_oscillator(seed: int) -> None:
+    """On noiseless data the learned variance shrinks (mean log-variance about -7.5), so a
+    step that is large for the mean is amplified by 1 / variance: at lr 1e-2 (10 times the
+    ensemble's configured 1e-3) the minibatch NLL spiked to 5.6 in the last 100 of 200 steps,
+    above the start's 1.5, in 4 of 8 seeds. At 3e-3 no minibatch NLL of the last half comes
+    back above the first (the property, whatever the CPU's rounding), the held-out NLL falls
+    by more than 2 nats and the one-step predictions beat "no change" 50-fold."""
+    model, nll, first = train_on_oscillator(seed)
+    assert max(nll[len(nll) // 2 :]) < first["nll"] - 1.0, (first["nll"], max(nll[100:]))
+    test = oscillator_data(256, seed=100 + seed)
     with torch.no_grad():
+        held_out = model.loss(test).metrics
+        assert held_out["nll"] < first["nll"] - 2.0 and held_out["mse"] < 0.02 * first["mse"]
         for propagation in ("mean", "tsinf"):
             model.propagation = propagation
             pred = model.step(test[keys.Q], test[keys.QD], test[keys.ACTION])
