@@ -19,14 +19,15 @@ import json
 import logging
 import sys
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
 from hydra.core.hydra_config import HydraConfig
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.experimental.callback import Callback
 from hydra.types import RunMode
-from omegaconf import DictConfig, open_dict
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mbrl_delan.config import (
     ConfigError,
@@ -192,6 +193,12 @@ class StartChecks(Callback):
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         cfg = _task_config(config)
         if cfg.get("resume") is not None:
+            saved = Path(cfg.resume) / RUN_CONFIG
+            try:
+                if saved.is_file():  # else the run itself names what is missing
+                    resume_override_keys(config.hydra.overrides.task, cfg, OmegaConf.load(saved))
+            except ConfigError as err:
+                exit_config_error(err)
             return
         run_dir = Path(config.hydra.run.dir)
         instead = f"continue it with resume={run_dir}, or start a new one in another hydra.run.dir"
@@ -200,6 +207,35 @@ class StartChecks(Callback):
             refuse_used_run_dir(run_dir, RUN_FILES, instead)
         except ConfigError as err:
             exit_config_error(err)
+
+
+# command-line keys a resumed run takes over its saved config: how long and where it runs and
+# what it logs, not what it is (prefixes: `budget.iterations`, `logger=csv`, `video_width`)
+RESUME_OVERRIDABLE = ("budget.", "device", "threads", "logger", "video")
+
+
+def resume_override_keys(overrides: Sequence[str], cfg: DictConfig, saved: DictConfig) -> list[str]:
+    """The keys of a resumed run's command-line `overrides` (Hydra's ``overrides.task``) whose
+    value in the composed `cfg` differs from the run's `saved` config. Raises ConfigError
+    naming every such key that a resumed run cannot change (any but `RESUME_OVERRIDABLE`),
+    before anything is written; an override equal to the saved value is no change."""
+    parsed = OverridesParser.create().parse_overrides(list(overrides))
+    keys = list(dict.fromkeys(o.key_or_group for o in parsed if o.key_or_group != "resume"))
+    changed = [k for k in keys if _plain(cfg, k) != _plain(saved, k)]
+    refused = [k for k in changed if not k.startswith(RESUME_OVERRIDABLE)]
+    if refused:
+        raise ConfigError(
+            f"resume={cfg.resume}: a resumed run keeps its config, so {', '.join(refused)} "
+            "cannot change (start a new run for that); on resume you may set budget.*, "
+            "device, threads, logger and video*"
+        )
+    return changed
+
+
+def _plain(cfg: DictConfig, key: str) -> Any:
+    """The value at `key` as plain Python (interpolations resolved; None when absent)."""
+    value = OmegaConf.select(cfg, key, default=None)
+    return OmegaConf.to_container(value, resolve=True) if OmegaConf.is_config(value) else value
 
 
 def _task_config(config: DictConfig) -> DictConfig:

@@ -7,6 +7,7 @@ every round (atomically) and writes `metrics.jsonl`, `summary.json` and plots in
 
 from __future__ import annotations
 
+import json
 import logging
 import shutil
 from dataclasses import replace
@@ -53,7 +54,7 @@ from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.humanoid_residual import HUMANOID_ILQR, humanoid_ilqr_policy
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, tracking_ilqr_policy
-from mbrl_delan.sweep import exit_or_raise, marks_crash, with_sweep_group
+from mbrl_delan.sweep import exit_or_raise, marks_crash, resume_override_keys, with_sweep_group
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.humanoid import HumanoidTask
@@ -72,6 +73,7 @@ from mbrl_delan.training.plots import plot_run
 from mbrl_delan.training.recorder import (
     METRICS_FILE,
     RUN_CONFIG,
+    SUMMARY_FILE,
     Recorder,
     read_metrics,
 )
@@ -431,9 +433,23 @@ def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | No
         )
     run_cfg = migrate(OmegaConf.load(saved))
     run_cfg.resume = str(run_dir)
+    if _apply_resume_overrides(run_cfg, cfg):
+        OmegaConf.save(run_cfg, saved, resolve=True)  # a later resume continues with them
     ckpt = run_dir / CHECKPOINT_FILE
     state = load_checkpoint(ckpt, weights_only=False) if ckpt.exists() else None
     return run_cfg, run_dir, state
+
+
+def _apply_resume_overrides(run_cfg: DictConfig, cfg: DictConfig) -> list[str]:
+    """Set the command line's overrides of a resumed run (`resume_override_keys`: budget,
+    device, threads, logger, video) from `cfg` in its saved `run_cfg`. Returns the keys set."""
+    if not HydraConfig.initialized():
+        return []
+    keys = resume_override_keys(HydraConfig.get().overrides.task, cfg, run_cfg)
+    for key in keys:
+        OmegaConf.update(run_cfg, key, OmegaConf.select(cfg, key), merge=False)
+        log.info("resume: %s=%s", key, OmegaConf.select(run_cfg, key))
+    return keys
 
 
 @marks_crash
@@ -466,6 +482,11 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             loop.counters.iteration,
             loop.counters.env_steps,
         )
+        if loop.finished(schedule_of(cfg)) and (run_dir / SUMMARY_FILE).is_file():
+            log.info("the run is finished: nothing to run, its files are left as they are")
+            summary = json.loads((run_dir / SUMMARY_FILE).read_text(encoding="utf-8"))
+            _print_summary(run_dir, summary)
+            return summary
     recorder = Recorder(
         run_dir,
         cfg.logger.backend,

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 from hydra import compose, initialize_config_dir
 from tiny import TINY_TRAIN
 
@@ -327,6 +328,37 @@ def run_files(run_dir: Path) -> dict[str, bytes]:
     """Every file of the run dir by relative path: the run's own, Hydra's `.hydra/` record of
     its launch and its log."""
     return {str(p.relative_to(run_dir)): p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+
+
+def test_resume_of_a_finished_run_rewrites_nothing_and_takes_only_safe_overrides(
+    finished_run: Path, tmp_path: Path
+) -> None:
+    """resume= on a finished run reports its summary and exits 0, its files untouched; an
+    override that would change what the run is (model.hidden) is refused naming it, with
+    nothing written; a longer budget is taken, saved and run on."""
+    run_dir = tmp_path / "done"
+    shutil.copytree(finished_run, run_dir)
+    kept = ("summary.json", "metrics.jsonl", "checkpoint.pt", "config.yaml")
+    before = run_files(run_dir)
+    out = train(run_dir, f"resume={run_dir}")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "the run is finished" in out.stdout + out.stderr
+    after = run_files(run_dir)
+    assert all(after[name] == before[name] for name in kept)
+
+    before = run_files(run_dir)
+    out = train(run_dir, f"resume={run_dir}", "model.hidden=32", "planner.num_samples=8")
+    text = out.stdout + out.stderr
+    assert out.returncode == 2 and "Traceback" not in text, text
+    assert "cannot change" in text and "model.hidden" in text and "planner.num_samples" in text
+    assert run_files(run_dir) == before  # no crash.json, no new .hydra record or log lines
+
+    steps = records(run_dir)[-1]["env_steps"]
+    out = train(run_dir, f"resume={run_dir}", f"budget.env_steps={steps + 15}")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert records(run_dir)[-1]["env_steps"] >= steps + 15
+    saved = yaml.safe_load((run_dir / "config.yaml").read_text())
+    assert saved["budget"]["env_steps"] == steps + 15 and saved["model"]["hidden"] == 16
 
 
 def test_new_run_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was(
