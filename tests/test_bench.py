@@ -219,3 +219,20 @@ def test_nv62_uses_the_cmu_humanoid_when_dm_control_is_there() -> None:
     else:
         assert system.name == "humanoid_CMU"
     assert mujoco_system(62, humanoid=False).name == "chain"
+
+
+def test_soak_suite_records_memory_and_time_per_round(tmp_path: Path) -> None:
+    """suite=soak (quick: 3 rounds of the pendulum loop): rss_mb and round_s for each round,
+    in order, and the memory growth over the second half."""
+    out = tmp_path / "soak.jsonl"
+    done = bench(tmp_path, "suite=soak", "quick=true", f"out={out}")
+    assert done.returncode == 0, done.stdout + done.stderr
+    records = read_records(out)
+    for metric, unit in (("rss_mb", "MB"), ("round_s", "s")):
+        rows = [r for r in records if r["metric"] == metric]
+        assert [r["round"] for r in rows] == [1, 2, 3] and {r["unit"] for r in rows} == {unit}
+        assert all(r["value"] > 0 for r in rows)
+        assert [r["env_steps"] for r in rows] == sorted(r["env_steps"] for r in rows)
+    rss = [r["value"] for r in records if r["metric"] == "rss_mb"]
+    (growth,) = [r for r in records if r["metric"] == "rss_growth_mb"]
+    assert growth["value"] == pytest.approx(rss[-1] - rss[0]) and growth["from_round"] == 1

@@ -1,6 +1,8 @@
 """DeLaN on a floating-base humanoid: inverse dynamics learned from MuJoCo, M and g recovered."""
 
 import math
+import os
+from dataclasses import replace
 
 import pytest
 import torch
@@ -52,6 +54,23 @@ def test_quick_identification_runs_and_reports_every_metric() -> None:
 
 @pytest.mark.slow
 @pytest.mark.heavy
+def test_humanoid_v5_identified_from_8000_samples() -> None:
+    """A quarter of the benchmark's data and 60 epochs, eager (22 s on one core): held-out
+    torque R^2 0.935, M and g to 16% and 10% on the 2-core AMD host; asserted with margin.
+    The benchmark's own settings reach R^2 >= 0.98 (`test_humanoid_v5_torque_r2_at_least_098`,
+    100 s: run it with MBRL_DELAN_ACCEPTANCE=1, or `suite=identify_humanoid`)."""
+    base = HumanoidIdentifyConfig(systems=("humanoid",), compile=False)
+    cfg = replace(base, n_samples=8000, fit=replace(base.fit, max_epochs=60))
+    metrics = identify_humanoid("humanoid", cfg).metrics
+    assert metrics["torque_r2"] >= 0.9, metrics
+    assert metrics["mass_matrix_rel_error_median"] < 0.25, metrics
+    assert metrics["gravity_rel_error_median"] < 0.15, metrics
+
+
+@pytest.mark.skipif(
+    not os.environ.get("MBRL_DELAN_ACCEPTANCE"),
+    reason="the benchmark's settings take 100 s: MBRL_DELAN_ACCEPTANCE=1 runs it",
+)
 def test_humanoid_v5_torque_r2_at_least_098() -> None:
     """R^2 >= 0.98 on held-out states of Humanoid-v5 (contacts, limits off), at the
     benchmark's settings."""

@@ -250,8 +250,8 @@ def test_ilqr_policy_names_bad_input():
     low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
     ilqr = MujocoILQR(model, 1, low, high, Quadratic(np.ones(4)))
     policy = PlannerPolicy(ILQRPlanner(ilqr), ILQRStarts(ilqr))
-    batched = TensorDict({"q": torch.zeros(3, 2), "qd": torch.zeros(3, 2)}, batch_size=[3])
+    unbatched = TensorDict({"q": torch.zeros(3, 2), "qd": torch.zeros(3, 2)}, batch_size=[])
     with pytest.raises(ValueError, match="PlannerPolicy needs unbatched q"):
-        policy(batched)
+        policy(unbatched)  # a batch of states must be the tensordict's batch (one plan each)
     with pytest.raises(ValueError, match="horizon and iterations must be >= 1"):
         ILQRSettings(horizon=0)

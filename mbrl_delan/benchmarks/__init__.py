@@ -31,6 +31,7 @@ _SUITES = {
     "humanoid": "mbrl_delan.benchmarks.humanoid:run_humanoid_suite",
     "realtime": "mbrl_delan.benchmarks.realtime:run_realtime_suite",
     "fit_arrays": "mbrl_delan.benchmarks.fit_arrays:run_fit_arrays_suite",
+    "soak": "mbrl_delan.benchmarks.soak:run_soak_suite",
 }
 SUITE_NAMES = tuple(_SUITES)
 # world-model cases of suite planner (here so the entry point can check names without

@@ -81,6 +81,7 @@ class PlannerPolicy(TensorDictModuleBase):
     env i is acted on by a policy of its own like this one, seeded `seed + i` (env 0's acts as
     this policy would on that env alone), whose episodes start by the env's own `is_init` or
     `step_count`.
+
     A factory with a `planning_threads` count (rollouts on worker threads) has the plan run
     on that many intra-op threads (`intra_op_threads`).
 
