@@ -42,6 +42,7 @@ from mbrl_delan.schema import (
     field_rule,
 )
 from mbrl_delan.systems.system import System
+from mbrl_delan.training.checkpoint import RunWriteError
 from mbrl_delan.training.fit import FitConfig
 
 log = logging.getLogger(__name__)
@@ -96,13 +97,17 @@ def exit_config_error(err: BaseException) -> NoReturn:
 def exit_on_config_errors(hydra_main: Callable[[], Any]) -> Any:
     """Run a ``@hydra.main`` function; a config error, from Hydra's composition or from the
     checks before the run starts, ends the process with exit code 2 and one line naming it
-    (Hydra alone prints several lines and exits 1). Other errors propagate unchanged."""
+    (Hydra alone prints several lines and exits 1), as does a run file that cannot be
+    written (`RunWriteError`: the path and the reason). Other errors propagate unchanged."""
     previous = os.environ.get("HYDRA_FULL_ERROR")
     os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises its errors instead of exiting 1
     try:
         return hydra_main()
     except (ConfigError, *COMPOSE_ERRORS) as err:
         exit_config_error(err)
+    except RunWriteError as err:
+        log.error("%s", err)
+        sys.exit(2)
     finally:
         if previous is None:
             os.environ.pop("HYDRA_FULL_ERROR", None)

@@ -64,6 +64,7 @@ from mbrl_delan.data.mocap import (
     GAINS,
     TORQUE_SOURCES,
     ClipNotFoundError,
+    ClipTooShortError,
     FilterSettings,
     MocapDataset,
     MocapFormatError,
@@ -649,9 +650,9 @@ def hydra_main(cfg: DictConfig) -> float | None:
     except ArrayFormatError as err:
         log.error("bad data file: %s", err)
         sys.exit(2)
-    except (NonFiniteDataError, MocapFormatError, TrackingUnstableError) as err:
+    except (NonFiniteDataError, MocapFormatError, ClipTooShortError, TrackingUnstableError) as err:
         log.error("bad data: %s", err)
-        sys.exit(1)
+        sys.exit(2)
     except TrainingDivergedError as err:
         log.error("training diverged: %s", err)
         sys.exit(1)

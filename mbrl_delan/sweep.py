@@ -35,7 +35,12 @@ from mbrl_delan.config import (
     refuse_used_run_dir,
     validate_train_config,
 )
-from mbrl_delan.training.checkpoint import CHECKPOINT_FILE, atomic_write
+from mbrl_delan.training.checkpoint import (
+    CHECKPOINT_FILE,
+    RunWriteError,
+    atomic_write,
+    check_writable,
+)
 from mbrl_delan.training.recorder import (
     ITERATION,
     METRICS_FILE,
@@ -207,6 +212,11 @@ class StartChecks(Callback):
             refuse_used_run_dir(run_dir, RUN_FILES, instead)
         except ConfigError as err:
             exit_config_error(err)
+        try:
+            check_writable(run_dir)  # before Hydra's log file there fails with a raw error
+        except RunWriteError as err:
+            log.error("%s", err)
+            sys.exit(2)
 
 
 # command-line keys a resumed run takes over its saved config: how long and where it runs and

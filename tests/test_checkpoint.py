@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -13,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
+from tiny import TINY_TRAIN
 
 from mbrl_delan.data import all_transitions, make_replay_buffer
 from mbrl_delan.training import (
@@ -24,7 +26,7 @@ from mbrl_delan.training import (
     save_checkpoint,
     set_rng_state,
 )
-from mbrl_delan.training.checkpoint import prev_path
+from mbrl_delan.training.checkpoint import RunWriteError, prev_path
 from mbrl_delan.training.plots import plot_run
 
 # --- checkpoints -------------------------------------------------------------------------
@@ -49,7 +51,7 @@ def test_crash_before_replace_leaves_previous_checkpoint(tmp_path, monkeypatch):
         raise OSError("simulated crash before the rename")
 
     monkeypatch.setattr(os, "replace", crash)
-    with pytest.raises(OSError, match="simulated crash"):
+    with pytest.raises(RunWriteError, match="ckpt.pt: simulated crash before the rename"):
         save_checkpoint(path, {"iteration": 3})
     monkeypatch.undo()
     assert load_checkpoint(path)["iteration"] == 2
@@ -67,7 +69,7 @@ def test_crash_at_final_replace_keeps_main_and_prev(tmp_path, monkeypatch):
         real_replace(src, dst)
 
     monkeypatch.setattr(os, "replace", crash_on_main)
-    with pytest.raises(OSError):
+    with pytest.raises(RunWriteError, match="simulated crash; .* MB free there; its previous"):
         save_checkpoint(path, {"iteration": 2})
     monkeypatch.undo()
     assert load_checkpoint(path)["iteration"] == 1
@@ -308,3 +310,72 @@ def test_torchrl_loggers_get_every_number_against_env_steps(tmp_path, backend):
 def test_unknown_logger_is_named(tmp_path):
     with pytest.raises(ValueError, match="'mlflow' is not one of none, wandb, csv, tensorboard"):
         Recorder(tmp_path, "mlflow", "test", None, {})
+
+
+# --- files that cannot be written ----------------------------------------------------------
+
+
+def test_a_full_disk_inside_torch_save_names_the_file_and_keeps_the_checkpoints(
+    tmp_path, monkeypatch
+):
+    """torch.save reports ENOSPC as RuntimeError "unexpected pos": a RunWriteError names the
+    file; checkpoint.pt and its .prev are as they were; no temp file is left."""
+    path = tmp_path / "checkpoint.pt"
+    save_checkpoint(path, {"step": 1})
+    save_checkpoint(path, {"step": 2})
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+
+    def full(obj, f, *args, **kwargs):
+        f.write(b"PK\x03\x04partial")
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 64")
+
+    monkeypatch.setattr(torch, "save", full)
+    with pytest.raises(RunWriteError, match=r"cannot write .*checkpoint.pt: .*unexpected pos"):
+        save_checkpoint(path, {"step": 3})
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    monkeypatch.undo()
+    assert load_checkpoint(path)["step"] == 2
+
+
+@pytest.mark.parametrize("errno_", [errno.ENOSPC, errno.EACCES])
+def test_metrics_that_cannot_be_written_name_the_file_and_keep_the_records(tmp_path, errno_):
+    rec = _recorder(tmp_path)
+    rec.log({"env_steps": 15}, iteration=1)
+
+    class Failing:
+        def write(self, text):
+            raise OSError(errno_, os.strerror(errno_))
+
+        def flush(self):
+            pass
+
+        def close(self):
+            pass
+
+    rec._file = Failing()
+    with pytest.raises(RunWriteError, match=f"metrics.jsonl: {os.strerror(errno_)}"):
+        rec.log({"env_steps": 30}, iteration=2)
+    assert read_metrics(tmp_path / "metrics.jsonl") == [{"iteration": 1, "env_steps": 15}]
+
+
+def test_a_run_dir_that_cannot_be_made_is_one_line_and_exit_2(tmp_path, monkeypatch, run_main):
+    """A run dir under a folder that refuses writes (permissions, a read-only disk) fails at
+    start naming the path and the OS error, before Hydra's log file does, with nothing made."""
+    from pathlib import Path
+
+    from mbrl_delan.train import main
+
+    locked = tmp_path / "locked"
+    real_mkdir = Path.mkdir
+
+    def mkdir(self, *args, **kwargs):
+        if locked in (self, *self.parents):
+            raise PermissionError(errno.EACCES, "Permission denied", str(self))
+        return real_mkdir(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "mkdir", mkdir)
+    run_dir = locked / "run"
+    code, text = run_main(main, *TINY_TRAIN, f"hydra.run.dir={run_dir}")
+    assert code == 2 and "Traceback" not in text, text
+    assert f"cannot write {run_dir}" in text and "Permission denied (errno 13)" in text, text
+    assert not locked.exists()

@@ -569,6 +569,24 @@ def test_bad_clips_are_left_out_and_listed_when_asked(clip_folder, tmp_path: Pat
     assert summary["samples"]["val_clip"] == 120 and summary["samples"]["train"] > 50
 
 
+@pytest.mark.parametrize(("frames", "why"), [(3, "3 frames are too few"), (20, "too short")])
+def test_a_clip_too_short_is_one_line_and_exit_2(
+    clip_folder, tmp_path: Path, run_main, frames: int, why: str
+) -> None:
+    """A clip of 3 or 20 frames: `file: why` in one line, exit 2, as other malformed clips."""
+    from mbrl_delan.fit import main
+
+    folder = tmp_path / "clips"
+    shutil.copytree(clip_folder, folder)
+    lines = (DATA / f"{CLIP}.amc").read_text(encoding="latin-1").splitlines()
+    cut = [i for i, line in enumerate(lines) if line.strip() == str(frames + 1)][0]
+    (folder / "09_96.amc").write_text("\n".join(lines[:cut]) + "\n")
+    args = [*small_overrides(folder), "model=mlp", f"data.clips=[{CLIP},09_96,{HELD_OUT}]"]
+    code, text = run_main(main, *args, f"hydra.run.dir={tmp_path / 'run'}")
+    assert code == 2 and "Traceback" not in text, text
+    assert f"bad data: {folder / '09_96.amc'}: " in text and why in text, text
+
+
 def test_divergence_is_named(clip_folder, tmp_path: Path) -> None:
     cfg = config(*small_overrides(clip_folder), "model=mlp", "lr=1e30", "max_grad_norm=null")
     with pytest.raises(TrainingDivergedError) as err:

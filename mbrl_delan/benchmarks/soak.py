@@ -9,7 +9,8 @@ logger or videos) and records after every round:
 
 with the round and its env steps as fields, and once, `rss_growth_mb`: the resident memory at
 the last round minus that at the end of the first half (the buffer, the fits and the caches
-have settled by then), which a leak makes grow with the rounds. `quick=true`: 3 rounds.
+have settled by then), which a leak makes grow with the rounds. `quick=true`: 3 rounds of
+20-step episodes, 16 samples over a horizon of 10.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ log = logging.getLogger(__name__)
 
 SUITE = "soak"
 ROUNDS, QUICK_ROUNDS = 50, 3
+QUICK_OVERRIDES = ("env.episode_len=20", "planner.num_samples=16", "env.horizon=10")
 CASE = "pendulum-delan-mppi"
 OVERRIDES = (
     "env=pendulum", "model=delan", "planner=mppi", "logger=none",
@@ -51,13 +53,14 @@ def rss_mb() -> float:
     return peak / (2**20 if sys.platform == "darwin" else 2**10)
 
 
-def soak_rounds(rounds: int, device: str) -> list[dict[str, Any]]:
-    """Run the loop for `rounds` rounds; per round its number, env steps, seconds and RSS."""
+def soak_rounds(rounds: int, device: str, extra: tuple[str, ...] = ()) -> list[dict[str, Any]]:
+    """Run the loop for `rounds` rounds (`OVERRIDES`, then `extra`); per round its number,
+    env steps, seconds and RSS."""
     from mbrl_delan.config import CONFIG_DIR, compose_config, validate_train_config
     from mbrl_delan.train import build_loop, schedule_of
     from mbrl_delan.training.loop import LoopHooks
 
-    overrides = [*OVERRIDES, f"budget.iterations={rounds}", f"device={device}"]
+    overrides = [*OVERRIDES, *extra, f"budget.iterations={rounds}", f"device={device}"]
     cfg = validate_train_config(compose_config(CONFIG_DIR, overrides))
     rows: list[dict[str, Any]] = []
     last = time.perf_counter()
@@ -78,9 +81,9 @@ def soak_rounds(rounds: int, device: str) -> list[dict[str, Any]]:
 
 def run_soak_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
     """The registered suite: `rss_mb` and `round_s` per round, then `rss_growth_mb`."""
-    rounds = QUICK_ROUNDS if opts.quick else ROUNDS
+    rounds, extra = (QUICK_ROUNDS, QUICK_OVERRIDES) if opts.quick else (ROUNDS, ())
     device, host = str(opts.device), host_fields(opts.device)
-    rows = soak_rounds(rounds, device)
+    rows = soak_rounds(rounds, device, extra)
     for row in rows:
         fields = {"round": row["round"], "env_steps": row["env_steps"], **host}
         yield BenchRecord(SUITE, CASE, "rss_mb", row["rss_mb"], "MB", device, fields)

@@ -44,6 +44,42 @@ class CheckpointError(RuntimeError):
     """A checkpoint file exists but cannot be read (and no readable ``.prev`` exists)."""
 
 
+class RunWriteError(RuntimeError):
+    """A run's file could not be written (no space, no permission, a read-only disk): the
+    message names the path and the operating system's reason; the file's previous version
+    is left as it was."""
+
+
+def write_failure(path: Path, err: BaseException) -> RunWriteError:
+    """`RunWriteError` for `path` from the OS error or torch's (a full disk inside
+    ``torch.save`` is a RuntimeError "unexpected pos"), with the free space when known."""
+    coded = isinstance(err, OSError) and err.strerror
+    reason = f"{err.strerror} (errno {err.errno})" if coded else str(err)
+    reason = reason.splitlines()[0] if reason else type(err).__name__
+    try:
+        free = f"; {shutil.disk_usage(path.parent).free / 2**20:.1f} MB free there"
+    except OSError:
+        free = ""
+    kept = "its previous version is kept" if path.exists() else "nothing was written"
+    return RunWriteError(f"cannot write {path}: {reason}{free}; {kept}")
+
+
+def check_writable(folder: Path) -> None:
+    """Make `folder` (and its parents) if missing and write and remove a file in it; a
+    RunWriteError names the path and the reason when that fails (a folder it made is
+    removed again)."""
+    made = not folder.exists()
+    probe = folder / f".write_check.{os.getpid()}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        if made and folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+        raise write_failure(probe, err) from err
+
+
 def prev_path(path: str | Path) -> Path:
     """Where the previous version of checkpoint ``path`` is kept."""
     path = Path(path)
@@ -82,14 +118,17 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None], keep_prev
         path: destination; its folder is created if needed.
         write: called with a binary file object open for writing.
         keep_prev: keep the current content of ``path`` as ``<path>.prev``.
+
+    Raises:
+        RunWriteError: the file could not be written (``path`` is left as it was).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
-    # os.open with mode 0o666 honours the umask (mkstemp would make the file owner-only)
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
     try:
-        with os.fdopen(fd, "wb") as f:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # os.open with mode 0o666 honours the umask (mkstemp would make the file owner-only)
+        flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+        with os.fdopen(os.open(tmp, flags, 0o666), "wb") as f:
             write(f)
             f.flush()
             os.fsync(f.fileno())
@@ -97,6 +136,8 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None], keep_prev
             _keep_previous(path)
         os.replace(tmp, path)
         _fsync_dir(path.parent)
+    except (OSError, RuntimeError) as err:  # torch.save reports a full disk as RuntimeError
+        raise write_failure(path, err) from err
     finally:
         tmp.unlink(missing_ok=True)
 

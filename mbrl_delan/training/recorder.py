@@ -17,7 +17,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import IO, Any
 
-from mbrl_delan.training.checkpoint import atomic_write
+from mbrl_delan.training.checkpoint import atomic_write, write_failure
 
 log = logging.getLogger(__name__)
 
@@ -167,8 +167,11 @@ class Recorder:
         if self._file is None:
             raise RuntimeError("Recorder.log called after finish()")
         record = {ITERATION: int(iteration), **_jsonable(dict(metrics))}
-        self._file.write(json.dumps(record) + "\n")
-        self._file.flush()
+        try:
+            self._file.write(json.dumps(record) + "\n")
+            self._file.flush()
+        except OSError as err:  # a full disk: name the file, keep the records before it
+            raise write_failure(self.metrics_path, err) from err
         numbers = {k: v for k, v in record.items() if isinstance(v, int | float)}
         step = int(numbers.get(self.step_key, iteration))
         if self._wandb_run is not None:

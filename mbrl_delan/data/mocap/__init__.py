@@ -51,6 +51,7 @@ from mbrl_delan.data.mocap.inverse import (
 )
 from mbrl_delan.data.mocap.retarget import (
     UNCAPTURED_BONES,
+    ClipTooShortError,
     FilterSettings,
     MocapQpos,
     RetargetedClip,
@@ -87,6 +88,7 @@ __all__ = [
     "ClipFiles",
     "ClipNotFoundError",
     "DatasetSplits",
+    "ClipTooShortError",
     "FilterSettings",
     "InverseDynamics",
     "MocapDataset",

@@ -240,6 +240,10 @@ def frame_jumps(model: mujoco.MjModel, mocap: MocapQpos) -> np.ndarray:
     return np.max(np.stack(jumps), axis=0)
 
 
+class ClipTooShortError(ValueError):
+    """A clip with too few frames to filter or resample; the message starts with its path."""
+
+
 def _lowpass(x: np.ndarray, settings: FilterSettings, name: str) -> np.ndarray:
     """Zero-phase Butterworth low-pass along axis 0. (K, n) -> (K, n)."""
     if settings.cutoff_hz is None:
@@ -247,7 +251,7 @@ def _lowpass(x: np.ndarray, settings: FilterSettings, name: str) -> np.ndarray:
     sos = butter(settings.order, settings.cutoff_hz, fs=settings.mocap_fps, output="sos")
     padlen = 3 * (2 * len(sos) + 1)
     if x.shape[0] <= padlen:
-        raise ValueError(f"{name}: {x.shape[0]} frames are too few for the low-pass filter")
+        raise ClipTooShortError(f"{name}: {x.shape[0]} frames are too few for the low-pass filter")
     return sosfiltfilt(sos, x, axis=0, padlen=padlen)
 
 
@@ -290,7 +294,9 @@ def retarget(
     start, stop = settings.edge_trim_s, t_mocap[-1] - settings.edge_trim_s
     n_grid = int(np.floor((stop - start) / dt + 1e-9)) + 1
     if n_grid < 3:
-        raise ValueError(f"{motion.path}: clip too short ({motion.n_frames} frames) to retarget")
+        raise ClipTooShortError(
+            f"{motion.path}: clip too short ({motion.n_frames} frames) to retarget"
+        )
     t_grid = start + dt * np.arange(n_grid)  # (J,)
     grid = CubicSpline(t_mocap, smooth, axis=0)(t_grid)  # (J, nq)
     _normalize_quat(grid, quat_adr)
