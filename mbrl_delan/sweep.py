@@ -212,11 +212,25 @@ class StartChecks(Callback):
             refuse_used_run_dir(run_dir, RUN_FILES, instead)
         except ConfigError as err:
             exit_config_error(err)
-        try:
-            check_writable(run_dir)  # before Hydra's log file there fails with a raw error
-        except RunWriteError as err:
-            log.error("%s", err)
-            sys.exit(2)
+        exit_unless_writable(run_dir)
+
+
+class WritableRunDir(Callback):
+    """Hydra callback of ``python -m mbrl_delan.fit`` (``hydra.callbacks`` in
+    configs/fit/config.yaml): a run dir that cannot be made or written ends the command with
+    one line naming it and exit 2, before Hydra's log file there fails with a raw error."""
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        exit_unless_writable(Path(config.hydra.run.dir))
+
+
+def exit_unless_writable(run_dir: Path) -> None:
+    """`check_writable(run_dir)`; a failure is logged as one line and exits 2."""
+    try:
+        check_writable(run_dir)
+    except RunWriteError as err:
+        log.error("%s", err)
+        sys.exit(2)
 
 
 # command-line keys a resumed run takes over its saved config: how long and where it runs and

@@ -379,3 +379,7 @@ def test_a_run_dir_that_cannot_be_made_is_one_line_and_exit_2(tmp_path, monkeypa
     assert code == 2 and "Traceback" not in text, text
     assert f"cannot write {run_dir}" in text and "Permission denied (errno 13)" in text, text
     assert not locked.exists()
+    from mbrl_delan.fit import main as fit_main
+
+    code, text = run_main(fit_main, "data=arrays", "data.path=x.npz", f"hydra.run.dir={run_dir}")
+    assert code == 2 and "Traceback" not in text and f"cannot write {run_dir}" in text, text
