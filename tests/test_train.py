@@ -331,25 +331,27 @@ def run_files(run_dir: Path) -> dict[str, bytes]:
 
 
 def test_resume_of_a_finished_run_rewrites_nothing_and_takes_only_safe_overrides(
-    finished_run: Path, tmp_path: Path
+    finished_run: Path, tmp_path: Path, run_main
 ) -> None:
     """resume= on a finished run reports its summary and exits 0, its files untouched; an
     override that would change what the run is (model.hidden) is refused naming it, with
     nothing written; a longer budget is taken, saved and run on."""
+    from mbrl_delan.train import main
+
     run_dir = tmp_path / "done"
     shutil.copytree(finished_run, run_dir)
     kept = ("summary.json", "metrics.jsonl", "checkpoint.pt", "config.yaml")
     before = run_files(run_dir)
-    out = train(run_dir, f"resume={run_dir}")
-    assert out.returncode == 0, out.stdout + out.stderr
-    assert "the run is finished" in out.stdout + out.stderr
+    code, text = run_main(main, *TINY, f"resume={run_dir}")
+    assert code == 0 and "the run is finished" in text, text
     after = run_files(run_dir)
     assert all(after[name] == before[name] for name in kept)
 
     before = run_files(run_dir)
-    out = train(run_dir, f"resume={run_dir}", "model.hidden=32", "planner.num_samples=8")
-    text = out.stdout + out.stderr
-    assert out.returncode == 2 and "Traceback" not in text, text
+    code, text = run_main(
+        main, *TINY, f"resume={run_dir}", "model.hidden=32", "planner.num_samples=8"
+    )
+    assert code == 2 and "Traceback" not in text, text
     assert "cannot change" in text and "model.hidden" in text and "planner.num_samples" in text
     assert run_files(run_dir) == before  # no crash.json, no new .hydra record or log lines
 
