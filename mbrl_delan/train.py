@@ -85,6 +85,7 @@ from mbrl_delan.training.video import (
     resolve_backend,
     rollout_states,
     root_travels,
+    step_reward_overlays,
 )
 
 log = logging.getLogger("mbrl_delan.train")
@@ -304,9 +305,10 @@ def _check_video(cfg: DictConfig) -> None:
 def _record_episode(video: VideoRecorder, path: Path, rollout: TensorDictBase, task: Task) -> Path:
     """One episode's MP4; a tracking task's shows its reference motion beside it."""
     q, qd = rollout_states(rollout)
+    overlays = step_reward_overlays(rollout)
     if isinstance(task, MotionTracking):
-        return video.record_beside(path, q, qd, task.reference_poses(q.shape[0]))
-    return video.record(path, q, qd)
+        return video.record_beside(path, q, qd, task.reference_poses(q.shape[0]), overlays)
+    return video.record(path, q, qd, overlays)
 
 
 def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Recorder) -> None:

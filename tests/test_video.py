@@ -314,3 +314,28 @@ def test_gym_env_renders_rgb_frames(backend: str, monkeypatch: pytest.MonkeyPatc
     assert np.abs(later.astype(int) - first).mean() > 0.5
     with pytest.raises(ValueError, match="render_mode='depth'"):
         MujocoTaskEnv("pendulum", render_mode="depth")
+
+
+def test_overlay_writes_step_and_reward_in_the_top_left_corner(
+    backend: str, pendulum: mujoco.MjModel
+) -> None:
+    """Each frame can carry its step and reward: text in the top-left corner, nothing else
+    of the picture changed; the texts come from the rollout's rewards."""
+    from tensordict import TensorDict
+
+    from mbrl_delan.training.video import step_reward_overlays
+
+    rollout = TensorDict({"next": {"reward": torch.tensor([[0.5], [0.25]])}}, batch_size=[2])
+    overlays = step_reward_overlays(rollout)
+    assert overlays == [("step\nreward", "0\n-"), ("step\nreward", "1\n0.500"),
+                        ("step\nreward", "2\n0.250")]  # fmt: skip
+    q, qd = np.zeros((3, 1)), np.zeros((3, 1))
+    with VideoRecorder(pendulum, 320, 240, fps=20.0, backend=backend) as rec:
+        plain = rec.frames_from_states(q, qd).astype(int)
+        marked = rec.frames_from_states(q, qd, overlays).astype(int)
+        with pytest.raises(ValueError, match="2 overlays for 3 frames"):
+            rec.frames_from_states(q, qd, overlays[:2])
+    changed = np.abs(marked - plain).sum(axis=-1) > 0  # (T, H, W)
+    rows, cols = np.nonzero(changed[1])
+    assert rows.size > 20 and rows.max() < 240 // 2 and cols.max() < 320 // 2
+    assert (changed[1] != changed[2]).any()  # "0.500" and "0.250" differ

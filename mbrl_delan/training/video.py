@@ -135,6 +135,9 @@ def root_travels(types: Sequence[int]) -> bool:
     return bool(types) and types[0] in (FREE, SLIDE)
 
 
+Overlay = tuple[str, str]  # the text of a frame's corner: (titles, values), one line each
+
+
 class VideoRecorder:
     """Renders a MuJoCo model to RGB frames and writes them to MP4.
 
@@ -267,8 +270,9 @@ class VideoRecorder:
         aspect = min(1.0, self.width / self.height)  # fovy is vertical: narrow frames need room
         return root, radius / (np.tan(half_fov) * aspect)
 
-    def frame_from_data(self, data: mujoco.MjData) -> np.ndarray:
-        """The picture of `data` (kinematics must be current), uint8 (height, width, 3)."""
+    def frame_from_data(self, data: mujoco.MjData, overlay: Overlay | None = None) -> np.ndarray:
+        """The picture of `data` (kinematics must be current), uint8 (height, width, 3);
+        `overlay` (titles, values): two columns of text in the top-left corner."""
         if self._context is None:
             raise RuntimeError("VideoRecorder used after close()")
         self._gl.make_current()
@@ -282,34 +286,54 @@ class VideoRecorder:
             self._scene,
         )
         mujoco.mjr_render(self._viewport, self._scene, self._context)
+        if overlay is not None:
+            font, corner = mujoco.mjtFont.mjFONT_SHADOW, mujoco.mjtGridPos.mjGRID_TOPLEFT
+            mujoco.mjr_overlay(font, corner, self._viewport, *overlay, self._context)
         pixels = np.empty((self.height, self.width, 3), dtype=np.uint8)
         mujoco.mjr_readPixels(pixels, None, self._viewport, self._context)
         return np.ascontiguousarray(pixels[::-1])  # OpenGL's rows run bottom-up
 
-    def frame_from_state(self, q: Tensor | np.ndarray, qd: Tensor | np.ndarray) -> np.ndarray:
+    def frame_from_state(
+        self, q: Tensor | np.ndarray, qd: Tensor | np.ndarray, overlay: Overlay | None = None
+    ) -> np.ndarray:
         """The picture of the state (q (nq,), qd (nv,)), uint8 (height, width, 3)."""
         self.data.qpos[:] = _numpy(q)
         self.data.qvel[:] = _numpy(qd)
         mujoco.mj_forward(self.model, self.data)
-        return self.frame_from_data(self.data)
+        return self.frame_from_data(self.data, overlay)
 
-    def frames_from_states(self, q: Tensor | np.ndarray, qd: Tensor | np.ndarray) -> np.ndarray:
-        """Pictures of a state sequence (q (T, nq), qd (T, nv)), uint8 (T, height, width, 3)."""
+    def frames_from_states(
+        self,
+        q: Tensor | np.ndarray,
+        qd: Tensor | np.ndarray,
+        overlays: Sequence[Overlay] | None = None,
+    ) -> np.ndarray:
+        """Pictures of a state sequence (q (T, nq), qd (T, nv)), uint8 (T, height, width, 3);
+        `overlays`: one (titles, values) text per frame (`step_reward_overlays`)."""
         q_np, qd_np = _numpy(q), _numpy(qd)
         if q_np.ndim != 2 or qd_np.ndim != 2 or q_np.shape[0] != qd_np.shape[0]:
             raise ValueError(f"want q (T, nq) and qd (T, nv), got {q_np.shape}, {qd_np.shape}")
+        if overlays is not None and len(overlays) != q_np.shape[0]:
+            raise ValueError(f"{len(overlays)} overlays for {q_np.shape[0]} frames")
         frames = np.empty((q_np.shape[0], self.height, self.width, 3), dtype=np.uint8)
         for t in range(q_np.shape[0]):
-            frames[t] = self.frame_from_state(q_np[t], qd_np[t])
+            text = None if overlays is None else overlays[t]
+            frames[t] = self.frame_from_state(q_np[t], qd_np[t], text)
         return frames
 
     def write(self, path: str | Path, frames: np.ndarray | Sequence[np.ndarray]) -> Path:
         """Write `frames` to the MP4 `path` atomically at this recorder's fps."""
         return write_mp4(path, frames, self.fps)
 
-    def record(self, path: str | Path, q: Tensor | np.ndarray, qd: Tensor | np.ndarray) -> Path:
+    def record(
+        self,
+        path: str | Path,
+        q: Tensor | np.ndarray,
+        qd: Tensor | np.ndarray,
+        overlays: Sequence[Overlay] | None = None,
+    ) -> Path:
         """Render the state sequence (q (T, nq), qd (T, nv)) and write it to the MP4 `path`."""
-        return self.write(path, self.frames_from_states(q, qd))
+        return self.write(path, self.frames_from_states(q, qd, overlays))
 
     def record_beside(
         self,
@@ -317,12 +341,17 @@ class VideoRecorder:
         q: Tensor | np.ndarray,
         qd: Tensor | np.ndarray,
         reference_q: Tensor | np.ndarray,
+        overlays: Sequence[Overlay] | None = None,
     ) -> Path:
-        """The state sequence (q (T, nq), qd (T, nv)) on the left and the reference poses
-        (T, nq) it follows on the right, each frame twice this recorder's width."""
+        """The state sequence (q (T, nq), qd (T, nv)) on the left, with `overlays`, and the
+        reference poses (T, nq) it follows on the right, each frame twice this recorder's
+        width."""
         reference = _numpy(reference_q)
         still = np.zeros((reference.shape[0], self.model.nv))
-        frames = [self.frames_from_states(q, qd), self.frames_from_states(reference, still)]
+        frames = [
+            self.frames_from_states(q, qd, overlays),
+            self.frames_from_states(reference, still),
+        ]
         return self.write(path, np.concatenate(frames, axis=2))  # (T, height, 2 width, 3)
 
     def _free_quietly(self) -> None:
@@ -353,6 +382,14 @@ class VideoRecorder:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+def step_reward_overlays(rollout: TensorDictBase) -> list[Overlay]:
+    """The text of each of a (T,) rollout's T + 1 frames: its step and the reward of the step
+    that reached it (none at the first)."""
+    rewards = rollout.get(keys.NEXT_REWARD).reshape(-1).tolist()  # (T,)
+    values = ["0\n-"] + [f"{t + 1}\n{r:.3f}" for t, r in enumerate(rewards)]
+    return [("step\nreward", text) for text in values]
 
 
 def rollout_states(rollout: TensorDictBase) -> tuple[Tensor, Tensor]:
