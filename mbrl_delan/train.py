@@ -341,6 +341,7 @@ def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Reco
             fps=1.0 / loop.system.control_dt,
             backend=resolve_backend(cfg.video_backend),
             track_root=root_travels(loop.system.layout.types),
+            markers=task.markers(),
         ) as video:
             for stem, key, rollout in episodes:
                 path = _record_episode(video, run_dir / VIDEO_DIR / f"{stem}.mp4", rollout, task)

@@ -22,6 +22,7 @@ from tensordict import TensorDict
 from tiny import TINY_TRAIN
 
 from mbrl_delan import keys
+from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.systems.system import asset_path
 from mbrl_delan.training import video as video_mod
 from mbrl_delan.training.recorder import Recorder
@@ -339,3 +340,21 @@ def test_overlay_writes_step_and_reward_in_the_top_left_corner(
     rows, cols = np.nonzero(changed[1])
     assert rows.size > 20 and rows.max() < 240 // 2 and cols.max() < 320 // 2
     assert (changed[1] != changed[2]).any()  # "0.500" and "0.250" differ
+
+
+def test_arm_reach_videos_show_the_target(backend: str) -> None:
+    """Task markers (`Task.markers`: arm_reach's target) are drawn as green spheres; the
+    other tasks have none."""
+    parts = make_env_parts("arm_reach")
+    assert parts.task.markers() == ((0.6, 0.0, 0.4),)
+    assert make_env_parts("pendulum").task.markers() == ()
+    model = parts.system.mj_model()
+    q, qd = np.zeros((1, 2)), np.zeros((1, 2))
+    frames = []
+    for markers in ((), parts.task.markers()):
+        with VideoRecorder(model, 320, 240, 20.0, backend=backend, markers=markers) as rec:
+            frames.append(rec.frames_from_states(q, qd)[0].astype(int))
+    plain, marked = frames
+    changed = np.abs(marked - plain).sum(axis=-1) > 0
+    green = (marked[..., 1] - marked[..., 0] > 50) & (marked[..., 1] - marked[..., 2] > 50)
+    assert changed.sum() > 50 and green[changed].mean() > 0.8

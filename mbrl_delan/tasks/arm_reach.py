@@ -53,6 +53,10 @@ class ArmReach(ShapedTask):
     def nq(self) -> int:
         return len(self.link_lengths)
 
+    def markers(self) -> tuple[tuple[float, float, float], ...]:
+        """The target in the world: (x, 0, z), the arm's base at the origin."""
+        return ((self.target[0], 0.0, self.target[1]),)
+
     def tip_positions(self, q: Tensor) -> Tensor:
         """(..., n) -> (..., n, 2): (x, z) of every link tip."""
         return planar_chain_points(q, self.link_lengths)

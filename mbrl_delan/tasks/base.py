@@ -46,6 +46,11 @@ class Task(abc.ABC):
         """Termination of the state reached by the action of step `step`. Default: `terminated`."""
         return self.terminated(q, qd)
 
+    def markers(self) -> tuple[tuple[float, float, float], ...]:
+        """World points (x, y, z) the task aims at, drawn in videos (a reach target). Default:
+        none."""
+        return ()
+
     @abc.abstractmethod
     def initial_state(self, batch_shape: tuple[int, ...], generator: torch.Generator) -> State:
         """Initial states, float64 on the generator's device: State((*B, nq), (*B, nv))."""

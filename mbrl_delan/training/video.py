@@ -136,6 +136,8 @@ def root_travels(types: Sequence[int]) -> bool:
 
 
 Overlay = tuple[str, str]  # the text of a frame's corner: (titles, values), one line each
+MARKER_RADIUS = 0.05  # a task marker's sphere, as a fraction of the model's extent
+MARKER_RGBA = np.array([0.1, 0.9, 0.2, 1.0], dtype=np.float32)  # green
 
 
 class VideoRecorder:
@@ -161,6 +163,8 @@ class VideoRecorder:
         distance: free camera distance, or None (fit as above).
         track_root: the free camera follows the root body's subtree (MuJoCo's tracking
             camera), for systems that travel (a walking humanoid leaves a fixed view).
+        markers: world points (x, y, z) drawn in every frame as small green spheres
+            (`Task.markers`: arm_reach's target).
 
     Raises:
         ValueError: a bad size, fps or camera.
@@ -180,6 +184,7 @@ class VideoRecorder:
         lookat: Sequence[float] | None = None,
         distance: float | None = None,
         track_root: bool = False,
+        markers: Sequence[Sequence[float]] = (),
     ) -> None:
         for label, size in (("width", width), ("height", height)):
             if not isinstance(size, int | np.integer) or size < 2 or size % 2:
@@ -187,6 +192,7 @@ class VideoRecorder:
         if not fps > 0:
             raise ValueError(f"video fps={fps!r}: it must be > 0")
         self.width, self.height, self.fps = int(width), int(height), float(fps)
+        self.markers = np.asarray(markers, dtype=np.float64).reshape(-1, 3)  # (K, 3)
         self.backend = resolve_backend(backend)
         self.model = copy.deepcopy(model)
         offscreen = self.model.vis.global_
@@ -285,6 +291,7 @@ class VideoRecorder:
             mujoco.mjtCatBit.mjCAT_ALL,
             self._scene,
         )
+        self._add_markers()
         mujoco.mjr_render(self._viewport, self._scene, self._context)
         if overlay is not None:
             font, corner = mujoco.mjtFont.mjFONT_SHADOW, mujoco.mjtGridPos.mjGRID_TOPLEFT
@@ -292,6 +299,22 @@ class VideoRecorder:
         pixels = np.empty((self.height, self.width, 3), dtype=np.uint8)
         mujoco.mjr_readPixels(pixels, None, self._viewport, self._context)
         return np.ascontiguousarray(pixels[::-1])  # OpenGL's rows run bottom-up
+
+    def _add_markers(self) -> None:
+        """Append a sphere per marker to the scene (after `mjv_updateScene` filled it)."""
+        radius = MARKER_RADIUS * max(float(self.model.stat.extent), 1e-3)
+        for point in self.markers:
+            if self._scene.ngeom >= self._scene.maxgeom:
+                return
+            mujoco.mjv_initGeom(
+                self._scene.geoms[self._scene.ngeom],
+                mujoco.mjtGeom.mjGEOM_SPHERE,
+                np.array([radius, 0.0, 0.0]),
+                point,
+                np.eye(3).reshape(-1),
+                MARKER_RGBA,
+            )
+            self._scene.ngeom += 1
 
     def frame_from_state(
         self, q: Tensor | np.ndarray, qd: Tensor | np.ndarray, overlay: Overlay | None = None
