@@ -272,6 +272,15 @@ def test_plots_from_small_metrics(tmp_path):
         assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_run_plots_are_titled_with_env_model_planner_and_seed(tmp_path):
+    from mbrl_delan.training.plots import run_title
+
+    config = "seed: 2\nenv:\n  name: cartpole\nmodel:\n  name: delan\nplanner:\n  name: icem\n"
+    (tmp_path / "config.yaml").write_text(config)
+    assert run_title(tmp_path) == "cartpole / delan / icem, seed 2"
+    assert run_title(tmp_path / "elsewhere") == ""
+
+
 def test_plots_skip_missing_metrics(tmp_path):
     with _recorder(tmp_path) as rec:
         rec.log({"env_steps": 100, "train_return": 1.0}, iteration=0)

@@ -7,10 +7,11 @@ import math
 from pathlib import Path
 from typing import Any
 
+import yaml
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from mbrl_delan.training.recorder import METRICS_FILE, read_metrics
+from mbrl_delan.training.recorder import METRICS_FILE, RUN_CONFIG, read_metrics
 
 log = logging.getLogger(__name__)
 
@@ -58,13 +59,23 @@ def _save(fig: Figure, path: Path) -> Path:
     return path
 
 
-def _plot_returns(records: list[dict[str, Any]], path: Path) -> Path | None:
+def run_title(run_dir: Path) -> str:
+    """``env / model / planner, seed s`` from the run's ``config.yaml`` ("" without one)."""
+    try:
+        cfg = yaml.safe_load((run_dir / RUN_CONFIG).read_text(encoding="utf-8"))
+        parts = (cfg["env"]["name"], cfg["model"]["name"], cfg["planner"]["name"])
+        return f"{' / '.join(map(str, parts))}, seed {cfg['seed']}"
+    except (OSError, KeyError, TypeError, yaml.YAMLError):
+        return ""
+
+
+def _plot_returns(records: list[dict[str, Any]], path: Path, title: str) -> Path | None:
     eval_x, eval_y = _series(records, EVAL_RETURN_MEAN)
     train_x, train_y = _series(records, TRAIN_RETURN)
     oracle = [r[ORACLE_RETURN_MEAN] for r in records if _is_number(r.get(ORACLE_RETURN_MEAN))]
     if not eval_x and not train_x:
         return None
-    fig = Figure(figsize=(6, 4), layout="constrained")
+    fig = Figure(figsize=(7.5, 4), layout="constrained")
     ax = fig.add_subplot()
     if eval_x:
         ax.plot(eval_x, eval_y, marker="o", label="evaluation return")
@@ -75,13 +86,12 @@ def _plot_returns(records: list[dict[str, Any]], path: Path) -> Path | None:
         ax.plot(train_x, train_y, alpha=0.6, linestyle="--", label="on-policy episode return")
     if oracle:
         ax.axhline(oracle[-1], color="black", linestyle=":", label="oracle return")
-    ax.set_xlabel("env steps")
-    ax.set_ylabel("return")
-    ax.legend()
+    ax.set(xlabel="env steps", ylabel="return", title=f"returns: {title}" if title else "returns")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8)  # outside the data
     return _save(fig, path)
 
 
-def _plot_model_error(records: list[dict[str, Any]], path: Path) -> Path | None:
+def _plot_model_error(records: list[dict[str, Any]], path: Path, title: str) -> Path | None:
     curves = {
         "one-step error": _series(records, MODEL_ERROR_1STEP, positive=True),
         "multi-step error": _series(records, MODEL_ERROR_HSTEP, positive=True),
@@ -89,14 +99,14 @@ def _plot_model_error(records: list[dict[str, Any]], path: Path) -> Path | None:
     curves = {name: xy for name, xy in curves.items() if xy[0]}
     if not curves:
         return None
-    fig = Figure(figsize=(6, 4), layout="constrained")
+    fig = Figure(figsize=(7.5, 4), layout="constrained")
     ax = fig.add_subplot()
     for name, (x, y) in curves.items():
         ax.plot(x, y, marker="o", label=name)
     ax.set_yscale("log")
-    ax.set_xlabel("env steps")
-    ax.set_ylabel("model error")
-    ax.legend()
+    name = f"model error: {title}" if title else "model error"
+    ax.set(xlabel="env steps", ylabel="model error", title=name)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8)  # outside the data
     return _save(fig, path)
 
 
@@ -110,8 +120,9 @@ def plot_run(run_dir: Path) -> list[Path]:
     if not records:
         log.warning("no metrics in %s: nothing to plot", run_dir / METRICS_FILE)
         return []
+    title = run_title(run_dir)
     written = [
-        _plot_returns(records, run_dir / RETURNS_PNG),
-        _plot_model_error(records, run_dir / MODEL_ERROR_PNG),
+        _plot_returns(records, run_dir / RETURNS_PNG, title),
+        _plot_model_error(records, run_dir / MODEL_ERROR_PNG, title),
     ]
     return [p for p in written if p is not None]
