@@ -216,9 +216,10 @@ class StartChecks(Callback):
 
 
 class WritableRunDir(Callback):
-    """Hydra callback of ``python -m mbrl_delan.fit`` (``hydra.callbacks`` in
-    configs/fit/config.yaml): a run dir that cannot be made or written ends the command with
-    one line naming it and exit 2, before Hydra's log file there fails with a raw error."""
+    """Hydra callback of ``python -m mbrl_delan.fit`` and ``python -m mbrl_delan.bench``
+    (``hydra.callbacks`` in configs/fit/config.yaml, configs/bench.yaml): a run dir that
+    cannot be made or written ends the command with one line naming it and exit 2, before
+    Hydra's log file there fails with a raw error."""
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         exit_unless_writable(Path(config.hydra.run.dir))

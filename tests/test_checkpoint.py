@@ -392,3 +392,7 @@ def test_a_run_dir_that_cannot_be_made_is_one_line_and_exit_2(tmp_path, monkeypa
 
     code, text = run_main(fit_main, "data=arrays", "data.path=x.npz", f"hydra.run.dir={run_dir}")
     assert code == 2 and "Traceback" not in text and f"cannot write {run_dir}" in text, text
+    from mbrl_delan.bench import main as bench_main
+
+    code, text = run_main(bench_main, "quick=true", f"hydra.run.dir={run_dir}")
+    assert code == 2 and "Traceback" not in text and f"cannot write {run_dir}" in text, text
