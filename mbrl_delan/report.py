@@ -39,7 +39,7 @@ from omegaconf import OmegaConf
 from scipy import stats
 
 from mbrl_delan.sweep import CRASH_FILE, last_iteration, read_crash
-from mbrl_delan.training.recorder import METRICS_FILE, RUN_CONFIG, read_metrics
+from mbrl_delan.training.recorder import METRICS_FILE, RUN_CONFIG, flat_config, read_metrics
 
 log = logging.getLogger(__name__)
 
@@ -150,32 +150,21 @@ def run_start(run: Path) -> str:
     return f"from {Path(source).name}" if source else SCRATCH
 
 
-def run_config(run: Path) -> dict[str, str]:
-    """The run's ``config.yaml`` as ``{"a.b": "value"}`` (values as YAML text); {} when it is
+def run_config(run: Path) -> dict[str, Any]:
+    """The run's ``config.yaml`` as ``{"a.b": value}`` (`flat_config`); {} when it is
     missing or unreadable."""
     try:
         cfg = yaml.safe_load((run / RUN_CONFIG).read_text(encoding="utf-8"))
     except (OSError, yaml.YAMLError):
         return {}
-    return _flat(cfg) if isinstance(cfg, dict) else {}
-
-
-def _flat(tree: dict[str, Any], prefix: str = "") -> dict[str, str]:
-    flat: dict[str, str] = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat.update(_flat(value, f"{prefix}{key}."))
-        else:  # YAML text of a scalar ends with the document end marker "..."
-            text = yaml.safe_dump(value, default_flow_style=True)
-            flat[f"{prefix}{key}"] = text.removesuffix("...\n").strip()
-    return flat
+    return flat_config(cfg) if isinstance(cfg, dict) else {}
 
 
 def _ran_with(key: str) -> bool:
     return any(key.startswith(k) if k.endswith(".") else key == k for k in RAN_WITH)
 
 
-def differing_keys(configs: list[dict[str, str]]) -> list[str]:
+def differing_keys(configs: list[dict[str, Any]]) -> list[str]:
     """The config keys whose values differ between ``configs``, apart from `RAN_WITH`."""
     keys = sorted({k for c in configs for k in c})
     return [k for k in keys if not _ran_with(k) and len({c.get(k) for c in configs}) > 1]

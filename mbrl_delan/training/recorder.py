@@ -269,17 +269,18 @@ def _torchrl_logger(backend: str, run_dir: Path, config: dict[str, Any]) -> Any:
         logger = TensorboardLogger(exp_name=backend, log_dir=str(run_dir))
     else:
         logger = CSVLogger(exp_name=backend, log_dir=str(run_dir))
-    logger.log_hparams(_flat_numbers(config))
+    logger.log_hparams(flat_config(config))
     return logger
 
 
-def _flat_numbers(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    """A nested config as one level of ``a.b`` keys with plain values (numbers, strings)."""
+def flat_config(config: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """A nested config as one level of ``a.b`` keys with plain values (numbers, strings,
+    booleans; anything else, None and lists included, as its ``str``)."""
     flat: dict[str, Any] = {}
     for key, value in config.items():
         name = f"{prefix}{key}"
         if isinstance(value, Mapping):
-            flat.update(_flat_numbers(value, f"{name}."))
+            flat.update(flat_config(value, f"{name}."))
         elif isinstance(value, int | float | str | bool):
             flat[name] = value
         else:
