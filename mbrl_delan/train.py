@@ -63,6 +63,7 @@ from mbrl_delan.training.checkpoint import (
     CHECKPOINT_FILE,
     CheckpointError,
     load_checkpoint,
+    remove_stale_temps,
     rng_state,
     save_checkpoint,
     set_rng_state,
@@ -76,6 +77,7 @@ from mbrl_delan.training.recorder import (
     SUMMARY_FILE,
     Recorder,
     read_metrics,
+    resume_metrics,
 )
 from mbrl_delan.training.video import (
     RENDER_ERRORS,
@@ -438,6 +440,7 @@ def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | No
     run_cfg.resume = str(run_dir)
     if _apply_resume_overrides(run_cfg, cfg):
         OmegaConf.save(run_cfg, saved, resolve=True)  # a later resume continues with them
+    remove_stale_temps(run_dir)
     ckpt = run_dir / CHECKPOINT_FILE
     state = load_checkpoint(ckpt, weights_only=False) if ckpt.exists() else None
     return run_cfg, run_dir, state
@@ -487,6 +490,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         )
         if loop.finished(schedule_of(cfg)) and (run_dir / SUMMARY_FILE).is_file():
             log.info("the run is finished: nothing to run, its files are left as they are")
+            resume_metrics(run_dir / METRICS_FILE, loop.counters.iteration, loop.last_round)
             summary = json.loads((run_dir / SUMMARY_FILE).read_text(encoding="utf-8"))
             _print_summary(run_dir, summary)
             return summary
@@ -498,6 +502,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         OmegaConf.to_container(cfg, resolve=True),
         resume_iteration=loop.counters.iteration if state else None,
         step_key="env_steps",
+        last_record=loop.last_round,
     )
     with recorder:
         _run(cfg, run_dir, loop, oracle, recorder)

@@ -142,6 +142,31 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None], keep_prev
         tmp.unlink(missing_ok=True)
 
 
+def _writer_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def remove_stale_temps(folder: Path) -> list[Path]:
+    """Remove the temporary files that a killed writer left in `folder` (``.<name>.<pid>.*tmp``
+    of `atomic_write` and `_keep_previous` whose process is gone). -> the files removed."""
+    removed = []
+    for tmp in folder.glob(".*.tmp"):
+        pid = next((int(part) for part in tmp.name.split(".") if part.isdigit()), None)
+        if pid is not None and pid != os.getpid() and not _writer_alive(pid):
+            tmp.unlink(missing_ok=True)
+            removed.append(tmp)
+    if removed:
+        names = ", ".join(p.name for p in removed)
+        log.info("removed the temporary files of a killed writer: %s", names)
+    return removed
+
+
 def save_checkpoint(path: str | Path, state: dict[str, Any]) -> None:
     """Save ``state`` with ``torch.save`` atomically, keeping the previous file as ``.prev``.
 
@@ -178,22 +203,29 @@ def load_checkpoint(
     try:
         return _load(path, map_location, weights_only)
     except _UNREADABLE as err:
-        main_error = err
+        main_error, main_why = err, _why(path, err)
     prev = prev_path(path)
     if not prev.is_file():
         raise CheckpointError(
-            f"cannot read checkpoint {path} ({main_error}) and no previous version {prev} exists"
+            f"cannot read checkpoint {path} ({main_why}) and no previous version {prev} exists"
         ) from main_error
     try:
         state = _load(prev, map_location, weights_only)
     except _UNREADABLE as err:
         raise CheckpointError(
-            f"cannot read checkpoint {path} ({main_error}) nor its previous version {prev} ({err})"
+            f"cannot read checkpoint {path} ({main_why}) "
+            f"nor its previous version {prev} ({_why(prev, err)})"
         ) from err
     log.warning(
-        "checkpoint %s is unreadable (%s); loaded the previous one %s", path, main_error, prev
+        "checkpoint %s is unreadable (%s); loaded the previous one %s", path, main_why, prev
     )
     return state
+
+
+def _why(path: Path, err: BaseException) -> str:
+    """What is wrong with an unreadable checkpoint: its size and torch's error, first line."""
+    reason = (str(err).splitlines() or [type(err).__name__])[0]
+    return f"damaged or cut short, {path.stat().st_size:,} bytes: {reason}"
 
 
 def _numpy_state() -> dict[str, Any]:

@@ -239,6 +239,7 @@ class MBRLLoop:
         self.oracle_returns: list[float] | None = None  # once `run` has evaluated the oracle
         self.oracle_rollouts: list[TensorDict] = []  # its first `keep_eval_rollouts` episodes
         self.warmup_done = False  # once `run` has collected the random episodes and fitted
+        self.last_round: dict[str, Any] | None = None  # the metrics of the last round run
 
     def run(
         self, schedule: Schedule, oracle: EpisodePolicy, hooks: LoopHooks | None = None
@@ -264,6 +265,7 @@ class MBRLLoop:
         while not self.finished(schedule):
             metrics = self.iterate(schedule)
             metrics["oracle_return_mean"] = self.oracle_mean
+            self.last_round = metrics
             hooks.log_round(metrics)
             hooks.checkpoint()
             hooks.after_round(metrics)
@@ -363,6 +365,7 @@ class MBRLLoop:
             "policy": self.policy.state_dict(),
             "buffer": buffer_state(self.buffer),
             "counters": vars(self.counters).copy(),
+            "last_round": self.last_round,
             "fit_generator": self.fit_generator.get_state(),
             "random_generator": self.random_policy.generator.get_state(),
             "model_generator": None
@@ -376,6 +379,7 @@ class MBRLLoop:
         self.policy.load_state_dict(state["policy"])
         load_buffer_state(self.buffer, state["buffer"])
         self.counters = LoopCounters(**state["counters"])
+        self.last_round = state.get("last_round")  # absent from older checkpoints
         self.fit_generator.set_state(state["fit_generator"])
         self.random_policy.generator.set_state(state["random_generator"])
         if self.model_generator is not None and state.get("model_generator") is not None:

@@ -64,8 +64,14 @@ def read_metrics(path: str | Path) -> list[dict[str, Any]]:
     return records
 
 
-def _truncate_metrics(path: Path, resume_iteration: int | None) -> None:
-    """Keep only records with ``iteration <= resume_iteration`` (none when it is None)."""
+def resume_metrics(
+    path: Path, resume_iteration: int | None, last_record: Mapping[str, Any] | None = None
+) -> None:
+    """Make ``metrics.jsonl`` hold the records up to the checkpoint's iteration: later ones
+    (rounds the resumed run does again) are removed, and the checkpoint's own copy of its
+    round's record (`last_record`) replaces that record when it is missing or torn (the file
+    is appended without fsync, the checkpoint is fsynced). ``resume_iteration=None``: a fresh
+    file. The file is rewritten only when that changes it."""
     if not path.exists():
         return
     if resume_iteration is None:
@@ -77,8 +83,16 @@ def _truncate_metrics(path: Path, resume_iteration: int | None) -> None:
             for r in read_metrics(path)
             if isinstance(r.get(ITERATION), int) and r[ITERATION] <= resume_iteration
         ]
+        if last_record is not None and all(r[ITERATION] != resume_iteration for r in kept):
+            log.warning(
+                "%s: the record of iteration %d is missing or torn; restored from the checkpoint",
+                path,
+                resume_iteration,
+            )
+            kept.append({ITERATION: resume_iteration, **_jsonable(dict(last_record))})
     lines = "".join(json.dumps(r) + "\n" for r in kept)
-    atomic_write(path, lambda f: f.write(lines.encode("utf-8")), keep_prev=False)
+    if path.read_text(encoding="utf-8", errors="replace") != lines:
+        atomic_write(path, lambda f: f.write(lines.encode("utf-8")), keep_prev=False)
 
 
 class Recorder:
@@ -94,6 +108,7 @@ class Recorder:
         config: the run's resolved configuration, stored with the logger's run.
         resume_iteration: the iteration of the checkpoint a resumed run starts from; records
             after it are removed. ``None`` starts a fresh ``metrics.jsonl``.
+        last_record: the checkpoint's copy of that iteration's record (`resume_metrics`).
         step_key: the record field the loggers plot against (the iteration when absent).
     """
 
@@ -106,13 +121,14 @@ class Recorder:
         config: dict[str, Any],
         resume_iteration: int | None = None,
         step_key: str = ITERATION,
+        last_record: Mapping[str, Any] | None = None,
     ):
         if backend not in LOGGERS:
             raise ValueError(f"logger {backend!r} is not one of {', '.join(LOGGERS)}")
         self.run_dir, self.step_key = Path(run_dir), step_key
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.metrics_path = self.run_dir / METRICS_FILE
-        _truncate_metrics(self.metrics_path, resume_iteration)
+        resume_metrics(self.metrics_path, resume_iteration, last_record)
         self._file: IO[str] | None = self.metrics_path.open("a", encoding="utf-8")
         self._wandb_run: Any = None
         self._scalars: Any = None  # a TorchRL logger (csv, tensorboard)

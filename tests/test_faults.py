@@ -1,0 +1,346 @@
+"""Fault injection: a tiny training run killed with SIGKILL at random moments (fits, collection,
+evaluation, checkpoint and metrics writes) and resumed ends with the uninterrupted run's result,
+record for record and weight for weight; a write failing with a full disk or a lost permission
+is exit 2 naming the file, and the resume ends the same way; cut checkpoints and torn records
+are recovered; then the writers and the checkpoint reader on their own.
+
+The runs are processes forked from a server that has imported the entry point
+(`fault_child.start`), so each costs its run's time, not torch's import."""
+
+from __future__ import annotations
+
+import errno
+import json
+import logging
+import os
+import random
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+from fault_child import PHASES, start
+from tiny import TINY_TRAIN
+
+from mbrl_delan.training import Recorder, read_metrics
+from mbrl_delan.training.checkpoint import (
+    CheckpointError,
+    RunWriteError,
+    load_checkpoint,
+    prev_path,
+    save_checkpoint,
+)
+
+RUN = [*TINY_TRAIN, "env.episode_len=10", "budget.iterations=2", "buffer.memmap=true"]
+KILLS = 10
+SEED = 0  # of the moments drawn
+
+
+def _records(run_dir: Path) -> list[dict]:
+    lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+    return [{k: v for k, v in json.loads(line).items() if k != "wall_time_s"} for line in lines]
+
+
+def _summary(run_dir: Path) -> dict:
+    summary = json.loads((run_dir / "summary.json").read_text())
+    return {k: v for k, v in summary.items() if k != "wall_time_s"}
+
+
+def _weights(run_dir: Path) -> dict[str, torch.Tensor]:
+    return load_checkpoint(run_dir / "checkpoint.pt", weights_only=False)["loop"]["model"]
+
+
+def _moments(counts: dict[str, int]) -> list[tuple[str, int]]:
+    """Ten moments a run reaches: every phase at least once, the rest of any phase."""
+    rng = random.Random(SEED)
+    phases = [*PHASES, *rng.choices(PHASES, k=KILLS - len(PHASES))]
+    return [(phase, rng.randint(1, counts[phase])) for phase in phases]
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, int]]:
+    """The uninterrupted run and how many events of each phase it had."""
+    run_dir = tmp_path_factory.mktemp("faults") / "reference"
+    log = run_dir.parent / "reference.log"
+    assert start([*RUN, f"hydra.run.dir={run_dir}"], None, log) == 0, log.read_text()
+    counts = json.loads(Path(f"{log}.counts.json").read_text())
+    assert set(counts) == set(PHASES), counts
+    return run_dir, counts
+
+
+@pytest.mark.heavy
+def test_runs_killed_at_ten_random_moments_resume_to_the_uninterrupted_result(
+    reference: tuple[Path, dict[str, int]], tmp_path: Path
+) -> None:
+    ref_dir, counts = reference
+    for i, (phase, n) in enumerate(_moments(counts)):
+        run_dir, log = tmp_path / f"{i}_{phase}_{n}", tmp_path / f"{i}_{phase}_{n}.log"
+        code = start([*RUN, f"hydra.run.dir={run_dir}"], (phase, n), log)
+        assert code == -9, f"{phase} {n}: exit {code}\n{log.read_text()}"
+        code = start([f"resume={run_dir}"], None, log)
+        assert code == 0, f"{phase} {n}: the resume exited {code}\n{log.read_text()}"
+        assert _records(run_dir) == _records(ref_dir), (phase, n)
+        assert _summary(run_dir) == _summary(ref_dir), (phase, n)
+        for name, value in _weights(ref_dir).items():
+            assert torch.equal(_weights(run_dir)[name], value), (phase, n, name)
+        leftovers = [p.name for p in run_dir.iterdir() if p.name.endswith(".tmp")]
+        assert not leftovers, (phase, n, leftovers)
+
+
+def _copy(ref_dir: Path, tmp_path: Path) -> Path:
+    run_dir = tmp_path / "run"
+    shutil.copytree(ref_dir, run_dir)
+    return run_dir
+
+
+def _resume(run_dir: Path, *overrides: str) -> tuple[int, str]:
+    log = run_dir.parent / "resume.log"
+    code = start([f"resume={run_dir}", *overrides], None, log)
+    return code, log.read_text()
+
+
+@pytest.mark.parametrize("kept", [0.1, 0.5, 0.9])
+def test_a_cut_checkpoint_resumes_from_the_previous_one_to_the_same_result(
+    reference: tuple[Path, dict[str, int]], tmp_path: Path, kept: float
+) -> None:
+    """The finished run's checkpoint cut to `kept` of its size: the resume warns naming both
+    files, runs the last round again from ``checkpoint.pt.prev`` and ends where the run did."""
+    ref_dir, _ = reference
+    run_dir = _copy(ref_dir, tmp_path)
+    ckpt = run_dir / "checkpoint.pt"
+    ckpt.write_bytes(ckpt.read_bytes()[: int(ckpt.stat().st_size * kept)])
+    code, text = _resume(run_dir)
+    assert code == 0, text
+    assert f"checkpoint {ckpt} is unreadable" in text and f"{ckpt}.prev" in text, text
+    assert _records(run_dir) == _records(ref_dir)
+    assert _summary(run_dir) == _summary(ref_dir)
+
+
+def test_both_checkpoints_cut_is_exit_2_naming_them_and_deleting_nothing(
+    reference: tuple[Path, dict[str, int]], tmp_path: Path
+) -> None:
+    """Both checkpoints cut: one line naming each file and its error, every file kept."""
+    run_dir = _copy(reference[0], tmp_path)
+    for name in ("checkpoint.pt", "checkpoint.pt.prev"):
+        path = run_dir / name
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 3])
+    before = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()}
+    code, text = _resume(run_dir)
+    assert code == 2 and "Traceback" not in text, text
+    assert f"cannot read checkpoint {run_dir / 'checkpoint.pt'}" in text, text
+    assert f"nor its previous version {run_dir / 'checkpoint.pt.prev'}" in text, text
+    after = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()}
+    assert after.pop("train.log").startswith(before.pop("train.log"))  # the attempt's lines
+    assert "crash.json" in after  # the failed resume, for `report` and sweeps
+    assert {name: after[name] for name in before} == before
+
+
+@pytest.mark.parametrize("kept", [0.0, 0.3, 0.9])
+def test_a_torn_last_record_is_restored_from_the_checkpoint(
+    reference: tuple[Path, dict[str, int]], tmp_path: Path, kept: float
+) -> None:
+    """The finished run's last line of metrics.jsonl cut to `kept` of its length (0: lost):
+    the resume restores it from the checkpoint's copy, exits 0 and leaves the summary alone."""
+    ref_dir, _ = reference
+    run_dir = _copy(ref_dir, tmp_path)
+    metrics = run_dir / "metrics.jsonl"
+    *head, last = metrics.read_text().splitlines(keepends=True)
+    metrics.write_text("".join(head) + last[: int(len(last) * kept)])
+    summary = (run_dir / "summary.json").read_bytes()
+    code, text = _resume(run_dir)
+    assert code == 0 and "restored from the checkpoint" in text, text
+    assert metrics.read_text() == (ref_dir / "metrics.jsonl").read_text()
+    assert (run_dir / "summary.json").read_bytes() == summary
+
+
+def test_a_torn_record_of_an_unfinished_run_is_restored_and_the_run_goes_on(
+    reference: tuple[Path, dict[str, int]], tmp_path: Path
+) -> None:
+    """A run of one round with its record torn, resumed with a second round: the first
+    round's record comes back from the checkpoint and the run ends as the two-round one."""
+    ref_dir, _ = reference
+    run_dir, log = tmp_path / "one_round", tmp_path / "one_round.log"
+    one_round = [*RUN, "budget.iterations=1", f"hydra.run.dir={run_dir}"]
+    assert start(one_round, None, log) == 0, log.read_text()
+    metrics = run_dir / "metrics.jsonl"
+    metrics.write_text(metrics.read_text()[:40])
+    code, text = _resume(run_dir, "budget.iterations=2")
+    assert code == 0 and "restored from the checkpoint" in text, text
+    assert _records(run_dir) == _records(ref_dir)
+    assert _summary(run_dir) == _summary(ref_dir)
+
+
+@pytest.mark.parametrize("phase", ["checkpoint", "metrics"])
+@pytest.mark.parametrize("errno_", [errno.ENOSPC, errno.EACCES])
+def test_a_write_that_fails_is_exit_2_naming_it_and_the_resume_ends_as_the_run(
+    reference: tuple[Path, dict[str, int]], tmp_path: Path, phase: str, errno_: int
+) -> None:
+    """Half of a checkpoint or a metrics record written, then the OS error: exit 2 with one
+    line naming the file and the error; the resume (the cause gone) ends where the run did."""
+    ref_dir, counts = reference
+    run_dir, log = tmp_path / "run", tmp_path / "run.log"
+    moment = (phase, (counts[phase] + 1) // 2)
+    code = start([*RUN, f"hydra.run.dir={run_dir}"], moment, log, errno_)
+    text = log.read_text()
+    assert code == 2 and "Traceback" not in text, text
+    path = run_dir / ("checkpoint.pt" if phase == "checkpoint" else "metrics.jsonl")
+    errors = [line for line in text.splitlines() if "ERROR" in line]
+    assert len(errors) == 1, text
+    assert f"cannot write {path}: {os.strerror(errno_)} (errno {errno_})" in errors[0], text
+    code, text = _resume(run_dir)
+    assert code == 0, text
+    assert _records(run_dir) == _records(ref_dir)
+    assert _summary(run_dir) == _summary(ref_dir)
+
+
+# --- the writers and the reader, faults raised in-process -----------------------------------
+
+
+def test_crash_before_replace_leaves_previous_checkpoint(tmp_path, monkeypatch):
+    path = tmp_path / "ckpt.pt"
+    save_checkpoint(path, {"iteration": 1})
+    save_checkpoint(path, {"iteration": 2})
+
+    def crash(src, dst):
+        raise OSError("simulated crash before the rename")
+
+    monkeypatch.setattr(os, "replace", crash)
+    with pytest.raises(RunWriteError, match="ckpt.pt: simulated crash before the rename"):
+        save_checkpoint(path, {"iteration": 3})
+    monkeypatch.undo()
+    assert load_checkpoint(path)["iteration"] == 2
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]  # temp cleaned up
+
+
+def test_crash_at_final_replace_keeps_main_and_prev(tmp_path, monkeypatch):
+    path = tmp_path / "ckpt.pt"
+    save_checkpoint(path, {"iteration": 1})
+    real_replace = os.replace
+
+    def crash_on_main(src, dst):
+        if os.fspath(dst) == os.fspath(path):
+            raise OSError("simulated crash")
+        real_replace(src, dst)
+
+    monkeypatch.setattr(os, "replace", crash_on_main)
+    with pytest.raises(RunWriteError, match="simulated crash; .* MB free there; its previous"):
+        save_checkpoint(path, {"iteration": 2})
+    monkeypatch.undo()
+    assert load_checkpoint(path)["iteration"] == 1
+    assert load_checkpoint(prev_path(path))["iteration"] == 1
+
+
+def test_corrupt_checkpoint_falls_back_to_prev(tmp_path, caplog):
+    path = tmp_path / "ckpt.pt"
+    save_checkpoint(path, {"iteration": 1})
+    save_checkpoint(path, {"iteration": 2})
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])  # a torn write
+    with caplog.at_level(logging.WARNING):
+        state = load_checkpoint(path)
+    assert state["iteration"] == 1
+    assert "unreadable" in caplog.text and "ckpt.pt" in caplog.text
+
+
+@pytest.mark.parametrize("kept", [0.01, 0.1, 0.25, 0.5, 0.99])
+def test_a_checkpoint_cut_anywhere_falls_back_to_prev(tmp_path, kept):
+    """A cut zip archive fails in several ways (OSError EINVAL near its start, a missing
+    central directory later): each falls back to the intact previous checkpoint."""
+    path = tmp_path / "ckpt.pt"
+    weights = torch.arange(200_000, dtype=torch.float32)
+    save_checkpoint(path, {"iteration": 1, "w": weights})
+    save_checkpoint(path, {"iteration": 2, "w": weights})
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * kept)])
+    state = load_checkpoint(path)
+    assert state["iteration"] == 1 and torch.equal(state["w"], weights)
+
+
+def test_missing_and_unreadable_checkpoints_name_the_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.pt"):
+        load_checkpoint(tmp_path / "nope.pt")
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="bad.pt"):
+        load_checkpoint(bad)
+
+
+def test_a_full_disk_inside_torch_save_names_the_file_and_keeps_the_checkpoints(
+    tmp_path, monkeypatch
+):
+    """torch.save reports ENOSPC as RuntimeError "unexpected pos": a RunWriteError names the
+    file; checkpoint.pt and its .prev are as they were; no temp file is left."""
+    path = tmp_path / "checkpoint.pt"
+    save_checkpoint(path, {"step": 1})
+    save_checkpoint(path, {"step": 2})
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+
+    def full(obj, f, *args, **kwargs):
+        f.write(b"PK\x03\x04partial")
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 64")
+
+    monkeypatch.setattr(torch, "save", full)
+    with pytest.raises(RunWriteError, match=r"cannot write .*checkpoint.pt: .*unexpected pos"):
+        save_checkpoint(path, {"step": 3})
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    monkeypatch.undo()
+    assert load_checkpoint(path)["step"] == 2
+
+
+@pytest.mark.parametrize("errno_", [errno.ENOSPC, errno.EACCES])
+def test_metrics_that_cannot_be_written_name_the_file_and_keep_the_records(tmp_path, errno_):
+    rec = _recorder(tmp_path)
+    rec.log({"env_steps": 15}, iteration=1)
+
+    class Failing:
+        def write(self, text):
+            raise OSError(errno_, os.strerror(errno_))
+
+        def flush(self):
+            pass
+
+        def close(self):
+            pass
+
+    rec._file = Failing()
+    with pytest.raises(RunWriteError, match=f"metrics.jsonl: {os.strerror(errno_)}"):
+        rec.log({"env_steps": 30}, iteration=2)
+    assert read_metrics(tmp_path / "metrics.jsonl") == [{"iteration": 1, "env_steps": 15}]
+
+
+def _recorder(run_dir: Path) -> Recorder:
+    return Recorder(run_dir, "none", "test", None, {"seed": 0})
+
+
+@pytest.mark.parametrize("errno_", [errno.ENOSPC, errno.EACCES])
+@pytest.mark.parametrize("writer", ["checkpoint", "summary"])
+def test_an_os_error_in_a_writer_names_the_file_and_keeps_its_last_version(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, writer: str, errno_: int
+) -> None:
+    """The OS error from the file's write: a RunWriteError naming the file, the error and the
+    free space; the file's last version as it was, no temporary file left."""
+    rec = _recorder(tmp_path)
+    path = tmp_path / ("checkpoint.pt" if writer == "checkpoint" else "summary.json")
+
+    def write(step: int) -> None:
+        if writer == "checkpoint":
+            save_checkpoint(path, {"step": step})
+        else:
+            rec.write_summary({"step": step})
+
+    write(1)
+    write(2)
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    real_fsync = os.fsync
+
+    def fsync(fd: int) -> None:
+        raise OSError(errno_, os.strerror(errno_))
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    with pytest.raises(RunWriteError) as caught:
+        write(3)
+    monkeypatch.setattr(os, "fsync", real_fsync)
+    message = str(caught.value)
+    assert message.startswith(f"cannot write {path}: {os.strerror(errno_)} (errno {errno_})")
+    assert "MB free there; its previous version is kept" in message
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
