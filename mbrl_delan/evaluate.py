@@ -48,7 +48,12 @@ from mbrl_delan.models.inverse import DeLaNInverse, InverseDynamicsModel
 from mbrl_delan.models.lagrangian import LagrangianDynamics
 from mbrl_delan.runs import Run, load_run
 from mbrl_delan.systems.system import JointLayout
-from mbrl_delan.training.checkpoint import CheckpointError
+from mbrl_delan.training.checkpoint import (
+    CheckpointError,
+    RunWriteError,
+    atomic_write,
+    check_writable,
+)
 from mbrl_delan.training.inverse_fit import evaluate_torques
 
 log = logging.getLogger("mbrl_delan.evaluate")
@@ -281,14 +286,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     options = dict(args.options)
     run_dir = args.run_dir
     logging.basicConfig(level=logging.INFO, format="[%(name)s][%(levelname)s] - %(message)s")
+    out = Path(options["out"]) if "out" in options else None
     try:
         threshold = float(options.get("threshold", THRESHOLD))
         batch_size = int(options.get("batch_size", 2048))
         if not threshold > 0 or batch_size < 1:
             raise ValueError(f"need threshold > 0 and batch_size >= 1: {threshold}, {batch_size}")
+        if out is not None:
+            check_writable(out.parent)  # before the work: an unwritable out= fails at once
         result = evaluate_run(run_dir, options.get("data"), batch_size, threshold)
-    except (FileNotFoundError, ValueError, CheckpointError) as err:  # data, run, checkpoint
-        log.error("%s", err)
+    except (FileNotFoundError, ValueError, CheckpointError, RunWriteError) as err:
+        log.error("%s", err)  # the data, run, checkpoint or out= file named
         return 2
     for name, split in result["splits"].items():
         rollout = split.get("rollout", {}).get("median_rollout_s")
@@ -302,10 +310,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             f", median open-loop rollout {rollout:.3g} s" if rollout is not None else "",
         )
     text = json.dumps(result, indent=1)
-    if "out" in options:
-        Path(options["out"]).write_text(text)
-    else:
+    if out is None:
         print(text)
+        return 0
+    try:
+        atomic_write(out, lambda f: f.write(text.encode("utf-8")), keep_prev=False)
+    except RunWriteError as err:
+        log.error("%s", err)
+        return 2
     return 0
 
 

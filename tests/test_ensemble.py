@@ -290,7 +290,7 @@ def train_on_oscillator(seed: int, steps: int = 200, lr: float = 3e-3):
     return model, nll, first
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", range(5))
 def test_nll_training_is_stable_and_learns_the_oscillator(seed: int) -> None:
     """On noiseless data the learned variance shrinks (mean log-variance about -7.5), so a
     step that is large for the mean is amplified by 1 / variance: at lr 1e-2 (10 times the
@@ -312,6 +312,21 @@ def test_nll_training_is_stable_and_learns_the_oscillator(seed: int) -> None:
                 err = (value - true).square().mean()
                 no_change = (now - true).square().mean()
                 assert err < 0.02 * no_change, (propagation, key, err / no_change)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_nll_training_is_stable_with_deterministic_algorithms(threads: int) -> None:
+    """The same property under `torch.use_deterministic_algorithms(True)`, on one and on two
+    intra-op threads (other reduction orders, so other rounding)."""
+    previous = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
+    torch.set_num_threads(threads)
+    torch.use_deterministic_algorithms(True)
+    try:
+        _, nll, first = train_on_oscillator(0)
+    finally:
+        torch.set_num_threads(previous[0])
+        torch.use_deterministic_algorithms(previous[1])
+    assert max(nll[len(nll) // 2 :]) < first["nll"] - 1.0, (first["nll"], max(nll[100:]))
 
 
 def test_float64_matches_float32_and_sampling_adds_noise():

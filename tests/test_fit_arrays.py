@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import errno
 import importlib.util
 import json
 import os
@@ -203,6 +204,28 @@ def test_evaluate_on_another_file_from_the_command_line(fitted, arm2_data, tmp_p
     with pytest.raises(SystemExit) as bad_option:
         evaluate_main([str(fitted), "colour=red"])
     assert bad_option.value.code == 2
+
+
+def test_evaluate_out_that_cannot_be_written_is_exit_2_naming_it(
+    fitted, tmp_path, monkeypatch, caplog
+) -> None:
+    """out= under a file (no folder can be made there) fails before the work; a full disk at
+    the write names the file and leaves its earlier content."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    assert evaluate_main([str(fitted), f"out={blocker / 'eval.json'}"]) == 2
+    assert f"cannot write {blocker}" in caplog.text and "Traceback" not in caplog.text
+    out = tmp_path / "eval.json"
+    out.write_text("earlier")
+
+    def full(fd: int) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full)
+    caplog.clear()
+    assert evaluate_main([str(fitted), f"out={out}"]) == 2
+    assert f"cannot write {out}: No space left on device (errno 28)" in caplog.text
+    assert out.read_text() == "earlier"
 
 
 def test_component_errors_are_zero_for_the_true_parts(fitted, arm2_data) -> None:
