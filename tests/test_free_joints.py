@@ -217,9 +217,9 @@ def test_free_body_energy_conserved_without_gravity_rk4(tmp_path) -> None:
     q, qd = random_states(system, 4, seed=3)
     zero = torch.zeros_like(qd)
     e0 = dynamics.terms(q, qd).kinetic_energy
-    for _ in range(200):
+    for _ in range(50):  # 0.2 s; RK4's own drift: 1.7e-7
         s = integrate(
-            system.layout, lambda a, b: dynamics.forward_dynamics(a, b, zero), q, qd, 1e-3
+            system.layout, lambda a, b: dynamics.forward_dynamics(a, b, zero), q, qd, 4e-3
         )
         q, qd = s.q.detach(), s.qd.detach()
     drift = (dynamics.terms(q, qd).kinetic_energy - e0).abs() / e0

@@ -1,14 +1,13 @@
-"""End to end: `python -m mbrl_delan.train` on a tiny budget, SIGKILL + resume, config errors."""
+"""End to end: `python -m mbrl_delan.train` on a tiny budget, resume, config errors (SIGKILL and
+resume: tests/test_faults.py)."""
 
 from __future__ import annotations
 
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -128,7 +127,6 @@ def test_load_run_gives_the_train_runs_delan_and_evaluate_uses_it(finished_run, 
     from mbrl_delan.evaluate import evaluate_run
     from mbrl_delan.runs import load_run
     from mbrl_delan.systems.system import load_system
-    from mbrl_delan.training.checkpoint import load_checkpoint
 
     run = load_run(finished_run)
     assert run.kind == "train" and run.summary["env"] == "pendulum"
@@ -236,37 +234,6 @@ def test_humanoid_walk_oracle_is_ilqr_on_the_cheaper_physics() -> None:
     assert ilqr.frame_skip == 2 and ilqr.model.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER
     assert ilqr.model.opt.timestep == pytest.approx(parts.system.control_dt / 2)
     oracle.planner.close()
-
-
-@pytest.mark.heavy
-def test_sigkill_then_resume_continues_identically(finished_run: Path, tmp_path: Path) -> None:
-    """A `python -m` run killed mid-way and resumed matches the uninterrupted run record for
-    record (the replay buffer in memory; tests/test_faults.py kills memmap runs at ten
-    moments, in forked processes)."""
-    run_dir = tmp_path / "killed"
-    proc = train(run_dir, "budget.iterations=3", wait=False)
-    deadline = time.time() + 300
-    try:
-        while time.time() < deadline:
-            metrics = run_dir / "metrics.jsonl"
-            if metrics.is_file() and len(metrics.read_text().splitlines()) >= 2:
-                break
-            assert proc.poll() is None, "the run ended before it could be killed"
-            time.sleep(0.05)
-        proc.send_signal(signal.SIGKILL)
-    finally:
-        proc.wait()
-    state = load_checkpoint(run_dir / "checkpoint.pt", weights_only=False)
-    done = state["loop"]["counters"]["iteration"]
-    assert 1 <= done < 3, f"killed after iteration {done}"
-    out = train(run_dir, f"resume={run_dir}", wait=False)
-    assert out.wait(timeout=600) == 0
-    resumed, reference = records(run_dir), records(finished_run)
-    assert [r["iteration"] for r in resumed] == [1, 2, 3]
-    for a, b in zip(resumed, reference, strict=True):
-        assert a["env_steps"] == b["env_steps"]
-        assert a["train_return"] == pytest.approx(b["train_return"], rel=1e-6, abs=1e-9)
-        assert a["eval_return_mean"] == pytest.approx(b["eval_return_mean"], rel=1e-6, abs=1e-9)
 
 
 @pytest.mark.parametrize(
