@@ -10,8 +10,8 @@ first DIR; ``<DIR>/report`` when DIR is itself a run):
 * ``report.md`` and ``report.csv``: per group the seeds, n, mean and 95% confidence interval
   (Student t over seeds) of the final evaluation return and of the fraction of the oracle, the
   oracle return, the env steps to reach 50%, 80% and 90% of the oracle and the wall time;
-* ``returns.png``: evaluation return vs env steps per model x planner, mean with a 95% CI band,
-  the oracle as a dashed line, one panel per env;
+* ``returns.png``: one panel per env: the evaluation and on-policy returns vs env steps per
+  model x planner, mean with a 95% CI band, the oracle as a dashed line;
 * ``model_error.png``: the one-step and H-step model errors vs env steps, same layout.
 
 Runs without a readable ``summary.json`` are listed in ``report.md`` and on the log, with the
@@ -38,6 +38,7 @@ import yaml
 from omegaconf import OmegaConf
 from scipy import stats
 
+from mbrl_delan.figure_style import legend_below, page_figure, save_figure
 from mbrl_delan.sweep import CRASH_FILE, last_iteration, read_crash
 from mbrl_delan.training.recorder import METRICS_FILE, RUN_CONFIG, flat_config, read_metrics
 
@@ -58,7 +59,6 @@ ORACLE_FRACTION = 0.9
 REACH_FRACTIONS = (0.5, 0.8, ORACLE_FRACTION)  # the table's "env steps to x of the oracle"
 SCRATCH = "scratch"  # a run's start when its model did not start from a fit
 CONFIDENCE = 0.95
-MODEL_ERRORS = {"model_error_1step": "one-step error", "model_error_hstep": "H-step error"}
 
 REPORT_MD = "report.md"
 REPORT_CSV = "report.csv"
@@ -415,26 +415,34 @@ def group_label(group: Group) -> str:
     )
 
 
-def _draw_band(ax: Any, by_step: dict[int, list[float]], label: str) -> str:
-    """Mean line and 95% CI band (none where one seed); returns the line's colour."""
+def _draw_band(
+    ax: Any, by_step: dict[int, list[float]], color: str, label: str, style: str = "-"
+) -> None:
+    """Mean line and 95% CI band over seeds (no band where one seed) for a solid `style`,
+    the mean alone for another; "" for no legend entry."""
     steps = sorted(by_step)
     stat = [mean_ci(by_step[t]) for t in steps]
     mean = [m for m, _ in stat]
     half = [h or 0.0 for _, h in stat]
-    line = ax.plot(steps, mean, marker="o", ms=3, label=label)[0]
+    solid = style == "-"
+    marker = "o" if solid else ""
+    ax.plot(steps, mean, style, marker=marker, ms=3, color=color, label=label or "_nolegend_")
+    if not solid:
+        return
     low = [m - h for m, h in zip(mean, half, strict=True)]
     high = [m + h for m, h in zip(mean, half, strict=True)]
-    ax.fill_between(steps, low, high, color=line.get_color(), alpha=0.2, lw=0)
-    return line.get_color()
+    ax.fill_between(steps, low, high, color=color, alpha=0.15, lw=0)
 
 
-def _figure(n_rows: int, n_cols: int) -> tuple[Any, Any]:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+def _colours(groups: Iterable[Group]) -> dict[str, str]:
+    """One colour per group label, the same on every panel."""
+    labels = sorted({group_label(g) for g in groups})
+    return {label: f"C{i % 10}" for i, label in enumerate(labels)}
 
-    fig = Figure(figsize=(4.4 * n_cols, 3.4 * n_rows), layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig, fig.subplots(n_rows, n_cols, squeeze=False)
+
+def _seeds(summaries: list[dict[str, Any]], env: str) -> str:
+    seeds = sorted({int(s["seed"]) for s in summaries if s["env"] == env})
+    return ("seed " if len(seeds) == 1 else "seeds ") + ", ".join(map(str, seeds))
 
 
 def _oracle_planner(summary: dict[str, Any]) -> str:
@@ -457,76 +465,67 @@ def _oracles(summaries: list[dict[str, Any]], env: str) -> dict[str, float]:
     return {p: statistics.fmean(v) for p, v in sorted(by_planner.items()) if v}
 
 
-RETURN_ROWS = {
-    "eval_return_mean": "evaluation return",
-    "train_return": "on-policy episode return",
-}
+# (metric, line style, what the style means in the legend), per figure
+RETURN_LINES = (
+    ("eval_return_mean", "-", "evaluation return"),
+    ("train_return", ":", "on-policy episode return"),
+)
+ERROR_LINES = (
+    ("model_error_1step", "-", "one-step error"),
+    ("model_error_hstep", "--", "H-step error"),
+)
+
+
+def _panels(
+    summaries: list[dict[str, Any]], lines: tuple[tuple[str, str, str], ...], title: str
+) -> tuple[Any, list[str], dict[tuple[str, Group], dict[int, list[float]]], dict[str, str]]:
+    """A page-wide figure with one panel per env (task), the curves of `lines` per group,
+    the style key (what each line style means) in the legend, and the figure's title."""
+    by_metric = {key: curves(summaries, key) for key, _, _ in lines}
+    groups = {g for c in by_metric.values() for g in c}
+    envs = sorted({g[0] for g in groups}) or ["no runs"]
+    fig, axes = page_figure(0.6 + 2.7 * len(envs), len(envs), 1)
+    colours = _colours(groups)
+    for ax, env in zip(axes[:, 0], envs, strict=True):
+        for key, style, _ in lines:
+            first = key == lines[0][0]  # one legend entry per group, from its first line
+            for group in sorted(g for g in by_metric[key] if g[0] == env):
+                label = group_label(group)
+                _draw_band(ax, by_metric[key][group], colours[label], label if first else "", style)
+        ax.set(title=f"{env}, {_seeds(summaries, env)}", xlabel="env steps")
+    for _, style, meaning in lines:
+        axes[0, 0].plot([], [], style, color="0.4", label=meaning)
+    fig.suptitle(title)
+    return fig, envs, by_metric, colours
 
 
 def returns_figure(summaries: list[dict[str, Any]], path: Path) -> Path:
-    """Returns vs env steps, one column per env, one line per model x planner: the evaluation
-    return (top row) and the return of each round's on-policy training episode (bottom row,
-    logged every round, so it has a point per round even when evaluations are rare).
-
-    Mean and 95% CI band over seeds; the oracle of each planner (mean over its runs) is a
-    dashed grey line.
-    """
-    by_row = {key: curves(summaries, key) for key in RETURN_ROWS}
-    envs = sorted({g[0] for c in by_row.values() for g in c}) or ["no returns"]
-    fig, axes = _figure(len(RETURN_ROWS), len(envs))
-    for ax_row, (key, name) in zip(axes, RETURN_ROWS.items(), strict=True):
-        for ax, env in zip(ax_row, envs, strict=True):
-            _returns_panel(ax, by_row[key], summaries, env)
-            ax.set(title=env, xlabel="env steps", ylabel=name)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=150)
-    return path
-
-
-def _returns_panel(
-    ax: Any,
-    by_group: dict[Group, dict[int, list[float]]],
-    summaries: list[dict[str, Any]],
-    env: str,
-) -> None:
-    """One env's return curves (line and band per group) and its planners' oracle lines."""
-    for group in (g for g in sorted(by_group) if g[0] == env):
-        _draw_band(ax, by_group[group], group_label(group))
-    for i, (planner, oracle) in enumerate(_oracles(summaries, env).items()):
-        grey = str(0.3 * (i % 3))  # black, dark grey, light grey, black, ...
-        ax.axhline(oracle, color=grey, ls="--", lw=1.2, label=f"oracle: {planner} on MuJoCo")
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=7)
-
-
-def _error_panel(ax: Any, by_group: dict[Group, dict[int, list[float]]], env: str) -> None:
-    """One model-error metric of one env: a line and band per group, log axis when all > 0."""
-    groups = [g for g in sorted(by_group) if g[0] == env]
-    for group in groups:
-        _draw_band(ax, by_group[group], group_label(group))
-    values = [v for g in groups for vs in by_group[g].values() for v in vs]
-    if values and min(values) > 0:
-        ax.set_yscale("log")
-    if groups:
-        ax.legend(fontsize=7)
+    """Returns vs env steps, one panel per env: per model x planner the evaluation return
+    (solid) and each round's on-policy episode return (dotted, logged every round), mean and
+    95% CI band over seeds; each planner's oracle (mean over its runs) a dashed grey line."""
+    fig, envs, _, _ = _panels(summaries, RETURN_LINES, "Return vs env steps (mean, 95% CI)")
+    for ax, env in zip(fig.axes, envs, strict=True):
+        for i, (planner, oracle) in enumerate(_oracles(summaries, env).items()):
+            grey = str(0.3 * (i % 3))
+            ax.axhline(oracle, color=grey, ls="--", lw=1.2, label=f"oracle: {planner} on MuJoCo")
+        ax.set_ylabel("return")
+    legend_below(fig)
+    return save_figure(fig, path)
 
 
 def model_error_figure(summaries: list[dict[str, Any]], path: Path) -> Path:
-    """Model errors vs env steps: one row per metric of ``MODEL_ERRORS``, one column per env.
-
-    Mean and 95% CI band over seeds per model x planner (see ``docs/metrics.md`` for the
-    errors' definitions).
-    """
-    by_metric = {key: curves(summaries, key) for key in MODEL_ERRORS}
-    envs = sorted({g[0] for c in by_metric.values() for g in c}) or ["no model errors"]
-    fig, axes = _figure(len(MODEL_ERRORS), len(envs))
-    for ax_row, (key, name) in zip(axes, MODEL_ERRORS.items(), strict=True):
-        for ax, env in zip(ax_row, envs, strict=True):
-            _error_panel(ax, by_metric[key], env)
-            ax.set(title=f"{env}: {name}", xlabel="env steps", ylabel=key)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=150)
-    return path
+    """Model errors vs env steps, one panel per env: per model x planner the one-step
+    (solid) and H-step (dashed) errors, mean and 95% CI band over seeds, log axis (see
+    ``docs/metrics.md`` for the errors' definitions)."""
+    fig, envs, by_metric, _ = _panels(summaries, ERROR_LINES, "Model error vs env steps")
+    for ax, env in zip(fig.axes, envs, strict=True):
+        curves_of_env = [by for c in by_metric.values() for g, by in c.items() if g[0] == env]
+        values = [v for by in curves_of_env for vs in by.values() for v in vs]
+        if values and min(values) > 0:
+            ax.set_yscale("log")
+        ax.set_ylabel("normalised RMS error")
+    legend_below(fig)
+    return save_figure(fig, path)
 
 
 # --- entry point --------------------------------------------------------------------------

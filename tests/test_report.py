@@ -265,3 +265,40 @@ def test_the_oracle_line_names_the_runs_oracle_planner(tmp_path: Path) -> None:
     ]
     assert _oracles(runs, "walk") == {"iLQR": 600.0}
     assert _oracles(runs, "stand") == {"mppi": 900.0}
+
+
+def test_report_figures_have_a_panel_per_task_and_page_width_type(tmp_path: Path) -> None:
+    """Two envs give two stacked panels (the figure grows in height, not width); every text
+    is at least the style's minimum, written into the PNG with the figure's width."""
+    from PIL import Image
+
+    from mbrl_delan.figure_style import FONT_KEY, MIN_FONT_PT, PAGE_WIDTH_IN, WIDTH_KEY
+    from mbrl_delan.report import model_error_figure, returns_figure
+
+    for env in ("pendulum", "cartpole"):
+        for seed in (0, 1):
+            run = make_run(tmp_path, f"{env}{seed}", {**summary(seed, 8.0, 10.0), "env": env})
+            write_metrics(run, {200: 5.0 + seed, 400: 8.0}, 10.0)
+    runs, _ = find_runs([tmp_path])
+    one = returns_figure([r for r in runs if r["env"] == "pendulum"], tmp_path / "one.png")
+    both = returns_figure(runs, tmp_path / "r.png"), model_error_figure(runs, tmp_path / "e.png")
+    for path in both:
+        image = Image.open(path)
+        assert float(image.info[FONT_KEY]) >= MIN_FONT_PT
+        assert float(image.info[WIDTH_KEY]) == PAGE_WIDTH_IN
+        assert image.width == Image.open(one).width and image.height > Image.open(one).height
+
+
+def test_the_figure_legend_lies_outside_every_panel() -> None:
+    from mbrl_delan.figure_style import legend_below, page_figure
+
+    fig, axes = page_figure(4.0, 2, 1)
+    for ax in axes[:, 0]:
+        ax.plot([0, 1], [0, 1], label="delan + mppi")
+        ax.plot([0, 1], [1, 0], label="ensemble + mppi")
+    legend_below(fig)
+    fig.canvas.draw()
+    (legend,) = fig.legends
+    assert [t.get_text() for t in legend.get_texts()] == ["delan + mppi", "ensemble + mppi"]
+    box = legend.get_window_extent()
+    assert all(not box.overlaps(ax.get_window_extent()) for ax in axes[:, 0])

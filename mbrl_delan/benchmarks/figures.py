@@ -19,10 +19,8 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-
 from mbrl_delan.benchmarks.records import read_records
+from mbrl_delan.figure_style import legend_below, page_figure, save_figure
 
 log = logging.getLogger(__name__)
 
@@ -60,8 +58,8 @@ def plot_error_curves(
 ) -> Path:
     """Draw the curves (log y) into the PNG at `path`: the mean, and the min-max band where a
     horizon has several values."""
-    fig = Figure(figsize=(6.0, 4.0))
-    ax = fig.add_subplot()
+    fig, axes = page_figure(4.4)
+    ax = axes[0, 0]
     for label, points in curves.items():
         h = [p[0] for p in points]
         runs = max(len(v) for _, v in points)
@@ -73,14 +71,10 @@ def plot_error_curves(
     ax.set_yscale("log")
     ax.set_xlabel("horizon (control steps, open loop)")
     ax.set_ylabel("rollout_error (normalised RMS)")
-    ax.set_title(title, fontsize=10)
+    fig.suptitle(title)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    FigureCanvasAgg(fig)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    return path
+    legend_below(fig)
+    return save_figure(fig, path)
 
 
 def main(argv: list[str] | None = None) -> int:

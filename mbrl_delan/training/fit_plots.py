@@ -12,8 +12,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
+from mbrl_delan.figure_style import legend_below, page_figure, save_figure
 
 LOSS_CURVES_PNG = "loss_curves.png"
 EPOCH = "epoch"
@@ -48,13 +47,13 @@ def plot_loss_curves(
     metrics: tuple[str, ...] = ("mse", "mse_si"),
     title: str | None = None,
 ) -> Path | None:
-    """One panel per metric; every run (label -> metrics records) and split on each panel.
+    """One panel per metric, stacked; every run (label -> metrics records) and split on each
+    panel, one legend below.
 
     Returns the PNG's path, or None when no run has any curve.
     """
-    fig = Figure(figsize=(5.2 * len(metrics), 4.0), layout="constrained")
-    FigureCanvasAgg(fig)
-    axes = fig.subplots(1, len(metrics), squeeze=False)[0]
+    fig, panels = page_figure(0.8 + 3.0 * len(metrics), len(metrics), 1)
+    axes = panels[:, 0]
     drawn = 0
     colors = [f"C{i}" for i in range(10)]
     for ax, metric in zip(axes, metrics, strict=True):
@@ -76,12 +75,9 @@ def plot_loss_curves(
         ax.set_xlabel("epoch")
         ax.set_ylabel(METRIC_LABELS.get(metric, metric))
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
     if not drawn:
         return None
     if title:
         fig.suptitle(title)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=130)
-    return path
+    legend_below(fig, ncols=1)
+    return save_figure(fig, path)

@@ -8,9 +8,8 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
+from mbrl_delan.figure_style import legend_below, page_figure, save_figure
 from mbrl_delan.training.recorder import METRICS_FILE, RUN_CONFIG, read_metrics
 
 log = logging.getLogger(__name__)
@@ -53,12 +52,6 @@ def _band(records: list[dict[str, Any]]) -> tuple[list[float], list[float], list
     return [x for x, _, _ in rows], [m - s for _, m, s in rows], [m + s for _, m, s in rows]
 
 
-def _save(fig: Figure, path: Path) -> Path:
-    FigureCanvasAgg(fig)
-    fig.savefig(path, dpi=120)
-    return path
-
-
 def run_title(run_dir: Path) -> str:
     """``env / model / planner, seed s`` from the run's ``config.yaml`` ("" without one)."""
     try:
@@ -75,8 +68,8 @@ def _plot_returns(records: list[dict[str, Any]], path: Path, title: str) -> Path
     oracle = [r[ORACLE_RETURN_MEAN] for r in records if _is_number(r.get(ORACLE_RETURN_MEAN))]
     if not eval_x and not train_x:
         return None
-    fig = Figure(figsize=(7.5, 4), layout="constrained")
-    ax = fig.add_subplot()
+    fig, axes = page_figure(4.2)
+    ax = axes[0, 0]
     if eval_x:
         ax.plot(eval_x, eval_y, marker="o", label="evaluation return")
         band_x, low, high = _band(records)
@@ -86,9 +79,9 @@ def _plot_returns(records: list[dict[str, Any]], path: Path, title: str) -> Path
         ax.plot(train_x, train_y, alpha=0.6, linestyle="--", label="on-policy episode return")
     if oracle:
         ax.axhline(oracle[-1], color="black", linestyle=":", label="oracle return")
-    ax.set(xlabel="env steps", ylabel="return", title=f"returns: {title}" if title else "returns")
-    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8)  # outside the data
-    return _save(fig, path)
+    ax.set(xlabel="env steps", ylabel="return", title=f"Returns: {title}" if title else "Returns")
+    legend_below(fig)
+    return save_figure(fig, path)
 
 
 def _plot_model_error(records: list[dict[str, Any]], path: Path, title: str) -> Path | None:
@@ -99,15 +92,15 @@ def _plot_model_error(records: list[dict[str, Any]], path: Path, title: str) -> 
     curves = {name: xy for name, xy in curves.items() if xy[0]}
     if not curves:
         return None
-    fig = Figure(figsize=(7.5, 4), layout="constrained")
-    ax = fig.add_subplot()
+    fig, axes = page_figure(4.0)
+    ax = axes[0, 0]
     for name, (x, y) in curves.items():
         ax.plot(x, y, marker="o", label=name)
     ax.set_yscale("log")
-    name = f"model error: {title}" if title else "model error"
-    ax.set(xlabel="env steps", ylabel="model error", title=name)
-    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8)  # outside the data
-    return _save(fig, path)
+    name = f"Model error: {title}" if title else "Model error"
+    ax.set(xlabel="env steps", ylabel="normalised RMS error", title=name)
+    legend_below(fig)
+    return save_figure(fig, path)
 
 
 def plot_run(run_dir: Path) -> list[Path]:
