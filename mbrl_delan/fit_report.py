@@ -151,7 +151,16 @@ def figure(runs: list[dict[str, Any]], path: Path) -> Path | None:
     from mbrl_delan.training.fit_plots import plot_loss_curves
 
     curves = {_label(s, runs): read_metrics(Path(s["run_dir"]) / METRICS_FILE) for s in runs}
-    return plot_loss_curves(curves, path, title="Inverse dynamics from CMU mocap")
+    return plot_loss_curves(curves, path, title=_title(runs))
+
+
+def _title(runs: list[dict[str, Any]]) -> str:
+    """``Inverse dynamics, <data>: <models>, seed(s) <seeds>`` of the runs drawn."""
+    data = ", ".join(sorted({str(s.get("data")) for s in runs}))
+    models = ", ".join(sorted({str(s["model"]) for s in runs}))
+    seeds = sorted({int(s["seed"]) for s in runs if s.get("seed") is not None})
+    seed = ("seed " if len(seeds) == 1 else "seeds ") + ", ".join(map(str, seeds))
+    return f"Inverse dynamics, {data}: {models}, {seed}"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -22,9 +22,9 @@ SPLIT_LABELS = {
     "val_time": "val: held-out segments",
     "val_clip": "val: held-out clips",
 }
-METRIC_LABELS = {
-    "mse": "torque MSE (normalised per DoF)",
-    "mse_si": "torque MSE (N m$^2$, N$^2$ for the root force)",
+METRIC_LABELS = {  # (panel title, y label)
+    "mse": ("torque MSE, normalised per DoF", "MSE"),
+    "mse_si": ("torque MSE in SI units (N$^2$m$^2$; N$^2$ for the root force)", "MSE"),
 }
 
 
@@ -73,11 +73,12 @@ def plot_loss_curves(
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("epoch")
-        ax.set_ylabel(METRIC_LABELS.get(metric, metric))
+        panel, ylabel = METRIC_LABELS.get(metric, (metric, metric))
+        ax.set(title=panel, ylabel=ylabel)
         ax.grid(True, which="both", alpha=0.3)
     if not drawn:
         return None
     if title:
         fig.suptitle(title)
-    legend_below(fig, ncols=1)
+    legend_below(fig, ncols=2)
     return save_figure(fig, path)
