@@ -267,6 +267,7 @@ class BudgetConfig:
     final_eval_episodes: int = rule(low=0)
     oracle_episodes: int = rule(low=0)
     oracle_planner: str = rule(choices=("same", "ilqr"))
+    collect_envs: int = rule(1, low=1)  # episodes collected at once, one per env
 
 
 @dataclass

@@ -11,6 +11,7 @@ import json
 import logging
 import shutil
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.data import TensorDictReplayBuffer
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, SerialEnv
 from tqdm import tqdm
 
 from mbrl_delan.accelerate.compile import compile_fit
@@ -222,7 +223,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         episode_len=cfg.env.episode_len,
         task_options=_task_options(cfg),
     )
-    env = make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
+    env = _collect_env(cfg, env_kw)
     eval_env = make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
     model = build_world_model(cfg, system, device, dtype)
     optimizer = torch.optim.Adam(
@@ -231,7 +232,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
     model_gen = torch.Generator(device=device).manual_seed(cfg.seed + 3)
     policy = build_policy(cfg, system, task, model, model_gen)
     oracle = build_oracle(cfg, system, task)
-    buffer = _replay_buffer(cfg, run_dir, env, device)
+    buffer = _replay_buffer(cfg, run_dir, eval_env, device)
     fit_cfg = build_fit_config(cfg)
     loop = MBRLLoop(
         env,
@@ -249,6 +250,17 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         keep_eval_rollouts=cfg.video_episodes if cfg.video else 0,
     )
     return loop, oracle
+
+
+def _collect_env(cfg: DictConfig, env_kw: dict[str, Any]) -> EnvBase:
+    """The env the loop collects with: one real env, or `budget.collect_envs` of them as
+    TorchRL's `SerialEnv` (each round then collects one episode per env)."""
+    n = cfg.budget.collect_envs
+    if n == 1:
+        return make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
+    env = SerialEnv(n, partial(make_real_env, cfg.env.name, **env_kw))
+    env.set_seed(cfg.seed)
+    return env
 
 
 MEMMAP_DIR = "buffer"  # <run dir>/buffer: the memmap of `buffer.memmap=true`
@@ -305,18 +317,18 @@ def _check_video(cfg: DictConfig) -> None:
 
 
 def _record_episode(video: VideoRecorder, path: Path, rollout: TensorDictBase, task: Task) -> Path:
-    """One episode's MP4; a tracking task's shows its reference motion beside it."""
+    """One episode's MP4; a tracking task's shows its reference pose as a translucent ghost
+    in each frame."""
     q, qd = rollout_states(rollout)
     overlays = step_reward_overlays(rollout)
-    if isinstance(task, MotionTracking):
-        return video.record_beside(path, q, qd, task.reference_poses(q.shape[0]), overlays)
-    return video.record(path, q, qd, overlays)
+    ghost = task.reference_poses(q.shape[0]) if isinstance(task, MotionTracking) else None
+    return video.record(path, q, qd, overlays, ghost)
 
 
 def _write_videos(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, recorder: Recorder) -> None:
     """Render the kept episodes of this round's evaluation to ``<run dir>/videos`` and wandb,
     and at the final one the oracle's (``oracle_ep<j>.mp4``); a tracking task's reference
-    motion is drawn beside each episode.
+    pose is drawn in each frame as a translucent ghost.
 
     Only the final evaluation is rendered, or every one with `video_every_eval=true`. Runs after
     the round's checkpoint: a failed video only warns and never leaves a partial MP4.

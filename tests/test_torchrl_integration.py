@@ -75,6 +75,35 @@ def test_planner_policy_collects_from_a_serial_env_with_one_plan_per_env() -> No
     torch.testing.assert_close(td[0][keys.NEXT_Q], alone[keys.NEXT_Q])
 
 
+def test_envs_that_end_at_different_steps_give_one_whole_episode_each(monkeypatch) -> None:
+    """SerialEnv of episodes of 5 and 8 steps: the rollout runs until both end (TorchRL's
+    partial steps), the finished env is not planned for, and `split_episodes` cuts each
+    env's episode at its own end."""
+    from functools import partial
+
+    from mbrl_delan.training.loop import run_episode, split_episodes
+
+    parts = make_env_parts("pendulum")
+    oracle = mujoco_objective_factory(parts.system, parts.task, nthread=1)
+    batched = SerialEnv(2, [partial(make_real_env, "pendulum", episode_len=n) for n in (5, 8)])
+    policy = pendulum_policy(oracle)
+    acted: list[int] = []  # the sub-policies asked for an action, by identity
+    act = PlannerPolicy.act
+    monkeypatch.setattr(
+        PlannerPolicy, "act", lambda p, q, qd: (acted.append(id(p)), act(p, q, qd))[1]
+    )
+    rollout = run_episode(batched, policy, seed=0, max_steps=20)
+    batched.close()
+    assert rollout.shape == (2, 8)
+    episodes = split_episodes(rollout)
+    assert [e.shape[0] for e in episodes] == [5, 8]
+    for episode in episodes:
+        done = episode[keys.NEXT_DONE].reshape(-1)
+        assert done[-1] and not done[:-1].any()
+    first, second = (id(p) for p in policy._per_env)
+    assert acted.count(first) == 5 and acted.count(second) == 8
+
+
 def test_an_env_without_q_and_qd_gets_their_names() -> None:
     from tensordict import TensorDict
 

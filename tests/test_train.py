@@ -17,6 +17,7 @@ import yaml
 from hydra import compose, initialize_config_dir
 from tiny import TINY_TRAIN
 
+from mbrl_delan import keys
 from mbrl_delan.training.checkpoint import load_checkpoint
 from mbrl_delan.training.loop import Schedule
 
@@ -345,3 +346,23 @@ def test_new_run_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was(
     assert run_files(run_dir) == before  # no crash.json, and Hydra's record left as it was
     assert "metrics.jsonl" in before and "checkpoint.pt" in before
     assert ".hydra/overrides.yaml" in before
+
+
+def test_collecting_with_two_envs_gives_one_episode_per_env_each_round(
+    tmp_path: Path, run_main
+) -> None:
+    """`budget.collect_envs=2`: the warm-up and each round collect two whole episodes (of 15
+    steps), numbered in the buffer, and the round's metrics are their means."""
+    from mbrl_delan.train import main
+
+    run_dir = tmp_path / "two_envs"
+    code, text = run_main(
+        main, *TINY, "budget.iterations=2", "budget.collect_envs=2", f"hydra.run.dir={run_dir}"
+    )
+    assert code == 0, text
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["episodes"] == 6 and summary["env_steps"] == 6 * 15
+    assert [r["env_steps"] for r in records(run_dir)] == [60, 90]
+    state = load_checkpoint(run_dir / "checkpoint.pt", weights_only=False)
+    episode = state["loop"]["buffer"]["filled"][keys.EPISODE].reshape(-1)
+    assert torch.equal(torch.bincount(episode), torch.full((6,), 15))

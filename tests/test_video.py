@@ -111,24 +111,28 @@ def test_tracking_camera_follows_the_root(backend: str) -> None:
     assert np.abs(fixed[1].astype(int) - fixed[0]).mean() > 1.0
 
 
-def test_record_beside_puts_the_reference_right_of_the_episode(
+def test_a_reference_pose_is_drawn_as_a_translucent_ghost_in_the_frame(
     backend: str, pendulum: mujoco.MjModel, tmp_path: Path
 ) -> None:
-    q = torch.linspace(0.0, 1.0, 4, dtype=torch.float64)[:, None]  # (T, 1)
-    reference = torch.linspace(2.0, 3.0, 4, dtype=torch.float64)[:, None]
-    written = []
+    """The ghost changes the frame where the pendulum at the reference's angle would be (and
+    not elsewhere), in blue; `record` passes one ghost pose per frame."""
+    still = np.zeros(1)
     with VideoRecorder(pendulum, W, H, fps=20.0, backend=backend) as rec:
+        plain = rec.frame_from_state(np.zeros(1), still).astype(int)
+        ghosted = rec.frame_from_state(np.zeros(1), still, ghost_q=np.array([2.0])).astype(int)
+        there = rec.frame_from_state(np.array([2.0]), still).astype(int)
+        written = []
         rec.write = lambda path, frames: written.append(frames) or Path(path)  # type: ignore[method-assign]
-        rec.record_beside(tmp_path / "beside.mp4", q, torch.zeros_like(q), reference)
-        expected = [
-            (rec.frame_from_state(a, np.zeros(1)), rec.frame_from_state(b, np.zeros(1)))
-            for a, b in zip(q.numpy(), reference.numpy(), strict=True)
-        ]
+        q = torch.zeros(3, 1, dtype=torch.float64)
+        rec.record(tmp_path / "ghost.mp4", q, q, ghost_q=torch.full((3, 1), 2.0))
+    changed = np.abs(ghosted - plain).sum(-1) > 30  # (H, W)
+    moved = np.abs(there - plain).sum(-1) > 30  # where the pendulum at 2 rad differs
+    assert changed.sum() > 20
+    assert (changed & moved).sum() > 0.8 * changed.sum()  # the ghost lies where that pose is
+    delta = (ghosted - plain)[changed]
+    assert delta[:, 2].mean() > delta[:, 0].mean()  # bluer than before
     (frames,) = written
-    assert frames.shape == (4, H, 2 * W, 3)
-    for frame, (left, right) in zip(frames, expected, strict=True):
-        np.testing.assert_array_equal(frame[:, :W], left)
-        np.testing.assert_array_equal(frame[:, W:], right)
+    np.testing.assert_array_equal(frames[0].astype(int), ghosted)
 
 
 def test_mp4_round_trip(backend: str, pendulum: mujoco.MjModel, tmp_path: Path) -> None:

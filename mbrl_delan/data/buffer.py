@@ -151,9 +151,8 @@ def buffer_state(buffer: TensorDictReplayBuffer) -> dict[str, Any]:
 
 
 def load_buffer_state(buffer: TensorDictReplayBuffer, state: dict[str, Any]) -> None:
-    """Restore an empty `buffer` from `buffer_state` (or from TorchRL's `state_dict()`, as
-    checkpoints before session 14 hold it), onto the buffer's own device whichever device
-    saved it."""
+    """Restore an empty `buffer` from `buffer_state` (or from TorchRL's `state_dict()`, which
+    older checkpoints hold), onto the buffer's own device whichever device saved it."""
     device = storage_device(buffer)
     if _FILLED_KEY not in state:  # TorchRL's state_dict: move only the stored transitions
         stored = state_to_device(state[_STORAGE_STATE_KEY], device)

@@ -184,11 +184,17 @@ class PlannerPolicy(TensorDictModuleBase):
         return tensordict
 
     def _forward_batched(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """One action per env of a batched tensordict (*B): each env's own policy."""
+        """One action per env of a batched tensordict (*B): each env's own policy. An env
+        that TorchRL's partial steps leave out (``_step`` False: its episode is over) is not
+        planned for; its action is zeros, which the env does not take."""
         flat = tensordict.reshape(-1)
         if len(self._per_env) != flat.shape[0]:
             self._per_env = [self._for_env(i) for i in range(flat.shape[0])]
-        actions = [policy(flat[i])[keys.ACTION] for i, policy in enumerate(self._per_env)]
+        step = flat.get(keys.PARTIAL_STEP, None)
+        active = [True] * flat.shape[0] if step is None else step.reshape(-1).tolist()
+        planned = {i: p(flat[i])[keys.ACTION] for i, p in enumerate(self._per_env) if active[i]}
+        idle = torch.zeros_like(next(iter(planned.values())))
+        actions = [planned.get(i, idle) for i in range(flat.shape[0])]
         action = torch.stack(actions).reshape(*tensordict.batch_size, -1)  # (*B, nu)
         tensordict.set(keys.ACTION, action)
         return tensordict

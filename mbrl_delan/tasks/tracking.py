@@ -142,8 +142,8 @@ class MotionTracking(Task):
         return root, ee - root.unsqueeze(-2)
 
     def reference_poses(self, states: int) -> Tensor:
-        """The reference beside an episode of `states` states (its start, then one per
-        step): ref_q[min(t, T)]. (states, nq)"""
+        """The reference pose of each of an episode's `states` states (its start, then one
+        per step): ref_q[min(t, T)]. (states, nq)"""
         index = torch.arange(states).clamp(max=self.ref_q.shape[0] - 1)
         return self.ref_q[index]
 

@@ -52,7 +52,7 @@ class UniformPolicy(TensorDictModuleBase):
         self.generator = torch.Generator().manual_seed(seed)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        u = torch.rand(self.low.shape, generator=self.generator)
+        u = torch.rand((*tensordict.batch_size, *self.low.shape), generator=self.generator)
         action = self.low + (self.high - self.low) * u
         return tensordict.set(keys.ACTION, action.to(tensordict.get(keys.Q).dtype))
 
@@ -70,11 +70,28 @@ class EpisodePolicy(Protocol):
 
 
 def run_episode(env: EnvBase, policy: EpisodePolicy, seed: int, max_steps: int) -> TensorDict:
-    """One episode from a reset seeded with `seed`. -> rollout TensorDict (T,)."""
+    """One episode from a reset seeded with `seed` (a batched env: one per env, until every
+    env is done). -> rollout TensorDict (T,), or (n, T) for n envs (`split_episodes`)."""
     env.set_seed(seed)
     policy.reset()
+    batched = len(env.batch_size) > 0
     with torch.inference_mode():
-        return env.rollout(max_steps, policy=policy, break_when_any_done=True)
+        return env.rollout(
+            max_steps, policy=policy, break_when_any_done=not batched, break_when_all_done=batched
+        )
+
+
+def split_episodes(rollout: TensorDictBase) -> list[TensorDictBase]:
+    """The episodes of a rollout: itself for a (T,) one; for a batched env's (n, T), row i up
+    to its first done step (TorchRL's partial steps repeat a finished env's last step)."""
+    if rollout.ndim == 1:
+        return [rollout]
+    done = rollout.get(keys.NEXT_DONE).reshape(rollout.shape)  # (n, T)
+    episodes = []
+    for row, row_done in zip(rollout.unbind(0), done.unbind(0), strict=True):
+        ends = row_done.nonzero()
+        episodes.append(row[: int(ends[0]) + 1] if len(ends) else row)
+    return episodes
 
 
 def _position_std(system: System, q: Tensor) -> Tensor:
@@ -167,6 +184,10 @@ class Schedule:
 
 def _nothing(*_: Any) -> None:
     return None
+
+
+def _mean(values: list[float]) -> float:
+    return sum(values) / len(values)
 
 
 @dataclass
@@ -290,19 +311,25 @@ class MBRLLoop:
         finally:
             self.counters.wall_time_s += time.perf_counter() - start
 
-    def _collect(self, policy: EpisodePolicy) -> TensorDict:
+    def _collect(self, policy: EpisodePolicy) -> list[TensorDictBase]:
+        """One episode per env of `self.env` into the buffer. -> the episodes, each (T_i,)."""
         rollout = run_episode(
             self.env, policy, self.seed * 10_000 + self.counters.episodes, self.episode_len
         )
-        transitions = episode_transitions(rollout, first_episode=self.counters.episodes)
-        add_transitions(self.buffer, transitions)
-        self.counters.episodes += 1
-        self.counters.env_steps += transitions.shape[0]
-        return rollout
+        episodes = split_episodes(rollout)
+        for episode in episodes:
+            transitions = episode_transitions(episode, first_episode=self.counters.episodes)
+            add_transitions(self.buffer, transitions)
+            self.counters.episodes += 1
+            self.counters.env_steps += transitions.shape[0]
+        return episodes
 
     def collect_random(self, episodes: int) -> None:
-        for _ in range(episodes):
-            self._collect(self.random_policy)
+        """At least `episodes` episodes of uniformly random actions (a batched env collects
+        one per env at a time)."""
+        collected = 0
+        while collected < episodes:
+            collected += len(self._collect(self.random_policy))
 
     def fit(self) -> FitReport:
         data = all_transitions(self.buffer).to(next(self.model.parameters()).device)
@@ -337,17 +364,17 @@ class MBRLLoop:
 
     def _round(self, schedule: Schedule) -> dict[str, Any]:
         self.last_evaluation = None
-        rollout = self._collect(self.policy)
+        episodes = self._collect(self.policy)
         eval_episodes = schedule.evaluations_at(
             self.counters.iteration + 1, self.counters.env_steps
         )
-        err = model_error(self.model, self.system, rollout, self.error_horizon)
+        errors = [model_error(self.model, self.system, e, self.error_horizon) for e in episodes]
         report = self.fit()
-        metrics: dict[str, Any] = {
-            "train_return": episode_return(rollout),
-            "model_error_1step": err.one_step,
-            "model_error_hstep": err.multi_step,
-            "model_error_horizon": err.horizon,
+        metrics: dict[str, Any] = {  # the means over the round's episodes (one per env)
+            "train_return": _mean([episode_return(e) for e in episodes]),
+            "model_error_1step": _mean([e.one_step for e in errors]),
+            "model_error_hstep": _mean([e.multi_step for e in errors]),
+            "model_error_horizon": min(e.horizon for e in errors),
             "fit_epochs": report.epochs_run,
             "fit_train_loss": report.train_loss[-1] if report.train_loss else float("nan"),
             "fit_val_loss": report.best_val_loss,

@@ -138,6 +138,7 @@ def root_travels(types: Sequence[int]) -> bool:
 Overlay = tuple[str, str]  # the text of a frame's corner: (titles, values), one line each
 MARKER_RADIUS = 0.05  # a task marker's sphere, as a fraction of the model's extent
 MARKER_RGBA = np.array([0.1, 0.9, 0.2, 1.0], dtype=np.float32)  # green
+GHOST_RGBA = np.array([0.3, 0.6, 1.0, 0.4], dtype=np.float32)  # a reference pose: translucent blue
 
 
 class VideoRecorder:
@@ -202,6 +203,7 @@ class VideoRecorder:
             self.model.vis.headlight.ambient[:] = 0.35
             self.model.vis.headlight.diffuse[:] = 0.75
         self.data = mujoco.MjData(self.model)
+        self._ghost_data = mujoco.MjData(self.model)  # a reference pose drawn translucent
         self.camera = self._camera(camera, azimuth, elevation, lookat, distance)
         if track_root and self.camera.type == mujoco.mjtCamera.mjCAMERA_FREE:
             self.camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
@@ -276,9 +278,15 @@ class VideoRecorder:
         aspect = min(1.0, self.width / self.height)  # fovy is vertical: narrow frames need room
         return root, radius / (np.tan(half_fov) * aspect)
 
-    def frame_from_data(self, data: mujoco.MjData, overlay: Overlay | None = None) -> np.ndarray:
+    def frame_from_data(
+        self,
+        data: mujoco.MjData,
+        overlay: Overlay | None = None,
+        ghost: mujoco.MjData | None = None,
+    ) -> np.ndarray:
         """The picture of `data` (kinematics must be current), uint8 (height, width, 3);
-        `overlay` (titles, values): two columns of text in the top-left corner."""
+        `overlay` (titles, values): two columns of text in the top-left corner; `ghost`: a
+        second pose of the same model (kinematics current) drawn translucent in the frame."""
         if self._context is None:
             raise RuntimeError("VideoRecorder used after close()")
         self._gl.make_current()
@@ -291,6 +299,8 @@ class VideoRecorder:
             mujoco.mjtCatBit.mjCAT_ALL,
             self._scene,
         )
+        if ghost is not None:
+            self._add_ghost(ghost)
         self._add_markers()
         mujoco.mjr_render(self._viewport, self._scene, self._context)
         if overlay is not None:
@@ -299,6 +309,20 @@ class VideoRecorder:
         pixels = np.empty((self.height, self.width, 3), dtype=np.uint8)
         mujoco.mjr_readPixels(pixels, None, self._viewport, self._context)
         return np.ascontiguousarray(pixels[::-1])  # OpenGL's rows run bottom-up
+
+    def _add_ghost(self, ghost: mujoco.MjData) -> None:
+        """Append the moving bodies' geoms of the `ghost` pose to the scene, translucent."""
+        first = self._scene.ngeom
+        mujoco.mjv_addGeoms(
+            self.model,
+            ghost,
+            self._option,
+            self._perturb,
+            mujoco.mjtCatBit.mjCAT_DYNAMIC,
+            self._scene,
+        )
+        for i in range(first, self._scene.ngeom):
+            self._scene.geoms[i].rgba[:] = GHOST_RGBA
 
     def _add_markers(self) -> None:
         """Append a sphere per marker to the scene (after `mjv_updateScene` filled it)."""
@@ -317,31 +341,47 @@ class VideoRecorder:
             self._scene.ngeom += 1
 
     def frame_from_state(
-        self, q: Tensor | np.ndarray, qd: Tensor | np.ndarray, overlay: Overlay | None = None
+        self,
+        q: Tensor | np.ndarray,
+        qd: Tensor | np.ndarray,
+        overlay: Overlay | None = None,
+        ghost_q: Tensor | np.ndarray | None = None,
     ) -> np.ndarray:
-        """The picture of the state (q (nq,), qd (nv,)), uint8 (height, width, 3)."""
+        """The picture of the state (q (nq,), qd (nv,)), uint8 (height, width, 3), with the
+        pose `ghost_q` (nq,) drawn translucent in the same frame (a reference to follow)."""
         self.data.qpos[:] = _numpy(q)
         self.data.qvel[:] = _numpy(qd)
         mujoco.mj_forward(self.model, self.data)
-        return self.frame_from_data(self.data, overlay)
+        ghost = None
+        if ghost_q is not None:
+            self._ghost_data.qpos[:] = _numpy(ghost_q)
+            mujoco.mj_kinematics(self.model, self._ghost_data)
+            ghost = self._ghost_data
+        return self.frame_from_data(self.data, overlay, ghost)
 
     def frames_from_states(
         self,
         q: Tensor | np.ndarray,
         qd: Tensor | np.ndarray,
         overlays: Sequence[Overlay] | None = None,
+        ghost_q: Tensor | np.ndarray | None = None,
     ) -> np.ndarray:
         """Pictures of a state sequence (q (T, nq), qd (T, nv)), uint8 (T, height, width, 3);
-        `overlays`: one (titles, values) text per frame (`step_reward_overlays`)."""
+        `overlays`: one (titles, values) text per frame (`step_reward_overlays`); `ghost_q`:
+        one pose (T, nq) per frame drawn translucent (a tracking task's reference)."""
         q_np, qd_np = _numpy(q), _numpy(qd)
         if q_np.ndim != 2 or qd_np.ndim != 2 or q_np.shape[0] != qd_np.shape[0]:
             raise ValueError(f"want q (T, nq) and qd (T, nv), got {q_np.shape}, {qd_np.shape}")
         if overlays is not None and len(overlays) != q_np.shape[0]:
             raise ValueError(f"{len(overlays)} overlays for {q_np.shape[0]} frames")
+        ghosts = None if ghost_q is None else _numpy(ghost_q)
+        if ghosts is not None and ghosts.shape != q_np.shape:
+            raise ValueError(f"want ghost poses {q_np.shape}, got {ghosts.shape}")
         frames = np.empty((q_np.shape[0], self.height, self.width, 3), dtype=np.uint8)
         for t in range(q_np.shape[0]):
             text = None if overlays is None else overlays[t]
-            frames[t] = self.frame_from_state(q_np[t], qd_np[t], text)
+            ghost = None if ghosts is None else ghosts[t]
+            frames[t] = self.frame_from_state(q_np[t], qd_np[t], text, ghost)
         return frames
 
     def write(self, path: str | Path, frames: np.ndarray | Sequence[np.ndarray]) -> Path:
@@ -354,28 +394,11 @@ class VideoRecorder:
         q: Tensor | np.ndarray,
         qd: Tensor | np.ndarray,
         overlays: Sequence[Overlay] | None = None,
+        ghost_q: Tensor | np.ndarray | None = None,
     ) -> Path:
-        """Render the state sequence (q (T, nq), qd (T, nv)) and write it to the MP4 `path`."""
-        return self.write(path, self.frames_from_states(q, qd, overlays))
-
-    def record_beside(
-        self,
-        path: str | Path,
-        q: Tensor | np.ndarray,
-        qd: Tensor | np.ndarray,
-        reference_q: Tensor | np.ndarray,
-        overlays: Sequence[Overlay] | None = None,
-    ) -> Path:
-        """The state sequence (q (T, nq), qd (T, nv)) on the left, with `overlays`, and the
-        reference poses (T, nq) it follows on the right, each frame twice this recorder's
-        width."""
-        reference = _numpy(reference_q)
-        still = np.zeros((reference.shape[0], self.model.nv))
-        frames = [
-            self.frames_from_states(q, qd, overlays),
-            self.frames_from_states(reference, still),
-        ]
-        return self.write(path, np.concatenate(frames, axis=2))  # (T, height, 2 width, 3)
+        """Render the state sequence (q (T, nq), qd (T, nv)), with the poses `ghost_q`
+        (T, nq) translucent in the same frames, and write it to the MP4 `path`."""
+        return self.write(path, self.frames_from_states(q, qd, overlays, ghost_q))
 
     def _free_quietly(self) -> None:
         """`close` after a failed start: what is half made may not free cleanly."""
