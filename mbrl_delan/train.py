@@ -501,8 +501,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             loop.counters.env_steps,
         )
         if loop.finished(schedule_of(cfg)) and (run_dir / SUMMARY_FILE).is_file():
-            log.info("the run is finished: nothing to run, its files are left as they are")
             resume_metrics(run_dir / METRICS_FILE, loop.counters.iteration, loop.last_round)
+            log.info("the run is finished: nothing to run, its results are left as they are")
             summary = json.loads((run_dir / SUMMARY_FILE).read_text(encoding="utf-8"))
             _print_summary(run_dir, summary)
             return summary
