@@ -54,7 +54,7 @@ def save_figure(fig: Figure, path: str | Path, dpi: int = DPI) -> Path:
     and width in its metadata. -> the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if fig.canvas is None or not isinstance(fig.canvas, FigureCanvasAgg):
+    if not isinstance(fig.canvas, FigureCanvasAgg):
         FigureCanvasAgg(fig)
     for ax in fig.axes:
         ax.tick_params(which="both", labelsize=MIN_FONT_PT)

@@ -478,7 +478,7 @@ ERROR_LINES = (
 
 def _panels(
     summaries: list[dict[str, Any]], lines: tuple[tuple[str, str, str], ...], title: str
-) -> tuple[Any, list[str], dict[tuple[str, Group], dict[int, list[float]]], dict[str, str]]:
+) -> tuple[Any, list[str], dict[str, dict[Group, dict[int, list[float]]]]]:
     """A page-wide figure with one panel per env (task), the curves of `lines` per group,
     the style key (what each line style means) in the legend, and the figure's title."""
     by_metric = {key: curves(summaries, key) for key, _, _ in lines}
@@ -496,14 +496,14 @@ def _panels(
     for _, style, meaning in lines:
         axes[0, 0].plot([], [], style, color="0.4", label=meaning)
     fig.suptitle(title)
-    return fig, envs, by_metric, colours
+    return fig, envs, by_metric
 
 
 def returns_figure(summaries: list[dict[str, Any]], path: Path) -> Path:
     """Returns vs env steps, one panel per env: per model x planner the evaluation return
     (solid) and each round's on-policy episode return (dotted, logged every round), mean and
     95% CI band over seeds; each planner's oracle (mean over its runs) a dashed grey line."""
-    fig, envs, _, _ = _panels(summaries, RETURN_LINES, "Return vs env steps (mean, 95% CI)")
+    fig, envs, _ = _panels(summaries, RETURN_LINES, "Return vs env steps (mean, 95% CI)")
     for ax, env in zip(fig.axes, envs, strict=True):
         for i, (planner, oracle) in enumerate(_oracles(summaries, env).items()):
             grey = str(0.3 * (i % 3))
@@ -517,7 +517,7 @@ def model_error_figure(summaries: list[dict[str, Any]], path: Path) -> Path:
     """Model errors vs env steps, one panel per env: per model x planner the one-step
     (solid) and H-step (dashed) errors, mean and 95% CI band over seeds, log axis (see
     ``docs/metrics.md`` for the errors' definitions)."""
-    fig, envs, by_metric, _ = _panels(summaries, ERROR_LINES, "Model error vs env steps")
+    fig, envs, by_metric = _panels(summaries, ERROR_LINES, "Model error vs env steps")
     for ax, env in zip(fig.axes, envs, strict=True):
         curves_of_env = [by for c in by_metric.values() for g, by in c.items() if g[0] == env]
         values = [v for by in curves_of_env for vs in by.values() for v in vs]

@@ -73,6 +73,7 @@ def test_runs_killed_at_ten_random_moments_resume_to_the_uninterrupted_result(
     reference: tuple[Path, dict[str, int]], tmp_path: Path
 ) -> None:
     ref_dir, counts = reference
+    reference_weights = _weights(ref_dir)
     for i, (phase, n) in enumerate(_moments(counts)):
         run_dir, log = tmp_path / f"{i}_{phase}_{n}", tmp_path / f"{i}_{phase}_{n}.log"
         memmap = f"buffer.memmap={i % 2 == 0}"  # either storage gives the reference's result
@@ -82,8 +83,9 @@ def test_runs_killed_at_ten_random_moments_resume_to_the_uninterrupted_result(
         assert code == 0, f"{phase} {n}: the resume exited {code}\n{log.read_text()}"
         assert _records(run_dir) == _records(ref_dir), (phase, n)
         assert _summary(run_dir) == _summary(ref_dir), (phase, n)
-        for name, value in _weights(ref_dir).items():
-            assert torch.equal(_weights(run_dir)[name], value), (phase, n, name)
+        weights = _weights(run_dir)
+        for name, value in reference_weights.items():
+            assert torch.equal(weights[name], value), (phase, n, name)
         leftovers = [p.name for p in run_dir.iterdir() if p.name.endswith(".tmp")]
         assert not leftovers, (phase, n, leftovers)
 
