@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from mbrl_delan.benchmarks import (
+    FIDELITY_CASES,
     HUMANOID_MODEL_VARIANTS,
     HUMANOID_MODELS,
     HUMANOID_ORACLE_TASKS,
@@ -52,14 +53,15 @@ QUICK = {
 
 
 def _models(values: list[str] | None, suite: str) -> tuple[str, ...] | None:
-    """None (the suite's default) or the suite's own model cases (suite humanoid: or none;
-    suite realtime: the dynamics planned on)."""
+    """None (the suite's default) or the suite's own model cases (suites humanoid and
+    fidelity: or none; suite realtime: the dynamics planned on)."""
     if values is None:
         return None
-    humanoid = suite == "humanoid"
+    humanoid = suite in ("humanoid", "fidelity")
     known = {
         "humanoid": HUMANOID_MODELS + HUMANOID_MODEL_VARIANTS,
         "realtime": REALTIME_DYNAMICS,
+        "fidelity": FIDELITY_CASES,
     }.get(suite, PLANNER_MODELS)
     if (not values and not humanoid) or any(v not in known for v in values):
         empty = " (or [] for none)" if humanoid else ""
@@ -146,6 +148,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         data_run=v["data_run"],
         tasks=tuples("tasks"),
         overrides=tuple(v["overrides"]),
+        runs=tuple(v["runs"]),
     )
 
 

@@ -29,6 +29,8 @@ from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
 from mbrl_delan.models.ensemble import GaussianEnsemble
 from mbrl_delan.models.structure import Structure
+from mbrl_delan.models.whitebox import IdentifyConfig, WhiteBoxModel
+from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus
 from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
@@ -472,6 +474,19 @@ def _ensemble(cfg: DictConfig, system: System) -> GaussianEnsemble:
         activation=cfg.activation,
         propagation=cfg.propagation,
     )
+
+
+@MODELS.register("whitebox", schema=MODEL_SCHEMAS["whitebox"])
+def _whitebox(cfg: DictConfig, system: System) -> WhiteBoxModel:
+    model = WhiteBoxModel(
+        system,
+        physics=PlanPhysics(cfg.substeps, cfg.integrator),
+        identify=IdentifyConfig(cfg.window, cfg.windows, cfg.iterations, cfg.fd_step),
+        nthread=min(available_cpus(), 8),
+    )
+    if cfg.start == "documented":
+        model.set_multipliers(model.white.documented_start())
+    return model
 
 
 def _planner_arguments(cfg: DictConfig, system: System, dtype: torch.dtype) -> dict[str, Any]:

@@ -194,6 +194,21 @@ class EnsembleConfig(ModelConfig):
 
 
 @dataclass
+class WhiteBoxConfig(ModelConfig):
+    """``model=whitebox``: the env's MJCF with parameters identified from the replay buffer
+    (`models/whitebox.py`)."""
+
+    lr: float | None = None  # no gradient fit
+    start: str = rule("documented", choices=("documented", "mjcf"))
+    substeps: int | None = rule(None, low=1)  # planning physics steps per control step
+    integrator: str | None = rule(None, choices=ORACLE_INTEGRATORS)
+    window: int = rule(4, low=1)
+    windows: int = rule(256, low=1)
+    iterations: int = rule(10, low=1)
+    fd_step: float = rule(1e-4, low=0, above=True)
+
+
+@dataclass
 class PlannerConfig:
     """What every planner group has (the receding-horizon policy and the objective read it);
     a user's planner schema extends it."""
@@ -309,6 +324,7 @@ MODEL_SCHEMAS = {
     "delan": DeLaNConfig,
     "delan_ensemble": DeLaNEnsembleConfig,
     "ensemble": EnsembleConfig,
+    "whitebox": WhiteBoxConfig,
 }
 PLANNER_SCHEMAS = {
     "cem": CEMConfig,
@@ -361,6 +377,7 @@ class BenchConfig:
     data_run: str | None = None  # suite humanoid: a train run dir whose buffer gives the data
     tasks: list[str] | None = rule(None, choices=REALTIME_TASKS)
     overrides: list[str] = field(default_factory=list)
+    runs: list[str] = field(default_factory=list)  # suite fidelity: train run dirs to score
 
 
 def store_schemas(store: ConfigStore) -> None:

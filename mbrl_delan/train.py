@@ -47,7 +47,7 @@ from mbrl_delan.data.buffer import (
 )
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import EnvParts, make_env_parts
-from mbrl_delan.models.base import WorldModel
+from mbrl_delan.models.base import WorldModel, model_placement
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus, mujoco_objective_factory
@@ -182,8 +182,8 @@ def build_policy(
     """The loop's policy: its planner over `model`'s imagined returns of `task` (compiled,
     replayed from CUDA graphs or on rollout threads as ``model.*`` says), in the model's
     device and dtype; `generator` draws the model's noise."""
-    param = next(model.parameters())
-    factory = model_objective_factory(
+    place = model_placement(model)
+    factory = model.objective_factory(task, cfg.planner.discount) or model_objective_factory(
         model,
         task,
         particles=cfg.model.particles,
@@ -194,8 +194,8 @@ def build_policy(
         cuda_graph=cfg.model.get("cuda_graph", False),
         rollout_threads=cfg.model.get("rollout_threads"),
     )
-    planner = _planner(cfg, system, param.dtype)
-    return _policy(cfg.planner, planner, factory, cfg.seed, param.device)
+    planner = _planner(cfg, system, place.dtype)
+    return _policy(cfg.planner, planner, factory, cfg.seed, place.device)
 
 
 def build_world_model(
@@ -226,8 +226,12 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
     env = _collect_env(cfg, env_kw)
     eval_env = make_real_env(cfg.env.name, seed=cfg.seed, **env_kw)
     model = build_world_model(cfg, system, device, dtype)
-    optimizer = torch.optim.Adam(
-        model.parameters(), lr=cfg.model.lr, weight_decay=cfg.model.weight_decay
+    optimizer = (  # none for a model that identifies itself
+        None
+        if model.identifies
+        else torch.optim.Adam(
+            model.parameters(), lr=cfg.model.lr, weight_decay=cfg.model.weight_decay
+        )
     )
     model_gen = torch.Generator(device=device).manual_seed(cfg.seed + 3)
     policy = build_policy(cfg, system, task, model, model_gen)
@@ -248,6 +252,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         error_horizon=cfg.planner.horizon,
         model_generator=model_gen,
         keep_eval_rollouts=cfg.video_episodes if cfg.video else 0,
+        fidelity_task=task if isinstance(task, HumanoidTask) else None,
     )
     return loop, oracle
 

@@ -32,6 +32,7 @@ _SUITES = {
     "realtime": "mbrl_delan.benchmarks.realtime:run_realtime_suite",
     "fit_arrays": "mbrl_delan.benchmarks.fit_arrays:run_fit_arrays_suite",
     "soak": "mbrl_delan.benchmarks.soak:run_soak_suite",
+    "fidelity": "mbrl_delan.benchmarks.fidelity:run_fidelity_suite",
 }
 SUITE_NAMES = tuple(_SUITES)
 # world-model cases of suite planner (here so the entry point can check names without
@@ -65,6 +66,13 @@ ILQR_TASKS = ("cmu_track",)  # suite humanoid: tasks of its tracking iLQR oracle
 # suite realtime: its tasks and the dynamics each is planned on
 REALTIME_TASKS = ("humanoid_stand", "humanoid_walk", "pendulum")
 REALTIME_DYNAMICS = ("mujoco", "delan", "ensemble")
+# suite fidelity's reference cases: MuJoCo at the oracle's physics, perturbed copies of it, and
+# the white-box model's documented wrong start (`benchmarks/fidelity.py`, `PERTURBATIONS`)
+FIDELITY_CASES = (
+    "mujoco", "mass_x0.5", "mass_x2", "mass_random", "com_2cm", "gear_x0.5", "damping_x2",
+    "friction_0.2", "contact_3x_softer", "contact_10x_softer", "foot_x0.7", "contacts_off",
+    "whitebox_start",
+)  # fmt: skip
 
 
 class UnknownSuiteError(KeyError):
@@ -159,6 +167,8 @@ class SuiteOptions:
     # suite realtime
     tasks: tuple[str, ...] | None = None  # of REALTIME_TASKS (None: all)
     overrides: tuple[str, ...] = ()  # train-config overrides of every case
+    # suite fidelity
+    runs: tuple[str, ...] = ()  # train run dirs whose final world models are scored
 
 
 def synchronizer(device: torch.device) -> Callable[[], None]:

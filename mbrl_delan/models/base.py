@@ -6,6 +6,7 @@ import abc
 import contextlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -30,10 +31,16 @@ class WorldModel(nn.Module, abc.ABC):
 
     `trains_on_windows`: `loss` also takes windows (B, K) of K consecutive transitions and
     scores a K-step rollout from each window's first state (`FitConfig.rollout_steps`).
+
+    `identifies`: the model fits itself from data (`identify`: a white-box model's system
+    identification) instead of by gradient steps on `loss`. `objective_factory`: a model
+    with a planning objective of its own (MuJoCo rollouts) returns it; the default None has
+    the planner roll out `step` in torch (`objectives.model.model_objective_factory`).
     """
 
     trains_on_windows: bool = False
     deterministic: bool = False  # `step` draws no random numbers (ignores its generator)
+    identifies: bool = False  # fitted by `identify`, not by `loss`
     layout: JointLayout | None = None  # the system's joints; models of a MuJoCo system set it
 
     @property
@@ -56,6 +63,16 @@ class WorldModel(nn.Module, abc.ABC):
 
     def fit_normalization(self, data: TensorDictBase) -> None:  # noqa: B027
         """Set input/output statistics from the training data (before each refit)."""
+
+    def identify(self, data: TensorDictBase, generator: torch.Generator) -> Any:
+        """Fit the model to transitions (N,) itself (models with `identifies`); returns a
+        `training.fit.FitReport`."""
+        raise NotImplementedError(f"{type(self).__name__} is fitted by its loss, not identified")
+
+    def objective_factory(self, task: Any, discount: float = 1.0) -> Any | None:
+        """Its own planning objective factory ((q0, qd0) -> objective over (N, H, nu)
+        actions), or None: the planner rolls out `step` (`model_objective_factory`)."""
+        return None
 
 
 @dataclass(frozen=True)

@@ -61,7 +61,11 @@ class PlanPhysics:
 
     def model(self, system: System) -> tuple[mujoco.MjModel, int]:
         """The planning MjModel of `system` and its MuJoCo steps per control step."""
-        model = system.mj_model()
+        return self.apply(system.mj_model(), system)
+
+    def apply(self, model: mujoco.MjModel, system: System) -> tuple[mujoco.MjModel, int]:
+        """`model` (a model of `system`, changed in place) stepping at this physics, and its
+        MuJoCo steps per control step."""
         substeps = self.substeps or system.frame_skip
         model.opt.timestep = system.control_dt / substeps
         if self.integrator is not None:
@@ -72,7 +76,7 @@ class PlanPhysics:
 ENV_PHYSICS = PlanPhysics()  # the env's own steps and integrator
 
 
-def _state_offset(model: mujoco.MjModel, component: int) -> int:
+def state_offset(model: mujoco.MjModel, component: int) -> int:
     """Offset of one mjtState component inside a FULLPHYSICS state vector."""
     lower = FULLPHYSICS & (component - 1)
     return mujoco.mj_stateSize(model, lower)
@@ -91,7 +95,7 @@ class HeldControlRollout:
             raise ValueError(f"frame_skip and nthread must be >= 1, got {frame_skip}, {nthread}")
         self.model, self.frame_skip = model, frame_skip
         self.nstate = mujoco.mj_stateSize(model, FULLPHYSICS)
-        self.qpos_at, self.qvel_at = _state_offset(model, QPOS), _state_offset(model, QVEL)
+        self.qpos_at, self.qvel_at = state_offset(model, QPOS), state_offset(model, QVEL)
         self._template = mujoco.MjData(model)
         self._datas = [mujoco.MjData(model) for _ in range(nthread)]
         self._pool: mj_rollout.Rollout | None = mj_rollout.Rollout(
@@ -145,8 +149,9 @@ class OracleRollout:
 class MujocoObjectiveFactory:
     """Builds oracle objectives for start states; owns the MjModel, MjData and threads.
 
-    Use as `factory(q0, qd0)(actions)`. Call `close()` (or use `with`) to stop the thread
-    pool early; it is also closed when the factory is garbage-collected.
+    Use as `factory(q0, qd0)(actions)`. `model`: the MjModel to plan on and its steps per
+    control step (None: the system's at `physics`). Call `close()` (or use `with`) to stop the
+    thread pool early; it is also closed when the factory is garbage-collected.
     """
 
     def __init__(
@@ -156,6 +161,7 @@ class MujocoObjectiveFactory:
         nthread: int | None = None,
         discount: float = 1.0,
         physics: PlanPhysics = ENV_PHYSICS,
+        model: tuple[mujoco.MjModel, int] | None = None,
     ) -> None:
         if nthread is None:
             nthread = min(available_cpus(), 8)
@@ -166,7 +172,7 @@ class MujocoObjectiveFactory:
         self.system = system
         self.task = task
         self.discount = discount
-        self.model, substeps = physics.model(system)
+        self.model, substeps = model or physics.model(system)
         self.sim = HeldControlRollout(self.model, substeps, nthread)
         self.ctrl_low = system.ctrl_low.numpy()
         self.ctrl_high = system.ctrl_high.numpy()

@@ -32,14 +32,23 @@ from mbrl_delan.data.buffer import (
     episode_transitions,
     load_buffer_state,
 )
-from mbrl_delan.models.base import WorldModel
+from mbrl_delan.models.base import WorldModel, model_placement
 from mbrl_delan.systems.posarith import differentiate_pos
 from mbrl_delan.systems.system import System
+from mbrl_delan.tasks.humanoid import HumanoidTask
+from mbrl_delan.training.fidelity import (
+    EVERY,
+    CandidateRecorder,
+    FidelityReference,
+    build_reference,
+    fidelity_metrics,
+)
 from mbrl_delan.training.fit import FitConfig, FitReport, fit_model
 
 log = logging.getLogger(__name__)
 
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes use seeds disjoint from training ones
+FIDELITY_STARTS = 32  # at most about this many starts of the oracle's episode in the reference
 
 
 class UniformPolicy(TensorDictModuleBase):
@@ -127,10 +136,10 @@ def model_error(
     error = sqrt(mean over starts, DoFs of e^2). The H-step error rolls the model open loop
     on the episode's own actions from every start t with t + H <= T.
     """
-    param = next(model.parameters())
-    q, qd = episode[keys.Q].to(param), episode[keys.QD].to(param)  # (T, nq), (T, nv)
-    action = episode[keys.ACTION].to(param)
-    q_next, qd_next = episode[keys.NEXT_Q].to(param), episode[keys.NEXT_QD].to(param)
+    place = model_placement(model)
+    on = lambda key: episode[key].to(place.device, place.dtype)  # noqa: E731
+    q, qd, action = on(keys.Q), on(keys.QD), on(keys.ACTION)  # (T, nq), (T, nv), (T, nu)
+    q_next, qd_next = on(keys.NEXT_Q), on(keys.NEXT_QD)
     q_scale = _position_std(system, q_next).clamp_min(1e-3)  # (nv,)
     qd_scale = qd_next.std(0).clamp_min(1e-3)
 
@@ -216,6 +225,11 @@ class LoopCounters:
 class Evaluation:
     returns: list[float] = field(default_factory=list)
     rollouts: list[TensorDict] = field(default_factory=list)  # the first `keep_rollouts` kept
+    steps: list[int] = field(default_factory=list)  # each episode's control steps
+
+    @property
+    def median_steps(self) -> float:
+        return float(torch.tensor(self.steps, dtype=torch.float64).median()) if self.steps else 0.0
 
     @property
     def mean(self) -> float:
@@ -238,7 +252,7 @@ class MBRLLoop:
         system: System,
         episode_len: int,
         model: WorldModel,
-        optimizer: torch.optim.Optimizer,
+        optimizer: torch.optim.Optimizer | None,
         policy: EpisodePolicy,
         buffer: TensorDictReplayBuffer,
         fit_config: FitConfig,
@@ -246,6 +260,7 @@ class MBRLLoop:
         error_horizon: int,
         model_generator: torch.Generator | None = None,
         keep_eval_rollouts: int = 0,
+        fidelity_task: HumanoidTask | None = None,
     ) -> None:
         self.env, self.eval_env, self.system = env, eval_env, system
         self.episode_len = episode_len
@@ -261,6 +276,10 @@ class MBRLLoop:
         self.oracle_rollouts: list[TensorDict] = []  # its first `keep_eval_rollouts` episodes
         self.warmup_done = False  # once `run` has collected the random episodes and fitted
         self.last_round: dict[str, Any] | None = None  # the metrics of the last round run
+        # a humanoid task: the model's fidelity on the oracle's first episode at each
+        # evaluation (`training.fidelity`); its reference, once the oracle has run
+        self.fidelity_task = fidelity_task
+        self.fidelity_reference: FidelityReference | None = None
 
     def run(
         self, schedule: Schedule, oracle: EpisodePolicy, hooks: LoopHooks | None = None
@@ -274,7 +293,7 @@ class MBRLLoop:
                 schedule.oracle_episodes,
             )
             with self.timed():
-                ev = self.evaluate(oracle, schedule.oracle_episodes, self.keep_eval_rollouts)
+                ev = self._evaluate_oracle(oracle, schedule.oracle_episodes)
             self.oracle_returns, self.oracle_rollouts = ev.returns, ev.rollouts
             hooks.checkpoint()
         if not self.warmup_done:
@@ -332,7 +351,13 @@ class MBRLLoop:
             collected += len(self._collect(self.random_policy))
 
     def fit(self) -> FitReport:
-        data = all_transitions(self.buffer).to(next(self.model.parameters()).device)
+        """Refit the model on the whole buffer: `identify` for a model that identifies
+        itself, else gradient steps on its loss (`fit_model`)."""
+        data = all_transitions(self.buffer).to(model_placement(self.model).device)
+        if self.model.identifies:
+            return self.model.identify(data, self.fit_generator)
+        if self.optimizer is None:
+            raise ValueError("a model fitted by its loss needs an optimizer")
         dropped = self.counters.env_steps - data.shape[0]  # left a full buffer, oldest first
         return fit_model(
             self.model, self.optimizer, data, self.fit_config, self.fit_generator, dropped
@@ -345,9 +370,49 @@ class MBRLLoop:
         for i, s in enumerate(seeds):
             rollout = run_episode(self.eval_env, policy, s, self.episode_len)
             ev.returns.append(episode_return(rollout))
+            ev.steps.append(int(rollout.shape[0]))
             if i < keep_rollouts:
                 ev.rollouts.append(rollout)
         return ev
+
+    def _evaluate_oracle(self, oracle: EpisodePolicy, episodes: int) -> Evaluation:
+        """The oracle's evaluation; with a `fidelity_task`, its first episode's candidates
+        are recorded and become the fidelity reference."""
+        factory = getattr(oracle, "objective_factory", None)
+        if self.fidelity_task is None or episodes == 0 or factory is None:
+            return self.evaluate(oracle, episodes, self.keep_eval_rollouts)
+        every = max(EVERY, self.episode_len // FIDELITY_STARTS)
+        recorder = CandidateRecorder(factory, every, until=self.episode_len)
+        oracle.objective_factory = recorder  # type: ignore[attr-defined]
+        try:
+            ev = self.evaluate(oracle, episodes, max(self.keep_eval_rollouts, 1))
+        finally:
+            oracle.objective_factory = factory  # type: ignore[attr-defined]
+        try:
+            self.fidelity_reference = build_reference(
+                ev.rollouts[0], recorder, self.system, self.fidelity_task, every=every,
+                seed=self.seed,
+            )  # fmt: skip
+        except ValueError as err:
+            log.info("no fidelity figures: %s", err)
+        ev.rollouts = ev.rollouts[: self.keep_eval_rollouts]
+        return ev
+
+    def fidelity(self) -> dict[str, float]:
+        """The model's figures on the fidelity reference (none without one); the model
+        generator's stream is left where it was."""
+        if self.fidelity_reference is None or self.fidelity_task is None:
+            return {}
+        factory = getattr(self.policy, "objective_factory", None)
+        if factory is None:
+            return {}
+        kept = None if self.model_generator is None else self.model_generator.get_state()
+        try:
+            return fidelity_metrics(self.model, factory, self.fidelity_reference,
+                                    self.fidelity_task)  # fmt: skip
+        finally:
+            if kept is not None and self.model_generator is not None:
+                self.model_generator.set_state(kept)
 
     def iterate(self, schedule: Schedule) -> dict[str, Any]:
         """One round: collect an on-policy episode, score the model on it, refit, evaluate (as
@@ -382,17 +447,23 @@ class MBRLLoop:
         if eval_episodes > 0:
             ev = self.evaluate(self.policy, eval_episodes, self.keep_eval_rollouts)
             self.last_evaluation = ev
-            metrics.update(eval_return_mean=ev.mean, eval_return_std=ev.std)
+            metrics.update(
+                eval_return_mean=ev.mean, eval_return_std=ev.std, eval_steps_median=ev.median_steps
+            )
+            metrics.update(self.fidelity())
         return metrics
 
     def state_dict(self) -> dict[str, Any]:
         return {
             "model": self.model.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
+            "optimizer": None if self.optimizer is None else self.optimizer.state_dict(),
             "policy": self.policy.state_dict(),
             "buffer": buffer_state(self.buffer),
             "counters": vars(self.counters).copy(),
             "last_round": self.last_round,
+            "fidelity_reference": None
+            if self.fidelity_reference is None
+            else self.fidelity_reference.state_dict(),
             "fit_generator": self.fit_generator.get_state(),
             "random_generator": self.random_policy.generator.get_state(),
             "model_generator": None
@@ -402,11 +473,15 @@ class MBRLLoop:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        if self.optimizer is not None:
+            self.optimizer.load_state_dict(state["optimizer"])
         self.policy.load_state_dict(state["policy"])
         load_buffer_state(self.buffer, state["buffer"])
         self.counters = LoopCounters(**state["counters"])
         self.last_round = state.get("last_round")  # absent from older checkpoints
+        reference = state.get("fidelity_reference")
+        if reference is not None:
+            self.fidelity_reference = FidelityReference.from_state_dict(reference)
         self.fit_generator.set_state(state["fit_generator"])
         self.random_policy.generator.set_state(state["random_generator"])
         if self.model_generator is not None and state.get("model_generator") is not None:

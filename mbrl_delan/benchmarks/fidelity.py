@@ -1,0 +1,237 @@
+"""Suite `fidelity`: world models scored on the oracle's own standing states.
+
+One oracle episode of `oracle_steps` control steps (default 300) on ``humanoid_stand`` from
+the start of `seed` gives the reference (`training.fidelity.FidelityReference`: its states
+every 10th step and a perturbed copy of each, the oracle's actions, MPPI's 64 candidates at
+each start with their returns under the env's physics). Each case is then scored by
+`fidelity_metrics` (root velocity error after 1 step, head height error after 10 and 30
+steps, Spearman rho of the candidates' returns) and by ``steps_survived``: the loop's
+planner planning in the case's model and acting in the env for `oracle_steps` control steps
+from the oracle's start (all of them: it stood).
+
+Cases (`models`, default all `REFERENCE_CASES`): MuJoCo at the oracle's planning physics
+(``mujoco``) and perturbed copies of it (`PERTURBATIONS`), planned on as the oracle is, and
+the white-box model's documented wrong start (``whitebox_start``). `runs`: train run dirs
+whose final world model (checkpoint) is scored too, case ``<model>:<run dir name>``.
+
+Every record carries `model` (the case), `data` (what the model was fitted on), `metric`,
+the episode's `seed` and `oracle_steps`, and the host fields.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from mbrl_delan.benchmarks import FIDELITY_CASES, SuiteOptions, host_fields
+from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.config import compose_train_config
+from mbrl_delan.envs.real import make_real_env
+from mbrl_delan.envs.registry import EnvParts, make_env_parts
+from mbrl_delan.models.base import WorldModel
+from mbrl_delan.models.whitebox import WhiteBoxModel
+from mbrl_delan.objectives.mujoco import PlanPhysics
+from mbrl_delan.training.fidelity import (
+    CandidateRecorder,
+    FidelityReference,
+    build_reference,
+    fidelity_metrics,
+)
+from mbrl_delan.training.loop import run_episode
+
+log = logging.getLogger(__name__)
+
+SUITE = "fidelity"
+TASK = "humanoid_stand"
+STEPS = 300  # control steps of the oracle's episode and of each case's episode
+QUICK_STEPS = 35  # under `quick`: just past the 30-step horizon
+UNITS = {
+    "root_velocity_error_1step": "m/s", "head_height_error_10step": "cm",
+    "head_height_error_30step": "cm", "candidate_rank_rho": "", "steps_survived": "steps",
+}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Perturbation:
+    """A MuJoCo model off the env's: `multipliers` (a white-box multiplier kind -> factor for
+    every multiplier of that kind), `mass_spread` (each body's mass and inertia x U(1 - s,
+    1 + s), seeded) and `edit` (a change of the MJCF's spec)."""
+
+    what: str
+    multipliers: dict[str, float] = field(default_factory=dict)
+    mass_spread: float = 0.0
+    edit: Callable[[mujoco.MjSpec, np.random.Generator], None] | None = None
+
+
+def _move_com(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
+    """Each body's centre of mass moved 2 cm in a random direction."""
+    model = spec.compile()
+    for b in range(1, model.nbody):
+        body = spec.body(model.body(b).name)
+        body.explicitinertial = True
+        body.mass, body.inertia = float(model.body_mass[b]), model.body_inertia[b].copy()
+        body.iquat = model.body_iquat[b].copy()
+        direction = rng.normal(size=3)
+        body.ipos = model.body_ipos[b] + 0.02 * direction / np.linalg.norm(direction)
+    spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_AUTO
+
+
+def _half_gear(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
+    for actuator in spec.actuators:
+        actuator.gear = np.array(actuator.gear) * 0.5
+
+
+def _small_feet(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
+    """The feet's sphere geoms x0.7 (Humanoid-v5's geoms named ``*foot*``)."""
+    for geom in spec.geoms:
+        if "foot" in geom.name and geom.type == mujoco.mjtGeom.mjGEOM_SPHERE:
+            geom.size = np.array(geom.size) * 0.7
+
+
+def _no_contacts(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
+    spec.option.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+
+
+PERTURBATIONS = {
+    "mujoco": Perturbation("the oracle's planning physics"),
+    "mass_x0.5": Perturbation("every mass and inertia x0.5", {"mass": 0.5}),
+    "mass_x2": Perturbation("every mass and inertia x2", {"mass": 2.0}),
+    "mass_random": Perturbation("each body's mass and inertia x U(0.5, 1.5)", mass_spread=0.5),
+    "com_2cm": Perturbation("each centre of mass moved 2 cm", edit=_move_com),
+    "gear_x0.5": Perturbation("every actuator gear x0.5", edit=_half_gear),
+    "damping_x2": Perturbation("hinge damping x2", {"damping": 2.0}),
+    "friction_0.2": Perturbation("floor friction 0.2 (true 1)", {"friction": 0.2}),
+    "contact_3x_softer": Perturbation("contact solref time constant x3", {"timeconst": 3.0}),
+    "contact_10x_softer": Perturbation("contact solref time constant x10", {"timeconst": 10.0}),
+    "foot_x0.7": Perturbation("foot spheres x0.7", edit=_small_feet),
+    "contacts_off": Perturbation("no contacts", edit=_no_contacts),
+}
+WHITEBOX_START = "whitebox_start"  # the white-box model's documented wrong start, no data
+REFERENCE_CASES = (*PERTURBATIONS, WHITEBOX_START)
+assert REFERENCE_CASES == FIDELITY_CASES, "benchmarks.FIDELITY_CASES lists the same cases"
+
+
+def perturbed_model(
+    cfg: DictConfig, parts: EnvParts, name: str, seed: int, nthread: int
+) -> WhiteBoxModel:
+    """The MuJoCo model of reference case `name`, stepping at the oracle's physics."""
+    system = parts.system
+    physics = PlanPhysics(cfg.env.oracle_substeps, cfg.env.oracle_integrator)
+    spec = mujoco.MjSpec.from_file(str(system.xml_path))
+    rng = np.random.default_rng(seed)
+    if name == WHITEBOX_START:
+        model = WhiteBoxModel(system, spec, physics=physics, nthread=nthread)
+        model.set_multipliers(model.white.documented_start())
+        return model
+    p = PERTURBATIONS[name]
+    if p.edit is not None:
+        p.edit(spec, rng)
+    model = WhiteBoxModel(system, spec, physics=physics, nthread=nthread)
+    theta = model.theta.copy()
+    for i, m in enumerate(model.white.multipliers):
+        theta[i] *= p.multipliers.get(m.kind, 1.0)
+        if m.kind == "mass" and p.mass_spread:
+            theta[i] *= rng.uniform(1 - p.mass_spread, 1 + p.mass_spread)
+    model.set_multipliers(theta)
+    return model
+
+
+def reference_episode(
+    cfg: DictConfig, parts: EnvParts, steps: int, seed: int, nthread: int
+) -> FidelityReference:
+    """The oracle's episode from the start of `seed` with its candidates recorded."""
+    from mbrl_delan.train import build_oracle  # the entry point's parts: imported when used
+
+    oracle = build_oracle(cfg, parts.system, parts.task)
+    recorder = CandidateRecorder(oracle.objective_factory)
+    oracle.objective_factory = recorder
+    env = make_real_env(TASK, seed=seed, episode_len=parts.task.episode_len)
+    try:
+        rollout = run_episode(env, oracle, seed, steps)
+    finally:
+        env.close()
+        recorder.close()
+    log.info("fidelity: the oracle's reference episode kept %d of %d steps", len(rollout), steps)
+    return build_reference(rollout, recorder, parts.system, parts.task, seed=seed,
+                           nthread=nthread)  # fmt: skip
+
+
+def steps_survived(
+    cfg: DictConfig, parts: EnvParts, model: WorldModel, steps: int, seed: int
+) -> int:
+    """Control steps the loop's planner keeps the humanoid up, planning in `model` and acting
+    in the env from the start of `seed` (at most `steps`)."""
+    from mbrl_delan.train import build_policy
+
+    generator = torch.Generator().manual_seed(seed)
+    policy = build_policy(cfg, parts.system, parts.task, model, generator)
+    env = make_real_env(TASK, seed=seed, episode_len=parts.task.episode_len)
+    try:
+        return int(run_episode(env, policy, seed, steps).shape[0])
+    finally:
+        env.close()
+        close = getattr(policy.objective_factory, "close", None)
+        if close is not None:
+            close()
+
+
+def _run_model(run_dir: str) -> tuple[DictConfig, WorldModel, str]:
+    """A train run's config, final world model and what it was fitted on."""
+    from mbrl_delan.runs import load_run
+
+    run = load_run(run_dir)
+    if run.kind != "train":
+        raise ValueError(f"runs: {run_dir} is a fit run; the suite scores world models")
+    steps = (run.summary or {}).get("env_steps", "?")
+    data = f"{steps} env steps of the loop ({Path(run_dir).name})"
+    return run.config, run.model, data
+
+
+def run_fidelity_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
+    seed = opts.seed or 0
+    steps = opts.oracle_steps or (QUICK_STEPS if opts.quick else STEPS)
+    nthread = max(1, torch.get_num_threads())
+    cfg = compose_train_config([f"env={TASK}", *opts.overrides])
+    parts = make_env_parts(TASK, None, None)
+    reference = reference_episode(cfg, parts, steps, seed, nthread)
+    host = host_fields(torch.device("cpu"))
+    base = dict(seed=seed, oracle_steps=steps, starts=int(reference.q.shape[0]),
+                candidate_starts=int(reference.candidate_starts.numel()))  # fmt: skip
+    cases = REFERENCE_CASES if opts.models is None else opts.models
+    for name in cases:
+        model = perturbed_model(cfg, parts, name, seed, nthread)
+        what = PERTURBATIONS[name].what if name in PERTURBATIONS else "documented wrong start"
+        yield from _case(cfg, parts, model, name, "none (MuJoCo: " + what + ")", reference,
+                         steps, seed, base | host)  # fmt: skip
+    for run_dir in opts.runs:
+        run_cfg, model, data = _run_model(run_dir)
+        name = f"{run_cfg.model.name}:{Path(run_dir).name}"
+        yield from _case(run_cfg, parts, model, name, data, reference, steps, seed, base | host)
+
+
+def _case(
+    cfg: DictConfig, parts: EnvParts, model: WorldModel, name: str, data: str,
+    reference: FidelityReference, steps: int, seed: int, fields: dict[str, Any],
+) -> Iterator[BenchRecord]:  # fmt: skip
+    from mbrl_delan.train import build_policy
+
+    policy = build_policy(cfg, parts.system, parts.task, model, torch.Generator().manual_seed(0))
+    try:
+        metrics = fidelity_metrics(model, policy.objective_factory, reference, parts.task)
+    finally:
+        close = getattr(policy.objective_factory, "close", None)
+        if close is not None:
+            close()
+    metrics["steps_survived"] = steps_survived(cfg, parts, model, steps, seed)
+    log.info("fidelity: %s %s", name, {k: round(v, 4) for k, v in metrics.items()})
+    for metric, value in metrics.items():
+        yield BenchRecord(SUITE, name, metric, value, UNITS[metric], "cpu",
+                          {"model": name, "data": data, **fields})  # fmt: skip

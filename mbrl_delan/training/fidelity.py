@@ -1,0 +1,217 @@
+"""Model fidelity on the oracle's own standing states: what a planner needs from a model.
+
+A `FidelityReference` is built once from one oracle episode in the real env: its states
+every `every`-th control step (the starts), a copy of each with perturbed joint velocities,
+the actions the oracle took from each start, what the env's own physics (the MJCF as the env
+steps it) makes of them, and the candidate action sequences the oracle's planner scored at
+each start with their returns under the env's physics. `fidelity_metrics` then scores a
+world model on it:
+
+- ``root_velocity_error_1step`` (m/s): RMS over starts of the error of the root's horizontal
+  velocity one control step ahead, on the oracle's action;
+- ``head_height_error_<h>step`` (cm): RMS over starts of the head-height error after h
+  open-loop steps of the oracle's actions (h in `horizons`);
+- ``candidate_rank_rho``: Spearman's rho between the model's and the env physics' returns of
+  the planner's candidates, the mean over the unperturbed starts (1: the model ranks the
+  candidates as the env would).
+
+The steps a planner survives when it plans in the model and acts in the env is the fourth
+figure (`benchmarks/fidelity.py`; the loop's evaluation episodes).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.stats import spearmanr
+from tensordict import TensorDictBase
+from torch import Tensor
+
+from mbrl_delan import keys
+from mbrl_delan.models.base import WorldModel, eval_mode, model_placement
+from mbrl_delan.objectives.mujoco import ENV_PHYSICS, MujocoObjectiveFactory
+from mbrl_delan.systems.system import System
+from mbrl_delan.tasks.humanoid import HumanoidTask
+
+HORIZONS = (10, 30)  # head-height error horizons, control steps
+EVERY = 10  # a start every this many control steps of the oracle's episode
+VELOCITY_NOISE = 0.1  # perturbed starts: qd + this x the episode's per-DoF std x N(0, 1)
+
+
+class CandidateRecorder:
+    """An objective factory that passes through to `factory` and keeps, every `every`-th
+    objective it makes (of its first `until`; None: all), the start (q0, qd0) and the first
+    batch of actions (N, H, nu) the planner scores (its candidates)."""
+
+    def __init__(self, factory: Any, every: int = EVERY, until: int | None = None) -> None:
+        self.factory, self.every, self.until = factory, every, until
+        self.calls = 0
+        self.starts: list[tuple[int, Tensor, Tensor]] = []  # (plan number, q0, qd0)
+        self.candidates: list[Tensor] = []
+
+    @property
+    def time_indexed(self) -> bool:
+        return getattr(self.factory, "time_indexed", False)
+
+    def __call__(self, q0: Tensor, qd0: Tensor, step: int = 0) -> Callable[[Tensor], Tensor]:
+        objective = self.factory(q0, qd0, step) if self.time_indexed else self.factory(q0, qd0)
+        number, self.calls = self.calls, self.calls + 1
+        if number % self.every or (self.until is not None and number >= self.until):
+            return objective
+        first = True
+
+        def recorded(actions: Tensor) -> Tensor:
+            nonlocal first
+            if first:
+                self.starts.append((number, q0.detach().clone(), qd0.detach().clone()))
+                self.candidates.append(actions.detach().to("cpu", torch.float32).clone())
+                first = False
+            return objective(actions)
+
+        return recorded
+
+    def close(self) -> None:
+        close = getattr(self.factory, "close", None)
+        if close is not None:
+            close()
+
+
+@dataclass
+class FidelityReference:
+    """The oracle's standing states and what the env's physics makes of them (module
+    docstring). S starts (the episode's, then their perturbed copies), C of them with
+    candidates."""
+
+    q: Tensor  # (S, nq) float64
+    qd: Tensor  # (S, nv)
+    actions: Tensor  # (S, Hmax, nu): the oracle's actions from each start
+    root_velocity: Tensor  # (S, 2) the env's root x, y velocity one step ahead
+    head_height: Tensor  # (S, len(horizons)) the env's head height after each horizon
+    horizons: tuple[int, ...]
+    candidate_starts: Tensor  # (C,) int64 rows of q, qd
+    candidates: Tensor  # (C, N, H, nu) float32
+    candidate_returns: Tensor  # (C, N) under the env's physics
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {name: getattr(self, name) for name in self.__dataclass_fields__}
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, Any]) -> FidelityReference:
+        return cls(**{**state, "horizons": tuple(state["horizons"])})
+
+
+def build_reference(
+    rollout: TensorDictBase,
+    recorder: CandidateRecorder,
+    system: System,
+    task: HumanoidTask,
+    horizons: tuple[int, ...] = HORIZONS,
+    every: int = EVERY,
+    seed: int = 0,
+    nthread: int = 1,
+) -> FidelityReference:
+    """The reference of one oracle episode `rollout` (T,) whose planner's factory was
+    wrapped by `recorder` (a plan every control step)."""
+    from mbrl_delan.models.whitebox import MjStepper  # the white-box stepper, also the truth
+
+    q = rollout.get(keys.Q).to(torch.float64)
+    qd = rollout.get(keys.QD).to(torch.float64)
+    action = rollout.get(keys.ACTION).to(torch.float64)
+    longest = max(horizons)
+    t = torch.arange(0, q.shape[0] - longest, every)  # starts with `longest` actions after
+    if t.numel() == 0:
+        raise ValueError(
+            f"the oracle's episode has {q.shape[0]} steps: too short for {longest}-step errors"
+        )
+    gen = torch.Generator().manual_seed(seed)
+    noise = VELOCITY_NOISE * qd.std(0) * torch.randn((t.numel(), system.nv), generator=gen,
+                                                      dtype=torch.float64)  # fmt: skip
+    q0 = torch.cat([q[t], q[t]])
+    qd0 = torch.cat([qd[t], qd[t] + noise])
+    acts = action[t[:, None] + torch.arange(longest)].repeat(2, 1, 1)  # (S, Hmax, nu)
+    model = system.mj_model()
+    stepper = MjStepper(model, system.frame_skip, nthread)
+    try:
+        ctrl = acts.clamp(system.ctrl_low, system.ctrl_high).numpy()
+        q_true, qd_true = stepper(model, q0.numpy(), qd0.numpy(), ctrl)
+    finally:
+        stepper.close()
+    q_true, qd_true = torch.from_numpy(q_true), torch.from_numpy(qd_true)
+    head = torch.stack([task.head_height(q_true[:, h - 1]) for h in horizons], -1)
+    rows, cands, returns = _candidates(recorder, t, system, task, nthread)
+    return FidelityReference(
+        q=q0, qd=qd0, actions=acts, root_velocity=qd_true[:, 0, 0:2], head_height=head,
+        horizons=tuple(horizons), candidate_starts=rows, candidates=cands,
+        candidate_returns=returns, meta={"episode_steps": int(q.shape[0]), "every": every},
+    )  # fmt: skip
+
+
+def _candidates(
+    recorder: CandidateRecorder, t: Tensor, system: System, task: HumanoidTask, nthread: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The recorded candidates at the starts `t` (plan number = control step) and their
+    returns under the env's own physics. -> rows (C,), candidates (C, N, H, nu), (C, N)"""
+    kept = {number: i for i, (number, _, _) in enumerate(recorder.starts)}
+    rows = [row for row, step in enumerate(t.tolist()) if step in kept]
+    if not rows:
+        raise ValueError("no candidates were recorded at the reference's starts")
+    env = MujocoObjectiveFactory(system, task, nthread, physics=ENV_PHYSICS)
+    cands, returns = [], []
+    try:
+        for row in rows:
+            _, q0, qd0 = recorder.starts[kept[int(t[row])]]
+            actions = recorder.candidates[kept[int(t[row])]]
+            cands.append(actions)
+            returns.append(env(q0, qd0)(actions).to(torch.float64))
+    finally:
+        env.close()
+    return torch.tensor(rows), torch.stack(cands), torch.stack(returns)
+
+
+@torch.no_grad()
+def fidelity_metrics(
+    model: WorldModel, objective_factory: Any, reference: FidelityReference, task: HumanoidTask
+) -> dict[str, float]:
+    """The module docstring's figures of `model` (its `step`) and of the objective the planner
+    plans on with it (`objective_factory`, (q0, qd0) -> objective over (N, H, nu))."""
+    place = model_placement(model)
+    on = lambda x: x.to(place.device, place.dtype)  # noqa: E731
+    q, qd = on(reference.q), on(reference.qd)
+    head = []
+    with eval_mode(model):
+        for h in range(max(reference.horizons)):
+            state = model.step(q, qd, on(reference.actions[:, h]))
+            q, qd = state.q, state.qd
+            if h == 0:
+                root = qd[:, 0:2].to("cpu", torch.float64)
+            if h + 1 in reference.horizons:
+                head.append(task.head_height(q.to("cpu", torch.float64)))
+    out = {"root_velocity_error_1step": _rms(root - reference.root_velocity)}
+    for k, h in enumerate(reference.horizons):
+        out[f"head_height_error_{h}step"] = 100 * _rms(head[k] - reference.head_height[:, k])
+    out["candidate_rank_rho"] = candidate_rank_rho(objective_factory, reference)
+    return out
+
+
+def candidate_rank_rho(objective_factory: Any, reference: FidelityReference) -> float:
+    """Mean Spearman rho of the objective's returns of the recorded candidates against the
+    env physics' returns (a start whose returns are all equal on either side counts 0)."""
+    rhos = []
+    for c, row in enumerate(reference.candidate_starts.tolist()):
+        objective = objective_factory(reference.q[row], reference.qd[row])
+        model_returns = objective(reference.candidates[c]).to("cpu", torch.float64)
+        rho = spearmanr(model_returns.numpy(), reference.candidate_returns[c].numpy()).statistic
+        rhos.append(0.0 if not math.isfinite(float(rho)) else float(rho))
+    return float(np.mean(rhos))
+
+
+def _rms(x: Tensor) -> float:
+    """RMS over rows of the row norms; non-finite predictions count as inf."""
+    norms = x.reshape(x.shape[0], -1).norm(dim=-1)
+    return float(norms.square().mean().sqrt()) if bool(torch.isfinite(norms).all()) else math.inf
