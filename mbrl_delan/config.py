@@ -16,6 +16,8 @@ from dataclasses import fields, is_dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
+import mujoco
+import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
@@ -24,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
 from mbrl_delan.models.base import WorldModel
-from mbrl_delan.models.contact import ContactModel
+from mbrl_delan.models.contact import ContactModel, JointLimits
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
 from mbrl_delan.models.ensemble import GaussianEnsemble
@@ -43,7 +45,7 @@ from mbrl_delan.schema import (
     TrainConfig,
     field_rule,
 )
-from mbrl_delan.systems.system import System
+from mbrl_delan.systems.system import FREE, System
 from mbrl_delan.training.checkpoint import RunWriteError
 from mbrl_delan.training.fit import FitConfig
 
@@ -215,6 +217,9 @@ MIGRATIONS: dict[str, Any] = {
     "model.compile_fit": False,
     "model.yaw_invariant": False,
     "model.contacts": False,
+    "model.contact_solve": "explicit",  # one law for every point, stepped as a force
+    "model.known_root": False,
+    "model.joint_limits": False,
     "env.oracle_substeps": None,  # the oracle planned on the env's own physics
     "env.oracle_integrator": None,
     "env.oracle_horizon": None,  # the iLQR oracle planned over the planner's horizon
@@ -407,7 +412,23 @@ def delan_structure(cfg: DictConfig, system: System, **fixed: Any) -> Structure:
         values["dof_parents"] = system.mj_model().dof_parentid.tolist()
     if cfg.get("armature", False):
         values["armature"] = system.mj_model().dof_armature.tolist()
+    if cfg.get("known_root", False):
+        values["root_inertia"], values["root_weight"] = known_root(system)
     return Structure(**(values | fixed))
+
+
+def known_root(system: System) -> tuple[tuple[float, ...], float]:
+    """A free root's six diagonal inertias at qpos0 (MuJoCo's M) and the body's weight m |g|
+    from the system's MJCF; a ConfigError without a free root."""
+    if not system.layout.types or system.layout.types[0] != FREE:
+        raise ConfigError(f"model.known_root=true needs a free root; {system.name} has none")
+    model = system.mj_model()
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    full = np.zeros((model.nv, model.nv))
+    mujoco.mj_fullM(model, data, full)
+    weight = float(model.body_mass.sum() * np.linalg.norm(model.opt.gravity))
+    return tuple(float(v) for v in np.diag(full)[:6]), weight
 
 
 def structure_overrides(structure: Structure, names: Sequence[str]) -> list[str]:
@@ -448,8 +469,12 @@ def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> Sampli
 
 @MODELS.register("delan", schema=MODEL_SCHEMAS["delan"])
 def _delan(cfg: DictConfig, system: System) -> DeLaN:
-    contact = ContactModel.from_mujoco(system.mj_model()) if cfg.contacts else None
-    return DeLaN(**_delan_arguments(cfg, system), contact=contact)
+    contact = None
+    if cfg.contacts:
+        implicit = cfg.contact_solve == "implicit"
+        contact = ContactModel.from_mujoco(system.mj_model(), implicit=implicit)
+    limits = JointLimits.from_mujoco(system.mj_model()) if cfg.joint_limits else None
+    return DeLaN(**_delan_arguments(cfg, system), contact=contact, limits=limits)
 
 
 @MODELS.register("delan_ensemble", schema=MODEL_SCHEMAS["delan_ensemble"])

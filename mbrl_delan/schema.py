@@ -159,6 +159,7 @@ class _LagrangianConfig(ModelConfig):
     tree_sparse: bool = MISSING
     still_first_order: bool = MISSING
     armature: bool = MISSING
+    known_root: bool = False  # a free root's inertia units and weight from the MJCF
 
 
 @dataclass
@@ -166,6 +167,8 @@ class DeLaNConfig(_LagrangianConfig):
     """``model=delan``."""
 
     contacts: bool = False  # the structured contact model (`models/contact.py`)
+    contact_solve: str = rule("implicit", choices=("implicit", "explicit"))
+    joint_limits: bool = False  # the MJCF's joint ranges as implicit one-sided springs
     init_from: str | None = None
     compile: bool = MISSING
     cuda_graph: bool = MISSING

@@ -14,7 +14,16 @@ floor plane, each with its radius (`ContactPoints.from_mujoco`). At a state (q, 
   the slip and strictly inside the cone |f_t| <= mu f_n;
 - the generalized force tau = sum_i J_i^T f_i (..., nv).
 
-k, e, c and mu are learned, positive by construction, and shared by every point.
+k, e, c and mu are learned, positive by construction, one set per contact group
+(`ContactPoints.groups`: each leaf body of the tree its own, such as each foot and each hand;
+the bodies just above them, ``limbs``; the rest, ``trunk``). They start from physics
+(`ContactLaw.from_physics`): friction 1, a stiffness at which two points hold the body's
+weight at `HOLD_DEPTH`, and the damping that makes that stance critically damped.
+
+Stepped explicitly, a stiff law needs small steps. `implicit_acceleration` instead takes the
+contact's damping and stiffness at the end of the step (a linearly implicit step at the
+velocity level with the model's own M: M + dt J^T K J), which stays stable and gains no energy
+at any stiffness, and is differentiable for the fit.
 """
 
 from __future__ import annotations
@@ -32,6 +41,10 @@ from mbrl_delan.systems.forward_kinematics import ForwardKinematics, quat_rotate
 
 PENETRATION_UNIT = 0.01  # delta, m: k is the force per point, in body weights, at 1 cm
 SLIP_SPEED = 0.01  # eps, m/s: below this slip the friction force fades linearly to zero
+HOLD_DEPTH = 0.003  # m: the start's stiffness holds the body's weight on two points this deep
+START_EXPONENT = 1.5  # e at the start
+GRAVITY = 9.81  # m/s^2, for the start's damping
+TRUNK, LIMBS = "trunk", "limbs"  # the groups of points on inner bodies
 
 
 def _inverse_softplus(y: float) -> float:
@@ -47,11 +60,19 @@ class ContactPoints:
     radius: tuple[float, ...]  # m
     floor: float  # height of the floor plane, m
     weight: float  # the whole body's weight, N (total mass x |gravity|)
+    group: tuple[int, ...] = ()  # contact group of each point (index into `groups`)
+    groups: tuple[str, ...] = ()  # group names
+
+    def __post_init__(self) -> None:
+        if not self.group:  # one group for every point
+            object.__setattr__(self, "group", (0,) * len(self.body))
+            object.__setattr__(self, "groups", (TRUNK,))
 
     @classmethod
     def from_mujoco(cls, model: mujoco.MjModel) -> ContactPoints:
         """Sphere centres and capsule ends of the geoms that collide with the model's plane
-        (the highest one if there are several; needs one)."""
+        (the highest one if there are several; needs one); each radius is the geom's plus the
+        pair's margin less its gap, where MuJoCo's contact starts to act."""
         plane = mujoco.mjtGeom.mjGEOM_PLANE
         planes = [g for g in range(model.ngeom) if model.geom_type[g] == plane]
         if not planes:
@@ -64,13 +85,29 @@ class ContactPoints:
             ends = _geom_points(model, g)
             body += [int(model.geom_bodyid[g])] * len(ends)
             offset += [tuple(float(x) for x in p) for p in ends]
-            radius += [float(model.geom_size[g, 0])] * len(ends)
+            # MuJoCo's contact acts from `margin - gap` (of the pair) before the surfaces touch
+            reach = model.geom_margin[g] + model.geom_margin[floor]
+            reach -= model.geom_gap[g] + model.geom_gap[floor]
+            radius += [float(model.geom_size[g, 0] + reach)] * len(ends)
         if not body:
             raise ValueError("no sphere or capsule geom of the MuJoCo model touches its floor")
         mass = float(model.body_mass.sum())
         weight = mass * float(np.linalg.norm(model.opt.gravity))
+        names = [_group_name(model, b) for b in body]
+        groups = tuple(dict.fromkeys(names))  # in order of first appearance
         return cls(tuple(body), tuple(offset), tuple(radius), float(model.geom_pos[floor, 2]),
-                   weight)  # fmt: skip
+                   weight, tuple(groups.index(n) for n in names), groups)  # fmt: skip
+
+
+def _group_name(model: mujoco.MjModel, body: int) -> str:
+    """A leaf body's own name; `LIMBS` for a body whose children are all leaves; `TRUNK`."""
+    parents = model.body_parentid
+    children = [b for b in range(1, model.nbody) if parents[b] == body]
+    if not children:
+        return model.body(body).name or f"body{body}"
+    if all(not any(parents[c] == k for c in range(1, model.nbody)) for k in children):
+        return LIMBS
+    return TRUNK
 
 
 def _collides(model: mujoco.MjModel, g: int, other: int) -> bool:
@@ -105,43 +142,106 @@ class ContactState:
     force: Tensor  # (..., P, 3) world, on the body
 
 
+@dataclass(frozen=True)
+class ContactLaw:
+    """Starting constants of the law: stiffness k (body weights per point at 1 cm to the
+    exponent e), damping c (s/m) and friction mu."""
+
+    stiffness: float
+    exponent: float
+    damping: float
+    friction: float
+
+    @classmethod
+    def from_physics(cls, hold_depth: float = HOLD_DEPTH, exponent: float = START_EXPONENT,
+                     friction: float = 1.0) -> ContactLaw:  # fmt: skip
+        """Two points hold the body's weight W at `hold_depth` (W k (d / delta)^e = W / 2);
+        the stance's vertical oscillation (omega^2 = e g / d) is critically damped by the
+        Hunt-Crossley term (c = 2 omega / g)."""
+        stiffness = 0.5 * (PENETRATION_UNIT / hold_depth) ** exponent
+        damping = 2.0 * math.sqrt(exponent / (GRAVITY * hold_depth))
+        return cls(stiffness, exponent, damping, friction)
+
+
+@dataclass
+class ImplicitTerms:
+    """What the linearly implicit step needs at (q, qd), per point: the spring force s
+    (..., P), the normal and tangential damping gains (..., P) of f = f(v+), the Jacobians
+    (..., P, 3, nv) and the points' velocities (..., P, 3)."""
+
+    spring: Tensor
+    normal_gain: Tensor
+    tangential_gain: Tensor
+    jacobian: Tensor
+    velocity: Tensor
+
+    def generalized(self, active: Tensor, dt: float) -> tuple[Tensor, Tensor]:
+        """For the points `active` (..., P): the contact force at the step's start velocity,
+        J^T (f0 - K J qd) (..., nv), and the added inertia dt J^T K J (..., nv, nv)."""
+        on = active.to(self.spring.dtype)
+        gain = torch.stack([self.tangential_gain, self.tangential_gain, self.normal_gain], -1)
+        gain = gain * on.unsqueeze(-1)  # (..., P, 3)
+        f0 = torch.zeros_like(self.velocity)
+        f0 = torch.cat([f0[..., :2], (self.spring * on).unsqueeze(-1)], -1)
+        point_force = f0 - gain * self.velocity  # (..., P, 3)
+        force = torch.einsum("...pkv,...pk->...v", self.jacobian, point_force)
+        weighted = self.jacobian * gain.unsqueeze(-1)  # K J, (..., P, 3, nv)
+        added = dt * torch.einsum("...pkv,...pkw->...vw", self.jacobian, weighted)
+        return force, added
+
+
 class ContactModel(nn.Module):
     """Generalized contact forces of a body tree on a floor: (q, qd) -> tau (..., nv).
 
     Args:
         fk: the tree's forward kinematics (`ForwardKinematics.from_mujoco`).
-        points: the contact points (`ContactPoints.from_mujoco`).
+        points: the contact points (`ContactPoints.from_mujoco`), with their groups.
+        start: the law's starting constants, the same for every group.
+        implicit: models step it with `implicit_acceleration` (else explicitly, as a force).
     """
 
-    def __init__(self, fk: ForwardKinematics, points: ContactPoints) -> None:
+    def __init__(
+        self, fk: ForwardKinematics, points: ContactPoints, start: ContactLaw | None = None,
+        implicit: bool = True,
+    ) -> None:  # fmt: skip
         super().__init__()
         if len(points.body) != len(points.offset) or len(points.body) != len(points.radius):
             raise ValueError("contact points need a body, an offset and a radius each")
-        self.fk, self.points = fk, points
+        self.fk, self.points, self.implicit = fk, points, implicit
         self.register_buffer("offset", torch.tensor(points.offset, dtype=torch.float64))
         self.register_buffer("radius", torch.tensor(points.radius, dtype=torch.float64))
         self.register_buffer("body", torch.tensor(points.body, dtype=torch.long))
+        self.register_buffer("group", torch.tensor(points.group, dtype=torch.long))
         below = [_subtree_mask(fk.parent, b) for b in points.body]  # (P, nbody)
         mask = [[below[i][b] for b in fk.dof_body] for i in range(len(points.body))]
         self.register_buffer("moves", torch.tensor(mask, dtype=torch.float64))  # (P, nv)
         self.register_buffer("rotational", torch.tensor(fk.rotational))  # (nv,)
-        self.log_stiffness = nn.Parameter(torch.tensor(math.log(0.5)))  # k = 0.5
-        self.raw_exponent = nn.Parameter(torch.tensor(_inverse_softplus(0.5)))  # e = 1.5
-        self.raw_damping = nn.Parameter(torch.tensor(_inverse_softplus(1.0)))  # c = 1 s/m
-        self.raw_friction = nn.Parameter(torch.tensor(_inverse_softplus(1.0)))  # mu = 1
+        law = start or ContactLaw.from_physics()
+        full = lambda v: torch.full((len(points.groups),), float(v))  # noqa: E731
+        self.log_stiffness = nn.Parameter(full(math.log(law.stiffness)))
+        self.raw_exponent = nn.Parameter(full(_inverse_softplus(law.exponent - 1.0)))
+        self.raw_damping = nn.Parameter(full(_inverse_softplus(law.damping)))
+        self.raw_friction = nn.Parameter(full(_inverse_softplus(law.friction)))
 
     @classmethod
-    def from_mujoco(cls, model: mujoco.MjModel) -> ContactModel:
-        return cls(ForwardKinematics.from_mujoco(model), ContactPoints.from_mujoco(model))
+    def from_mujoco(cls, model: mujoco.MjModel, start: ContactLaw | None = None,
+                    implicit: bool = True) -> ContactModel:  # fmt: skip
+        return cls(ForwardKinematics.from_mujoco(model), ContactPoints.from_mujoco(model), start,
+                   implicit)  # fmt: skip
 
     def law(self) -> dict[str, Tensor]:
-        """The learned constants: stiffness k, exponent e, damping c (s/m), friction mu."""
+        """The learned constants per group (G,): stiffness k, exponent e, damping c (s/m),
+        friction mu."""
         return dict(
             stiffness=self.log_stiffness.exp(),
             exponent=1.0 + F.softplus(self.raw_exponent),
             damping=F.softplus(self.raw_damping),
             friction=F.softplus(self.raw_friction),
         )
+
+    def point_law(self, like: Tensor) -> dict[str, Tensor]:
+        """The constants of each point (P,), on `like`'s device and dtype."""
+        return {k: v.to(like).index_select(0, self.group) for k, v in self.law().items()}
 
     def forward(self, q: Tensor, qd: Tensor) -> Tensor:
         """The generalized contact force: (..., nq), (..., nv) -> (..., nv)."""
@@ -169,19 +269,146 @@ class ContactModel(nn.Module):
         columns = torch.where(self.rotational.unsqueeze(-1), turn, axis)  # (..., P, nv, 3)
         return position, (columns * self.moves.to(q).unsqueeze(-1)).transpose(-1, -2)
 
-    def point_forces(self, position: Tensor, velocity: Tensor) -> Tensor:
-        """Forces (..., P, 3) on points at `position` moving at `velocity` (..., P, 3)."""
-        law = {name: value.to(position) for name, value in self.law().items()}
+    def _spring(self, position: Tensor, law: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        """Penetration d and spring force s = W k (d / delta)^e (0 without contact). (..., P)"""
         depth = torch.clamp(self.points.floor + self.radius.to(position) - position[..., 2], 0)
         ratio = torch.clamp(depth / PENETRATION_UNIT, min=1e-12)  # log(0): no NaN gradient
         spring = torch.where(
             depth > 0, self.points.weight * law["stiffness"] * ratio.pow(law["exponent"]), 0.0
         )
+        return depth, spring
+
+    def point_forces(self, position: Tensor, velocity: Tensor) -> Tensor:
+        """Forces (..., P, 3) on points at `position` moving at `velocity` (..., P, 3)."""
+        law = self.point_law(position)
+        _, spring = self._spring(position, law)
         normal = spring * torch.clamp(1.0 - law["damping"] * velocity[..., 2], min=0.0)
         slip = velocity[..., :2]  # (..., P, 2)
         speed = torch.sqrt(slip.square().sum(-1, keepdim=True) + SLIP_SPEED**2)
-        tangential = -law["friction"] * normal.unsqueeze(-1) * slip / speed
+        tangential = -law["friction"].unsqueeze(-1) * normal.unsqueeze(-1) * slip / speed
         return torch.cat([tangential, normal.unsqueeze(-1)], dim=-1)
+
+    def implicit_terms(self, q: Tensor, qd: Tensor, dt: float) -> ImplicitTerms:
+        """The law linearised about the end of a step of `dt`: the normal force
+        s(d - dt v_n+) (1 - c v_n+) ~ s - (dt ds/dd + s c) v_n+, and friction as a damping
+        of the slip, mu f_n / sqrt(|v_t|^2 + eps^2) with f_n at the step's start, times -v_t+
+        (inside the cone while the slip does not grow)."""
+        position, jacobian = self.kinematics(q)
+        velocity = torch.einsum("...pkv,...v->...pk", jacobian, qd)  # (..., P, 3)
+        law = self.point_law(position)
+        depth, spring = self._spring(position, law)
+        stiffness = law["exponent"] * spring / torch.clamp(depth, min=1e-9)  # ds/dd
+        normal_gain = dt * stiffness + spring * law["damping"]
+        normal_now = spring * torch.clamp(1.0 - law["damping"] * velocity[..., 2], min=0.0)
+        speed = torch.sqrt(velocity[..., :2].square().sum(-1) + SLIP_SPEED**2)
+        tangential_gain = law["friction"] * normal_now / speed
+        return ImplicitTerms(spring, normal_gain, tangential_gain, jacobian, velocity)
+
+    def implicit_acceleration(
+        self, q: Tensor, qd: Tensor, dt: float, mass_matrix: Tensor, force: Tensor
+    ) -> Tensor:
+        """`implicit_acceleration` with this model's contacts alone."""
+        return implicit_acceleration([self.implicit_terms(q, qd, dt)], qd, dt, mass_matrix, force)
+
+
+class JointLimits(nn.Module):
+    """The limited hinges' and slides' ranges (known from the MJCF) as one-sided springs with
+    Hunt-Crossley damping, stepped implicitly as the contacts are (`implicit_acceleration`):
+    past a bound by d, the joint is pushed back by s (1 - c v), s = k d, v the speed into the
+    bound. k holds the joint's largest actuator torque (`torque`) at `hold` past the bound;
+    c = 2 / sqrt(hold g), as for the contacts' start. Fixed: nothing here is learned.
+
+    Args:
+        qpos, dofs: position and velocity index of each limited joint (L,).
+        lower, upper: its range (L,).
+        torque: the force its bound holds at `hold` (L,).
+    """
+
+    def __init__(
+        self, qpos: Tensor, dofs: Tensor, lower: Tensor, upper: Tensor, torque: Tensor,
+        hold: float = 0.01,
+    ) -> None:  # fmt: skip
+        super().__init__()
+        self.register_buffer("qpos", qpos.to(torch.long))
+        self.register_buffer("dofs", dofs.to(torch.long))
+        self.register_buffer("lower", lower.to(torch.float64))
+        self.register_buffer("upper", upper.to(torch.float64))
+        self.register_buffer("stiffness", torque.to(torch.float64) / hold)
+        self.damping = 2.0 / math.sqrt(hold * GRAVITY)
+
+    @classmethod
+    def from_mujoco(cls, model: mujoco.MjModel, fallback_torque: float = 1.0) -> JointLimits:
+        """The limited hinges and slides of `model`; each holds its motor's largest torque
+        (gear x control bound), `fallback_torque` without one."""
+        scalar = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+        joints = [j for j in range(model.njnt)
+                  if model.jnt_limited[j] and int(model.jnt_type[j]) in scalar]  # fmt: skip
+        torque = np.full(model.nv, fallback_torque)
+        for a in range(model.nu):
+            j = int(model.actuator_trnid[a, 0])
+            if model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT and j >= 0:
+                reach = abs(model.actuator_gear[a, 0]) * np.abs(model.actuator_ctrlrange[a]).max()
+                dof = int(model.jnt_dofadr[j])
+                torque[dof] = max(torque[dof], float(reach))
+        dofs = [int(model.jnt_dofadr[j]) for j in joints]
+        as_t = lambda x: torch.as_tensor(np.asarray(x))  # noqa: E731
+        return cls(as_t([int(model.jnt_qposadr[j]) for j in joints]), as_t(dofs),
+                   as_t(model.jnt_range[joints, 0]), as_t(model.jnt_range[joints, 1]),
+                   as_t(torque[dofs]))  # fmt: skip
+
+    def implicit_terms(self, q: Tensor, qd: Tensor, dt: float) -> ImplicitTerms:
+        """Each joint as a point whose "normal" is its coordinate out of its range (the bound
+        it is nearer to) and that has no tangential part. (..., L)"""
+        pos = q.index_select(-1, self.qpos)
+        lower, upper = self.lower.to(q), self.upper.to(q)
+        below = pos - lower < upper - pos  # the lower bound is the nearer
+        direction = torch.where(below, 1.0, -1.0).to(q)  # pushes back into the range
+        depth = torch.clamp(torch.where(below, lower - pos, pos - upper), min=0)
+        stiffness = self.stiffness.to(q)
+        spring = stiffness * depth
+        speed = direction * qd.index_select(-1, self.dofs)  # > 0: leaving the bound
+        normal_gain = torch.where(depth > 0, dt * stiffness + spring * self.damping, 0.0)
+        nv = qd.shape[-1]
+        rows = torch.nn.functional.one_hot(self.dofs, nv).to(q) * direction.unsqueeze(-1)
+        jacobian = torch.zeros(*rows.shape[:-1], 3, nv, dtype=q.dtype, device=q.device)
+        jacobian = torch.cat([jacobian[..., :2, :], rows.unsqueeze(-2)], -2)  # (..., L, 3, nv)
+        velocity = torch.zeros(*speed.shape, 3, dtype=q.dtype, device=q.device)
+        velocity = torch.cat([velocity[..., :2], speed.unsqueeze(-1)], -1)
+        return ImplicitTerms(spring, normal_gain, torch.zeros_like(spring), jacobian, velocity)
+
+
+def implicit_acceleration(
+    parts: list[ImplicitTerms], qd: Tensor, dt: float, mass_matrix: Tensor, force: Tensor
+) -> Tensor:
+    """qdd of a step of `dt` with every part (contacts, joint limits) taken implicitly:
+    (M + dt sum J^T K J) qdd = force + sum J^T (f0 - K J qd), `force` every other generalized
+    force (bias subtracted).
+
+    Two passes: points whose normal force at the first pass's end velocity would pull
+    (s - K_n v_n+ < 0: leaving faster than the spring can follow) are left out of the second.
+    (..., nv), (..., nv, nv), (..., nv) -> (..., nv)"""
+    active = [t.spring > 0 for t in parts]
+    qdd = _solve(mass_matrix, force, parts, active, dt)
+    end = qd + dt * qdd
+    pushes = [
+        t.spring - t.normal_gain * torch.einsum("...pv,...v->...p", t.jacobian[..., 2, :], end) > 0
+        for t in parts
+    ]
+    return _solve(
+        mass_matrix, force, parts, [a & p for a, p in zip(active, pushes, strict=True)], dt
+    )
+
+
+def _solve(
+    mass_matrix: Tensor, force: Tensor, parts: list[ImplicitTerms], active: list[Tensor],
+    dt: float,
+) -> Tensor:  # fmt: skip
+    total, added = force, mass_matrix
+    for terms, on in zip(parts, active, strict=True):
+        extra, inertia = terms.generalized(on, dt)
+        total, added = total + extra, added + inertia
+    factor = torch.linalg.cholesky_ex(added).L  # M PD, each J^T K J PSD
+    return torch.cholesky_solve(total.unsqueeze(-1), factor).squeeze(-1)
 
 
 def _subtree_mask(parent: list[int], body: int) -> list[bool]:

@@ -14,7 +14,12 @@ from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.models.base import LossOutput, WorldModel
-from mbrl_delan.models.contact import ContactModel
+from mbrl_delan.models.contact import (
+    ContactModel,
+    ImplicitTerms,
+    JointLimits,
+    implicit_acceleration,
+)
 from mbrl_delan.models.features import rotation_matrix
 from mbrl_delan.models.field import LagrangianNetwork
 from mbrl_delan.models.integrators import INTEGRATORS, integrate
@@ -77,7 +82,10 @@ class DeLaN(WorldModel):
     What the mechanics are made of (network size, friction, invariances, tree sparsity,
     armature, units from data, a residual force) is the frozen `structure`; see
     `Structure` for each option. `contact`: a structured contact force beside them
-    (`ContactModel`: points of the body tree on the floor, in SI units).
+    (`ContactModel`: points of the body tree on the floor, in SI units), taken at the end of
+    each integrator step with the model's own M when it is `implicit`
+    (`models.contact.implicit_acceleration`), else added as a force. `limits`: the MJCF's
+    joint ranges as stiff one-sided springs (`JointLimits`), always taken implicitly.
 
     Losses (`loss=`): 'forward' compares the integrated next state with the data, per DoF
     normalised by the std of the one-step change; 'inverse' compares the predicted torque
@@ -118,6 +126,7 @@ class DeLaN(WorldModel):
         velocity_margin: float = 3.0,
         max_velocity: float = 100.0,
         contact: ContactModel | None = None,
+        limits: JointLimits | None = None,
     ) -> None:
         super().__init__()
         if integrator not in INTEGRATORS:
@@ -137,7 +146,7 @@ class DeLaN(WorldModel):
         self.layout, self.control_dt = layout, control_dt
         self.integrator, self.substeps, self.loss_kind = integrator, substeps, loss
         self.dynamics, self.residual = structure.build(layout, actuation)
-        self.contact = contact
+        self.contact, self.limits = contact, limits
         n = layout.nv
         for name in ("q_scale", "qd_scale", "tau_scale"):
             self.register_buffer(name, torch.ones(n))
@@ -157,10 +166,12 @@ class DeLaN(WorldModel):
         """B a, plus the contact and residual forces when the model has them. (..., nv)"""
         return self._with_learned_forces(self.dynamics.generalized_force(action), q, qd, action)
 
-    def _with_learned_forces(self, tau: Tensor, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
-        """tau + the contact force + r(q, qd, a) in torque units, those the model has.
-        (..., nv)"""
-        if self.contact is not None:
+    def _with_learned_forces(
+        self, tau: Tensor, q: Tensor, qd: Tensor, action: Tensor, contact: bool = True
+    ) -> Tensor:
+        """tau + the contact force (with `contact`) + r(q, qd, a) in torque units, those the
+        model has. (..., nv)"""
+        if self.contact is not None and contact:
             tau = tau + self.contact(q, qd)
         if self.residual is None:
             return tau
@@ -176,11 +187,17 @@ class DeLaN(WorldModel):
     ) -> State:
         """One control step: (..., nq), (..., nv), (..., nu) -> State((..., nq), (..., nv))."""
         tau = self.dynamics.generalized_force(action)  # B a: once per step, not per stage
+        implicit_contact = self.contact is not None and self.contact.implicit
+        h = self.control_dt / self.substeps
 
         def accel(q_: Tensor, qd_: Tensor) -> Tensor:
             qd_ = self._clamp_velocity(q_, qd_)
-            force = self._with_learned_forces(tau, q_, qd_, action)
-            return self.dynamics.forward_dynamics(q_, qd_, force)
+            force = self._with_learned_forces(tau, q_, qd_, action, contact=not implicit_contact)
+            parts = self._implicit_parts(q_, qd_, h)
+            if not parts:
+                return self.dynamics.forward_dynamics(q_, qd_, force)
+            mass_matrix, bias = self.dynamics.mass_and_bias(q_, qd_)
+            return implicit_acceleration(parts, qd_, h, mass_matrix, force - bias)
 
         # positions move with clamped velocities: a huge learned acceleration cannot throw
         # the body further than the data's speeds allow
@@ -188,6 +205,15 @@ class DeLaN(WorldModel):
             self.layout, accel, q, qd, self.control_dt, self.integrator, self.substeps,
             limit=self._clamp_velocity,
         )  # fmt: skip
+
+    def _implicit_parts(self, q: Tensor, qd: Tensor, dt: float) -> list[ImplicitTerms]:
+        """What a step of `dt` takes implicitly: the contacts (when implicit), the limits."""
+        parts = []
+        if self.contact is not None and self.contact.implicit:
+            parts.append(self.contact.implicit_terms(q, qd, dt))
+        if self.limits is not None:
+            parts.append(self.limits.implicit_terms(q, qd, dt))
+        return parts
 
     def _clamp_velocity(self, q: Tensor, qd: Tensor) -> Tensor:
         """qd within +-`velocity_limit` per DoF; with `yaw_invariant` the root's linear
@@ -226,7 +252,7 @@ class DeLaN(WorldModel):
         field = self.dynamics.field
         field.features.standardize(q)
         if isinstance(field, LagrangianNetwork):
-            field.start_height_weight(tau)
+            field.start_height_weight(tau, self.structure.root_weight)
 
     @torch.no_grad()
     def load_mechanics(self, state: Mapping[str, Tensor]) -> None:
@@ -296,6 +322,9 @@ class DeLaN(WorldModel):
         held = _varies(tau_std) & ~known  # torque without motion
         typical_qdd = qdd_std[known].log().mean().exp()
         inertia = torch.where(held, tau_std / typical_qdd, inertia)
+        root = self.structure.root_inertia
+        if root is not None:  # known: the free root's own units
+            inertia[:6] = torch.tensor(root, dtype=inertia.dtype, device=inertia.device)
         field.row_scale.copy_(inertia.sqrt())
         field.energy_scale.fill_(float(tau_std.max()))
         if isinstance(field, LagrangianNetwork) and field.still_potential:

@@ -106,12 +106,14 @@ class LagrangianNetwork(MechanicsField):
             self.register_buffer("height_started", torch.zeros((), dtype=torch.bool))
 
     @torch.no_grad()
-    def start_height_weight(self, force: Tensor) -> None:
+    def start_height_weight(self, force: Tensor, weight: float | None = None) -> None:
         """Start w at the mean generalized force (N, n) along each height: the body's weight
-        m g when the data's mean vertical acceleration is zero. Once: later calls (refits on
-        more data) keep the learned w."""
+        m g when the data's mean vertical acceleration is zero; or at a known `weight` (N).
+        Once: later calls (refits on more data) keep the learned w."""
         if self.height_weight is not None and not bool(self.height_started):
             mean = force.index_select(-1, self.height_v).mean(dim=0)
+            if weight is not None:
+                mean = torch.full_like(mean, weight)
             self.height_weight.copy_(mean.to(self.height_weight) / self.energy_scale)
             self.height_started.fill_(True)
 

@@ -239,6 +239,12 @@ class LagrangianDynamics(nn.Module):
         coriolis_gravity = self._add_euler_poincare(coriolis_gravity, jet.L, w, qd)
         return coriolis_gravity + self._dissipation(qd, jet.frame), jet
 
+    def mass_and_bias(self, q: Tensor, qd: Tensor) -> tuple[Tensor, Tensor]:
+        """M (..., n, n) and c + g + d (..., n) at (q, qd), for solves with M changed (an
+        implicit contact step adds to it)."""
+        bias, jet = self._bias_and_jet(q, qd)
+        return self.with_armature(jet.L @ jet.L.transpose(-1, -2)), bias
+
     def with_armature(self, inner: Tensor) -> Tensor:
         """M from the field's part L L^T (..., n, n): plus diag(armature) where there is one."""
         if not self.has_armature:

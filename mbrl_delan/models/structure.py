@@ -40,6 +40,12 @@ class Structure:
     inertia_scaling: M, V and the friction get units from the data (`DeLaN.fit_normalization`).
     diagonal_init: L's off-diagonal and V heads start at zero, the friction at 0.69 of its unit.
     residual: a learned unstructured generalized force r(q, qd, a) beside B a (`ResidualForce`).
+    root_inertia: what a user knows of a free root (the first joint): its six diagonal
+        inertias at the rest pose (the total mass, then the body's rotational inertia about
+        the root: MuJoCo's M at qpos0), which give its units with `inertia_scaling` where
+        the data cannot (its generalized force is zero). None: from the data.
+    root_weight: the body's weight m |g| (N); with `translation_invariant` the root height's
+        potential starts at it (the data's mean root force is zero: contacts carry the body).
     """
 
     hidden: int = 64
@@ -56,6 +62,8 @@ class Structure:
     inertia_scaling: bool = False
     diagonal_init: bool = False
     residual: bool = False
+    root_inertia: tuple[float, ...] | None = None
+    root_weight: float | None = None
 
     # what M, V and the friction are made of: `load_mechanics` needs these equal
     MECHANICS: ClassVar[tuple[str, ...]] = (
@@ -69,6 +77,11 @@ class Structure:
         if self.armature is not None:
             values = torch.as_tensor(self.armature, dtype=torch.float64).reshape(-1).tolist()
             object.__setattr__(self, "armature", tuple(values))
+        if self.root_inertia is not None:
+            values = tuple(float(v) for v in self.root_inertia)
+            if len(values) != 6 or min(values) <= 0:
+                raise ValueError(f"root_inertia must be 6 values > 0, got {self.root_inertia!r}")
+            object.__setattr__(self, "root_inertia", values)
 
     def differences(self, other: Structure, names: Sequence[str] = MECHANICS) -> list[str]:
         """The fields among `names` on which `other` differs from this one."""
