@@ -219,6 +219,7 @@ MIGRATIONS: dict[str, Any] = {
     "model.contacts": False,
     "model.contact_solve": "explicit",  # one law for every point, stepped as a force
     "model.known_root": False,
+    "env.model_known_root": False,
     "model.joint_limits": False,
     "env.oracle_substeps": None,  # the oracle planned on the env's own physics
     "env.oracle_integrator": None,

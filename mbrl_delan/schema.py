@@ -114,6 +114,7 @@ class EnvConfig:
     model_residual: bool = False
     model_contacts: bool = False
     model_inertia_scaling: bool = False
+    model_known_root: bool = False
     mppi_temperature: float = rule(0.5, low=0, above=True)
     mppi_noise_std: float = rule(0.5, low=0, above=True)
     mppi_smoothing: float = rule(0.8, low=0, high=1, below=True)
@@ -159,7 +160,7 @@ class _LagrangianConfig(ModelConfig):
     tree_sparse: bool = MISSING
     still_first_order: bool = MISSING
     armature: bool = MISSING
-    known_root: bool = False  # a free root's inertia units and weight from the MJCF
+    known_root: bool = MISSING  # a free root's inertia units and weight from the MJCF
 
 
 @dataclass

@@ -63,6 +63,7 @@ from mbrl_delan.tasks.tracking import MotionTracking
 from mbrl_delan.training.checkpoint import (
     CHECKPOINT_FILE,
     CheckpointError,
+    atomic_write,
     load_checkpoint,
     remove_stale_temps,
     rng_state,
@@ -509,6 +510,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             resume_metrics(run_dir / METRICS_FILE, loop.counters.iteration, loop.last_round)
             log.info("the run is finished: nothing to run, its results are left as they are")
             summary = json.loads((run_dir / SUMMARY_FILE).read_text(encoding="utf-8"))
+            if "gap_closed" not in summary:  # a run saved before the zero-control baseline
+                summary = _fill_zero_baseline(cfg, run_dir, loop, summary)
             _print_summary(run_dir, summary)
             return summary
     recorder = Recorder(
@@ -528,6 +531,20 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         for path in plot_run(run_dir):
             recorder.log_image(path.stem, path)
     _print_summary(run_dir, summary)
+    return summary
+
+
+def _fill_zero_baseline(
+    cfg: DictConfig, run_dir: Path, loop: MBRLLoop, summary: dict[str, Any]
+) -> dict[str, Any]:
+    """A finished run's summary completed with the zero-control baseline (evaluated from its
+    final evaluation's starts, then kept in its checkpoint)."""
+    loop.evaluate_zero(cfg.budget.final_eval_episodes)
+    _save(run_dir, loop)
+    summary = _with_zero_baseline(loop, summary)
+    text = json.dumps(summary, indent=2, sort_keys=True) + "\n"
+    atomic_write(run_dir / SUMMARY_FILE, lambda f: f.write(text.encode("utf-8")), keep_prev=False)
+    log.info("added the zero-control baseline to %s", run_dir / SUMMARY_FILE)
     return summary
 
 
@@ -589,22 +606,38 @@ def _summary(cfg: DictConfig, run_dir: Path, loop: MBRLLoop) -> dict[str, Any]:
     oracle = loop.oracle_returns or []
     oracle_mean = loop.oracle_mean
     eval_mean = last.get("eval_return_mean", float("nan"))
-    return {
-        "env": cfg.env.name,
-        "model": cfg.model.name,
-        "planner": cfg.planner.name,
-        "seed": cfg.seed,
-        "device": cfg.device,
-        "env_steps": loop.counters.env_steps,
-        "episodes": loop.counters.episodes,
-        "iterations": loop.counters.iteration,
-        "wall_time_s": loop.counters.wall_time_s,
-        "eval_return_mean": eval_mean,
-        "eval_return_std": last.get("eval_return_std"),
-        "oracle_return_mean": oracle_mean,
-        "oracle_return_std": float(torch.tensor(oracle).std(unbiased=False)) if oracle else None,
-        "fraction_of_oracle": eval_mean / oracle_mean if oracle_mean else None,
-    }
+    return _with_zero_baseline(
+        loop,
+        {
+            "env": cfg.env.name,
+            "model": cfg.model.name,
+            "planner": cfg.planner.name,
+            "seed": cfg.seed,
+            "device": cfg.device,
+            "env_steps": loop.counters.env_steps,
+            "episodes": loop.counters.episodes,
+            "iterations": loop.counters.iteration,
+            "wall_time_s": loop.counters.wall_time_s,
+            "eval_return_mean": eval_mean,
+            "eval_return_std": last.get("eval_return_std"),
+            "oracle_return_mean": oracle_mean,
+            "oracle_return_std": float(torch.tensor(oracle).std(unbiased=False))
+            if oracle
+            else None,
+            "fraction_of_oracle": eval_mean / oracle_mean if oracle_mean else None,
+            "eval_steps_median": last.get("eval_steps_median"),
+        },
+    )
+
+
+def _with_zero_baseline(loop: MBRLLoop, summary: dict[str, Any]) -> dict[str, Any]:
+    """The summary with the zero-control baseline: `zero_torque_return_mean` R0 and
+    `gap_closed` = (R - R0) / (R_oracle - R0) (None where undefined)."""
+    zero = loop.zero_returns
+    r0 = sum(zero) / len(zero) if zero else None
+    gap = summary["oracle_return_mean"] - r0 if r0 is not None else None
+    closed = (summary["eval_return_mean"] - r0) / gap if gap else None
+    return summary | {"zero_torque_return_mean": r0, "gap_closed": closed}
 
 
 def _print_summary(run_dir: Path, s: dict[str, Any]) -> None:

@@ -113,15 +113,17 @@ def test_rollout_error_skips_episodes_shorter_than_the_horizon(humanoid) -> None
 
 
 def test_untrained_humanoid_delan_has_a_finite_first_gradient(humanoid) -> None:
-    """With the humanoid env's inertia scaling the first forward loss of an untrained DeLaN
-    is O(10) with a moderate gradient; without it the untrained M is far from the body's
-    units and its accelerations hit the velocity clamp: a loss and a gradient over 10x."""
+    """With the humanoid env's inertia scaling (its units from the data alone: no known root)
+    the first forward loss of an untrained DeLaN is O(10) with a moderate gradient; without it
+    the untrained M is far from the body's units and its accelerations hit the velocity clamp:
+    a loss and a gradient over 10x."""
     cfg = HumanoidBenchConfig.quick()
     data = torch.cat(collect_episodes(humanoid.system, humanoid.task, 120, cfg, 0))
     first = {}
     for scaling in (True, False):
         settings = model_config("delan", HumanoidBenchConfig())
         settings.inertia_scaling = scaling
+        settings.known_root = False
         torch.manual_seed(0)
         model = build_model(settings, humanoid.system)
         model.fit_normalization(data.to(torch.float32))

@@ -66,12 +66,13 @@ ILQR_TASKS = ("cmu_track",)  # suite humanoid: tasks of its tracking iLQR oracle
 # suite realtime: its tasks and the dynamics each is planned on
 REALTIME_TASKS = ("humanoid_stand", "humanoid_walk", "pendulum")
 REALTIME_DYNAMICS = ("mujoco", "delan", "ensemble")
-# suite fidelity's reference cases: MuJoCo at the oracle's physics, perturbed copies of it, and
-# the white-box model's documented wrong start (`benchmarks/fidelity.py`, `PERTURBATIONS`)
+# suite fidelity's reference cases: MuJoCo at the oracle's physics, perturbed copies of it, the
+# white-box model's documented wrong start, and MuJoCo's rigid body with the contact model
+# (`benchmarks/fidelity.py`)
 FIDELITY_CASES = (
     "mujoco", "mass_x0.5", "mass_x2", "mass_random", "com_2cm", "gear_x0.5", "damping_x2",
     "friction_0.2", "contact_3x_softer", "contact_10x_softer", "foot_x0.7", "contacts_off",
-    "whitebox_start",
+    "whitebox_start", "rigid_contact_start",
 )  # fmt: skip
 
 

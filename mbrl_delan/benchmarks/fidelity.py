@@ -10,8 +10,10 @@ planner planning in the case's model and acting in the env for `oracle_steps` co
 from the oracle's start (all of them: it stood).
 
 Cases (`models`, default all `REFERENCE_CASES`): MuJoCo at the oracle's planning physics
-(``mujoco``) and perturbed copies of it (`PERTURBATIONS`), planned on as the oracle is, and
-the white-box model's documented wrong start (``whitebox_start``). `runs`: train run dirs
+(``mujoco``) and perturbed copies of it (`PERTURBATIONS`), planned on as the oracle is; the
+white-box model's documented wrong start (``whitebox_start``); and MuJoCo's rigid body with
+the learned models' contact structure at its start (``rigid_contact_start``: `ContactModel`
+and `JointLimits`, implicit, 2 x 7.5 ms), planned on in torch. `runs`: train run dirs
 whose final world model (checkpoint) is scored too, case ``<model>:<run dir name>``.
 
 Every record carries `model` (the case), `data` (what the model was fitted on), `metric`,
@@ -37,6 +39,8 @@ from mbrl_delan.config import compose_train_config
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import EnvParts, make_env_parts
 from mbrl_delan.models.base import WorldModel
+from mbrl_delan.models.contact import ContactModel, JointLimits
+from mbrl_delan.models.rigid_contact import RigidContactModel
 from mbrl_delan.models.whitebox import WhiteBoxModel
 from mbrl_delan.objectives.mujoco import PlanPhysics
 from mbrl_delan.training.fidelity import (
@@ -115,15 +119,27 @@ PERTURBATIONS = {
     "contacts_off": Perturbation("no contacts", edit=_no_contacts),
 }
 WHITEBOX_START = "whitebox_start"  # the white-box model's documented wrong start, no data
-REFERENCE_CASES = (*PERTURBATIONS, WHITEBOX_START)
+# MuJoCo's rigid body (contacts and limits off) with the learned-contact structure at its
+# start: `ContactModel` and `JointLimits`, implicit (`models/rigid_contact.py`)
+RIGID_CONTACT = "rigid_contact_start"
+REFERENCE_CASES = (*PERTURBATIONS, WHITEBOX_START, RIGID_CONTACT)
+CASE_NOTES = {
+    WHITEBOX_START: "the white-box model's documented wrong start",
+    RIGID_CONTACT: "rigid body exact, contact law at its start, joint limits implicit",
+}
 assert REFERENCE_CASES == FIDELITY_CASES, "benchmarks.FIDELITY_CASES lists the same cases"
 
 
 def perturbed_model(
     cfg: DictConfig, parts: EnvParts, name: str, seed: int, nthread: int
-) -> WhiteBoxModel:
+) -> WorldModel:
     """The MuJoCo model of reference case `name`, stepping at the oracle's physics."""
     system = parts.system
+    if name == RIGID_CONTACT:
+        model = system.mj_model()
+        contact = ContactModel.from_mujoco(model).double()
+        return RigidContactModel(system, contact, cfg.env.oracle_substeps or system.frame_skip,
+                                 JointLimits.from_mujoco(model))  # fmt: skip
     physics = PlanPhysics(cfg.env.oracle_substeps, cfg.env.oracle_integrator)
     spec = mujoco.MjSpec.from_file(str(system.xml_path))
     rng = np.random.default_rng(seed)
@@ -208,7 +224,7 @@ def run_fidelity_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
     cases = REFERENCE_CASES if opts.models is None else opts.models
     for name in cases:
         model = perturbed_model(cfg, parts, name, seed, nthread)
-        what = PERTURBATIONS[name].what if name in PERTURBATIONS else "documented wrong start"
+        what = PERTURBATIONS[name].what if name in PERTURBATIONS else CASE_NOTES[name]
         yield from _case(cfg, parts, model, name, "none (MuJoCo: " + what + ")", reference,
                          steps, seed, base | host)  # fmt: skip
     for run_dir in opts.runs:

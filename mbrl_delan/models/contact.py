@@ -319,9 +319,12 @@ class JointLimits(nn.Module):
     c = 2 / sqrt(hold g), as for the contacts' start. Fixed: nothing here is learned.
 
     Args:
-        qpos, dofs: position and velocity index of each limited joint (L,).
-        lower, upper: its range (L,).
+        qpos: position index of each limited joint (L,).
+        dofs: its velocity index (L,).
+        lower: the lower end of its range (L,).
+        upper: the upper end (L,).
         torque: the force its bound holds at `hold` (L,).
+        hold: how far past a bound it holds `torque` (rad or m).
     """
 
     def __init__(

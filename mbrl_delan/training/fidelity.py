@@ -124,11 +124,11 @@ def build_reference(
     qd = rollout.get(keys.QD).to(torch.float64)
     action = rollout.get(keys.ACTION).to(torch.float64)
     longest = max(horizons)
-    t = torch.arange(0, q.shape[0] - longest, every)  # starts with `longest` actions after
-    if t.numel() == 0:
+    if q.shape[0] <= longest:
         raise ValueError(
             f"the oracle's episode has {q.shape[0]} steps: too short for {longest}-step errors"
         )
+    t = torch.arange(0, q.shape[0] - longest, every)  # starts with `longest` actions after
     gen = torch.Generator().manual_seed(seed)
     noise = VELOCITY_NOISE * qd.std(0) * torch.randn((t.numel(), system.nv), generator=gen,
                                                       dtype=torch.float64)  # fmt: skip

@@ -69,6 +69,22 @@ class UniformPolicy(TensorDictModuleBase):
         """Nothing to forget between episodes (the generator keeps its stream)."""
 
 
+class ZeroPolicy(TensorDictModuleBase):
+    """Zero controls (clamped into the control range): the do-nothing baseline."""
+
+    def __init__(self, low: Tensor, high: Tensor) -> None:
+        super().__init__()
+        self.in_keys, self.out_keys = [keys.Q], [keys.ACTION]
+        self.action = torch.clamp(torch.zeros_like(low), low, high).float()
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = self.action.expand(*tensordict.batch_size, -1)
+        return tensordict.set(keys.ACTION, action.to(tensordict.get(keys.Q).dtype).clone())
+
+    def reset(self) -> None:
+        """Nothing to forget."""
+
+
 class EpisodePolicy(Protocol):
     """A TorchRL policy the loop runs episodes with (`PlannerPolicy`, `UniformPolicy`):
     `reset()` forgets what it kept from the last episode (a plan)."""
@@ -273,6 +289,8 @@ class MBRLLoop:
         self.keep_eval_rollouts = keep_eval_rollouts  # e.g. for videos of evaluation episodes
         self.last_evaluation: Evaluation | None = None  # of the last `iterate`, if it evaluated
         self.oracle_returns: list[float] | None = None  # once `run` has evaluated the oracle
+        # zero controls from the final evaluation's starts, once `run` has evaluated them
+        self.zero_returns: list[float] | None = None
         self.oracle_rollouts: list[TensorDict] = []  # its first `keep_eval_rollouts` episodes
         self.warmup_done = False  # once `run` has collected the random episodes and fitted
         self.last_round: dict[str, Any] | None = None  # the metrics of the last round run
@@ -296,6 +314,9 @@ class MBRLLoop:
                 ev = self._evaluate_oracle(oracle, schedule.oracle_episodes)
             self.oracle_returns, self.oracle_rollouts = ev.returns, ev.rollouts
             hooks.checkpoint()
+        if self.zero_returns is None:
+            self.evaluate_zero(schedule.final_eval_episodes)
+            hooks.checkpoint()
         if not self.warmup_done:
             with self.timed():
                 self.collect_random(schedule.random_episodes)
@@ -314,6 +335,13 @@ class MBRLLoop:
         """Whether the rounds of `schedule` are done (a run has at least one round)."""
         k = self.counters.iteration
         return k > 0 and schedule.is_last(k, self.counters.env_steps)
+
+    def evaluate_zero(self, episodes: int) -> list[float]:
+        """The zero-control baseline's returns from the evaluation starts (kept)."""
+        with self.timed():
+            zero = ZeroPolicy(self.system.ctrl_low, self.system.ctrl_high)
+            self.zero_returns = self.evaluate(zero, episodes).returns
+        return self.zero_returns
 
     @property
     def oracle_mean(self) -> float:
@@ -461,6 +489,7 @@ class MBRLLoop:
             "buffer": buffer_state(self.buffer),
             "counters": vars(self.counters).copy(),
             "last_round": self.last_round,
+            "zero_returns": self.zero_returns,
             "fidelity_reference": None
             if self.fidelity_reference is None
             else self.fidelity_reference.state_dict(),
@@ -479,6 +508,7 @@ class MBRLLoop:
         load_buffer_state(self.buffer, state["buffer"])
         self.counters = LoopCounters(**state["counters"])
         self.last_round = state.get("last_round")  # absent from older checkpoints
+        self.zero_returns = state.get("zero_returns")
         reference = state.get("fidelity_reference")
         if reference is not None:
             self.fidelity_reference = FidelityReference.from_state_dict(reference)
