@@ -331,3 +331,14 @@ def test_a_hinge_thrown_into_its_limit_gains_no_energy() -> None:
         energies.append(float(0.5 * inertia[0, 0] * qd[0] ** 2))
     assert max(energies) <= 0.5 * float(inertia[0, 0]) * 400 * (1 + 1e-9)
     assert -0.5 - 0.05 < float(q[0]) < 0.5 + 0.05
+
+
+def test_the_friction_slope_an_implicit_step_takes_is_its_derivative() -> None:
+    """`Dissipation.slope` (what an implicit step adds to M, times dt) is dd/dqd, per DoF."""
+    from mbrl_delan.models.lagrangian import Dissipation
+
+    friction = Dissipation(5, coulomb=True, raw_init=0.3).double()
+    qd = torch.tensor([-0.5, -0.004, 0.0, 0.003, 2.0], dtype=torch.float64)
+    jacobian = torch.autograd.functional.jacobian(friction, qd)
+    torch.testing.assert_close(torch.diag(jacobian), friction.slope(qd))
+    assert bool((jacobian - torch.diag(torch.diag(jacobian))).abs().max() == 0)

@@ -85,7 +85,8 @@ class DeLaN(WorldModel):
     (`ContactModel`: points of the body tree on the floor, in SI units), taken at the end of
     each integrator step with the model's own M when it is `implicit`
     (`models.contact.implicit_acceleration`), else added as a force. `limits`: the MJCF's
-    joint ranges as stiff one-sided springs (`JointLimits`), always taken implicitly.
+    joint ranges as stiff one-sided springs (`JointLimits`), always taken implicitly. When a
+    step solves implicitly, the friction's slope is taken at the step's end as well.
 
     Losses (`loss=`): 'forward' compares the integrated next state with the data, per DoF
     normalised by the std of the one-step change; 'inverse' compares the predicted torque
@@ -196,7 +197,7 @@ class DeLaN(WorldModel):
             parts = self._implicit_parts(q_, qd_, h)
             if not parts:
                 return self.dynamics.forward_dynamics(q_, qd_, force)
-            mass_matrix, bias = self.dynamics.mass_and_bias(q_, qd_)
+            mass_matrix, bias = self.dynamics.mass_and_bias(q_, qd_, damping_dt=h)
             return implicit_acceleration(parts, qd_, h, mass_matrix, force - bias)
 
         # positions move with clamped velocities: a huge learned acceleration cannot throw

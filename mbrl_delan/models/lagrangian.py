@@ -142,6 +142,15 @@ class Dissipation(nn.Module):
         """Learned viscous damping per DoF, (n,)."""
         return self.viscous_scale * F.softplus(self.raw_viscous)
 
+    def slope(self, qd: Tensor) -> Tensor:
+        """dd/dqd, per DoF (..., n): D + F sech^2(qd / v_c) / v_c, >= 0."""
+        slope = self.viscous.expand_as(qd)
+        if self.raw_coulomb is not None:
+            coulomb = self.coulomb_scale * F.softplus(self.raw_coulomb)
+            sech2 = 1.0 - torch.tanh(qd / self.coulomb_velocity).square()
+            slope = slope + coulomb * sech2 / self.coulomb_velocity
+        return slope
+
     def forward(self, qd: Tensor) -> Tensor:
         force = self.viscous * qd
         if self.raw_coulomb is not None:
@@ -239,11 +248,18 @@ class LagrangianDynamics(nn.Module):
         coriolis_gravity = self._add_euler_poincare(coriolis_gravity, jet.L, w, qd)
         return coriolis_gravity + self._dissipation(qd, jet.frame), jet
 
-    def mass_and_bias(self, q: Tensor, qd: Tensor) -> tuple[Tensor, Tensor]:
+    def mass_and_bias(
+        self, q: Tensor, qd: Tensor, damping_dt: float = 0.0
+    ) -> tuple[Tensor, Tensor]:
         """M (..., n, n) and c + g + d (..., n) at (q, qd), for solves with M changed (an
-        implicit contact step adds to it)."""
+        implicit contact step adds to it). `damping_dt` > 0: M + damping_dt dd/dqd, the
+        friction taken at the end of a step of that length too (linearly implicit; not with
+        a free root's frame, whose friction acts in the root's axes)."""
         bias, jet = self._bias_and_jet(q, qd)
-        return self.with_armature(jet.L @ jet.L.transpose(-1, -2)), bias
+        mass = self.with_armature(jet.L @ jet.L.transpose(-1, -2))
+        if damping_dt > 0 and self.dissipation is not None and jet.frame is None:
+            mass = mass + torch.diag_embed(damping_dt * self.dissipation.slope(qd))
+        return mass, bias
 
     def with_armature(self, inner: Tensor) -> Tensor:
         """M from the field's part L L^T (..., n, n): plus diag(armature) where there is one."""

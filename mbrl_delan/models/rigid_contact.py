@@ -28,8 +28,9 @@ from mbrl_delan.systems.system import State, System
 
 class RigidContactModel(WorldModel):
     """MuJoCo's rigid body (contacts off) + an implicit `ContactModel`, stepped by
-    `substeps` semi-implicit Euler steps per control step; with `limits`, the joint limits are
-    those (implicit, `JointLimits`) instead of MuJoCo's."""
+    `substeps` semi-implicit Euler steps per control step, the joints' damping implicit as in
+    MuJoCo's Euler; with `limits`, the joint limits are those (implicit, `JointLimits`)
+    instead of MuJoCo's."""
 
     deterministic = True
 
@@ -70,8 +71,11 @@ class RigidContactModel(WorldModel):
     ) -> State:
         h = self.system.control_dt / self.substeps
 
+        damping = torch.from_numpy(self.mj.dof_damping.copy()).to(q)
+
         def accel(q_: Tensor, qd_: Tensor) -> Tensor:
             mass, force = self.rigid_terms(q_, qd_, action)
+            mass = mass + torch.diag_embed(h * damping.expand_as(qd_))  # as MuJoCo's Euler
             parts = [self.contact.implicit_terms(q_, qd_, h)]
             if self.limits is not None:
                 parts.append(self.limits.implicit_terms(q_, qd_, h))
