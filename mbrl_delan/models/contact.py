@@ -45,6 +45,7 @@ HOLD_DEPTH = 0.003  # m: the start's stiffness holds the body's weight on two po
 START_EXPONENT = 1.5  # e at the start
 GRAVITY = 9.81  # m/s^2, for the start's damping
 TRUNK, LIMBS = "trunk", "limbs"  # the groups of points on inner bodies
+MAX_DEPTH = 0.05  # m: the law saturates at this penetration (states far off any data)
 
 
 def _inverse_softplus(y: float) -> float:
@@ -270,8 +271,11 @@ class ContactModel(nn.Module):
         return position, (columns * self.moves.to(q).unsqueeze(-1)).transpose(-1, -2)
 
     def _spring(self, position: Tensor, law: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        """Penetration d and spring force s = W k (d / delta)^e (0 without contact). (..., P)"""
-        depth = torch.clamp(self.points.floor + self.radius.to(position) - position[..., 2], 0)
+        """Penetration d (at most `MAX_DEPTH`) and spring force s = W k (d / delta)^e (0 without
+        contact). (..., P)"""
+        depth = torch.clamp(
+            self.points.floor + self.radius.to(position) - position[..., 2], 0, MAX_DEPTH
+        )
         ratio = torch.clamp(depth / PENETRATION_UNIT, min=1e-12)  # log(0): no NaN gradient
         spring = torch.where(
             depth > 0, self.points.weight * law["stiffness"] * ratio.pow(law["exponent"]), 0.0
@@ -410,8 +414,10 @@ def _solve(
     for terms, on in zip(parts, active, strict=True):
         extra, inertia = terms.generalized(on, dt)
         total, added = total + extra, added + inertia
-    factor = torch.linalg.cholesky_ex(added).L  # M PD, each J^T K J PSD
-    return torch.cholesky_solve(total.unsqueeze(-1), factor).squeeze(-1)
+    # in float64: stiff contacts add gains 10^6 times M's, past float32's precision
+    factor = torch.linalg.cholesky_ex(added.double()).L  # M PD, each J^T K J PSD
+    solved = torch.cholesky_solve(total.double().unsqueeze(-1), factor).squeeze(-1)
+    return solved.to(force.dtype)
 
 
 def _subtree_mask(parent: list[int], body: int) -> list[bool]:
