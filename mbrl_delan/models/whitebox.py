@@ -178,9 +178,8 @@ class WhiteBoxSpec:
 
     def _multipliers(self, model: mujoco.MjModel) -> list[Multiplier]:
         out = [Multiplier("mass", body) for body in self.bodies]
-        dofs = model.jnt_dofadr[
-            model.jnt_type >= int(mujoco.mjtJoint.mjJNT_SLIDE)
-        ]  # hinges, slides
+        scalar = model.jnt_type >= int(mujoco.mjtJoint.mjJNT_SLIDE)  # hinges and slides
+        dofs = model.jnt_dofadr[scalar]
         for kind in ("damping", "armature"):
             if bool(getattr(model, f"dof_{kind}")[dofs].any()):
                 out.append(Multiplier(kind, "joints"))
@@ -195,45 +194,19 @@ class WhiteBoxSpec:
     def _modifier(self, m: Multiplier) -> Callable[[mujoco.MjSpec, sysid.Parameter], None]:
         """The `sysid` modifier that writes multiplier `m` into a copy of the base spec."""
         if m.kind == "mass":
-            body = self.base.body(m.target)
-            mass, inertia = float(body.mass), np.array(body.inertia)
-
-            def scale_body(spec: mujoco.MjSpec, p: sysid.Parameter) -> None:
-                target = spec.body(m.target)
-                target.mass = mass * float(p.value[0])
-                target.inertia = inertia * float(p.value[0])
-
-            return scale_body
+            return _mass_modifier(self.base, m.target)
         if m.kind in ("damping", "armature"):
-            nominal = {j.name: np.array(getattr(j, m.kind)) for j in _scalar_joints(self.base)}
-
-            def scale_joints(spec: mujoco.MjSpec, p: sysid.Parameter) -> None:
-                for joint in _scalar_joints(spec):
-                    setattr(joint, m.kind, nominal[joint.name] * float(p.value[0]))
-
-            return scale_joints
-        columns = {"timeconst": ("solref", [0]), "dampratio": ("solref", [1]),
-                   "friction": ("friction", [0, 1])}  # fmt: skip
-        attr, cols = columns[m.kind]
-        pairs = self.groups[m.target]
-        nominal_pairs = [np.array(getattr(self.base.pair(p), attr)) for p in pairs]
-
-        def scale_contacts(spec: mujoco.MjSpec, p: sysid.Parameter) -> None:
-            for name, nominal_value in zip(pairs, nominal_pairs, strict=True):
-                values = np.array(getattr(spec.pair(name), attr))  # other columns kept
-                values[cols] = nominal_value[cols] * float(p.value[0])
-                setattr(spec.pair(name), attr, values)
-
-        return scale_contacts
+            return _joint_modifier(self.base, m.kind)
+        return _contact_modifier(self.base, m.kind, self.groups[m.target])
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         return self.params.get_bounds()
 
-    def build(self, theta: np.ndarray, spec: mujoco.MjSpec | None = None) -> mujoco.MjModel:
-        """The MjModel at multipliers theta (M,) (on a copy of `spec`, default the base)."""
+    def build(self, theta: np.ndarray) -> mujoco.MjModel:
+        """The MjModel at multipliers theta (M,), built on a copy of the base spec."""
         params = self.params.copy()
         params.update_from_vector(np.asarray(theta, dtype=np.float64).reshape(-1))
-        return sysid.apply_param_modifiers(params, (spec or self.base).copy())
+        return sysid.apply_param_modifiers(params, self.base.copy())
 
     def documented_start(self) -> np.ndarray:
         """The documented wrong model (`WRONG_START`, masses x U(0.5, 1.5) with seed
@@ -247,6 +220,47 @@ class WhiteBoxSpec:
                 theta[i] = WRONG_START[m.kind]
         low, high = self.bounds()
         return np.clip(theta, low, high)
+
+
+Modifier = Callable[[mujoco.MjSpec, sysid.Parameter], None]
+
+
+def _mass_modifier(base: mujoco.MjSpec, body: str) -> Modifier:
+    """A body's mass and rotational inertia, both x the parameter (still consistent)."""
+    mass, inertia = float(base.body(body).mass), np.array(base.body(body).inertia)
+
+    def scale_body(spec: mujoco.MjSpec, p: sysid.Parameter) -> None:
+        target = spec.body(body)
+        target.mass, target.inertia = mass * float(p.value[0]), inertia * float(p.value[0])
+
+    return scale_body
+
+
+def _joint_modifier(base: mujoco.MjSpec, kind: str) -> Modifier:
+    """Every hinge's and slide's `kind` (damping, armature) x the parameter."""
+    nominal = [np.array(getattr(j, kind)) for j in _scalar_joints(base)]
+
+    def scale_joints(spec: mujoco.MjSpec, p: sysid.Parameter) -> None:
+        for joint, value in zip(_scalar_joints(spec), nominal, strict=True):
+            setattr(joint, kind, value * float(p.value[0]))
+
+    return scale_joints
+
+
+def _contact_modifier(base: mujoco.MjSpec, kind: str, pairs: list[str]) -> Modifier:
+    """The `kind` (timeconst, dampratio, friction) of a group's floor pairs x the parameter;
+    the pairs' other values kept."""
+    attr, cols = {"timeconst": ("solref", [0]), "dampratio": ("solref", [1]),
+                  "friction": ("friction", [0, 1])}[kind]  # fmt: skip
+    nominal = [np.array(getattr(base.pair(name), attr)) for name in pairs]
+
+    def scale_contacts(spec: mujoco.MjSpec, p: sysid.Parameter) -> None:
+        for name, value in zip(pairs, nominal, strict=True):
+            values = np.array(getattr(spec.pair(name), attr))
+            values[cols] = value[cols] * float(p.value[0])
+            setattr(spec.pair(name), attr, values)
+
+    return scale_contacts
 
 
 def _scalar_joints(spec: mujoco.MjSpec) -> list[Any]:
@@ -447,24 +461,26 @@ class WhiteBoxModel(WorldModel):
         ordered), starting from the current ones; returns what happened (the residual before
         and after as the 'loss')."""
         problem = WindowProblem.from_data(self, data, generator)
-        start = problem.cost(self.theta)
-        params = self.white.params.copy()
-        params.update_from_vector(self.theta)
-        fitted, _ = sysid.optimize(
-            params,
-            problem.sysid_residual,
-            optimizer="mujoco",
-            verbose=False,
-            max_iters=self.settings.iterations,
-            eps=self.settings.fd_step,
-            output=io.StringIO(),  # the optimizer's iteration table (kept out of the log)
-        )
-        theta = fitted.as_vector()
-        end = problem.cost(theta)
+        try:
+            start = problem.cost(self.theta)
+            params = self.white.params.copy()
+            params.update_from_vector(self.theta)
+            fitted, _ = sysid.optimize(
+                params,
+                problem.sysid_residual,
+                optimizer="mujoco",
+                verbose=False,
+                max_iters=self.settings.iterations,
+                eps=self.settings.fd_step,
+                output=io.StringIO(),  # the optimizer's iteration table (kept out of the log)
+            )
+            theta = fitted.as_vector()
+            end = problem.cost(theta)
+        finally:
+            problem.close()
         if math.isfinite(end) and end <= start:
             self._set_theta(theta)
         self.identifications += 1
-        problem.close()
         log.info(
             "identify: %d windows of %d steps, cost %.4g -> %.4g, %s",
             problem.windows, self.settings.window, start, end,
