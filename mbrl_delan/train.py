@@ -510,8 +510,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
             resume_metrics(run_dir / METRICS_FILE, loop.counters.iteration, loop.last_round)
             log.info("the run is finished: nothing to run, its results are left as they are")
             summary = json.loads((run_dir / SUMMARY_FILE).read_text(encoding="utf-8"))
-            if "gap_closed" not in summary:  # a run saved before the zero-control baseline
-                summary = _fill_zero_baseline(cfg, run_dir, loop, summary)
+            if "gap_closed" not in summary or "eval_steps_median" not in summary:
+                summary = _complete_summary(cfg, run_dir, loop, summary)  # an older run's
             _print_summary(run_dir, summary)
             return summary
     recorder = Recorder(
@@ -534,17 +534,22 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     return summary
 
 
-def _fill_zero_baseline(
+def _complete_summary(
     cfg: DictConfig, run_dir: Path, loop: MBRLLoop, summary: dict[str, Any]
 ) -> dict[str, Any]:
-    """A finished run's summary completed with the zero-control baseline (evaluated from its
-    final evaluation's starts, then kept in its checkpoint)."""
-    loop.evaluate_zero(cfg.budget.final_eval_episodes)
-    _save(run_dir, loop)
-    summary = _with_zero_baseline(loop, summary)
+    """A finished run's summary saved before its newer fields, completed: the zero-control
+    baseline (evaluated from its final evaluation's starts, then kept in its checkpoint) and
+    the final evaluation's median episode length."""
+    if "gap_closed" not in summary:
+        loop.evaluate_zero(cfg.budget.final_eval_episodes)
+        _save(run_dir, loop)
+        summary = _with_zero_baseline(loop, summary)
+    if "eval_steps_median" not in summary:
+        records = [r for r in read_metrics(run_dir / METRICS_FILE) if "eval_return_mean" in r]
+        summary["eval_steps_median"] = records[-1].get("eval_steps_median") if records else None
     text = json.dumps(summary, indent=2, sort_keys=True) + "\n"
     atomic_write(run_dir / SUMMARY_FILE, lambda f: f.write(text.encode("utf-8")), keep_prev=False)
-    log.info("added the zero-control baseline to %s", run_dir / SUMMARY_FILE)
+    log.info("completed %s with the fields it was saved without", run_dir / SUMMARY_FILE)
     return summary
 
 

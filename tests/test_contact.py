@@ -2,6 +2,9 @@
 it promises (no force without contact, a non-negative normal force, friction inside its cone,
 no energy gained in a passive drop)."""
 
+import dataclasses
+import math
+
 import mujoco
 import numpy as np
 import pytest
@@ -16,6 +19,7 @@ from mbrl_delan.models.contact import (
     ContactLaw,
     ContactModel,
     ContactPoints,
+    ImplicitTerms,
     JointLimits,
     implicit_acceleration,
 )
@@ -347,7 +351,7 @@ def test_the_friction_slope_an_implicit_step_takes_is_its_derivative() -> None:
 def test_a_contact_delan_stays_finite_far_off_its_data() -> None:
     """The humanoid DeLaN with implicit contacts and limits, from states sunk up to tens of metres
     into the floor with joints wrenched and velocities of thousands: 30 steps stay finite (the
-    law saturates at MAX_DEPTH, the stiff solve runs in float64)."""
+    law saturates at MAX_DEPTH)."""
     cfg = compose_train_config(["env=humanoid_stand", "model=delan", "model.contacts=true",
                                 "model.joint_limits=true", "model.residual=false"])  # fmt: skip
     parts = make_env_parts("humanoid_stand", None, 10)
@@ -364,3 +368,35 @@ def test_a_contact_delan_stays_finite_far_off_its_data() -> None:
         for _ in range(29):
             state = model.step(state.q, state.qd, action)
     assert bool(torch.isfinite(state.q).all() and torch.isfinite(state.qd).all())
+
+
+def test_the_stiff_implicit_solve_in_float32_matches_float64() -> None:
+    """A humanoid-size system (inertia units from 0.02 to 40, 0.3 m levers) with normal gains
+    of 10^6 N s/m (about 150 times the contact start's), every point pressed into the floor:
+    the float32 solve (equilibrated Cholesky) gives float64's accelerations to 1e-3, and those
+    satisfy (M + dt J^T K J) qdd = force + J^T (f0 - K J qd)."""
+    nv, points, dt = 23, 6, 0.0075
+    g = torch.Generator().manual_seed(0)
+    a = torch.randn(nv, nv, generator=g, dtype=torch.float64)
+    units = torch.logspace(math.log10(0.02), math.log10(40.0), nv, dtype=torch.float64).sqrt()
+    mass = units[:, None] * (a @ a.T / nv + 0.05 * torch.eye(nv, dtype=torch.float64)) * units
+    jacobian = 0.3 * torch.randn(points, 3, nv, generator=g, dtype=torch.float64)
+    terms = ImplicitTerms(
+        spring=torch.rand(points, generator=g, dtype=torch.float64) * 1e3,
+        normal_gain=torch.full((points,), 1e6, dtype=torch.float64),
+        tangential_gain=torch.full((points,), 1e4, dtype=torch.float64),
+        jacobian=jacobian,
+        velocity=torch.zeros(points, 3, dtype=torch.float64),
+    )
+    qd = torch.zeros(nv, dtype=torch.float64)
+    push = -1e4 * jacobian[:, 2].sum(0)  # presses every point down
+    force = push + torch.randn(nv, generator=g, dtype=torch.float64)
+    exact = implicit_acceleration([terms], qd, dt, mass, force)
+    f32 = ImplicitTerms(*(t.float() for t in dataclasses.astuple(terms)))
+    single = implicit_acceleration([f32], qd.float(), dt, mass.float(), force.float()).double()
+    assert float((single - exact).norm() / exact.norm()) < 1e-3
+    pushes = terms.spring - terms.normal_gain * (jacobian[:, 2] @ (qd + dt * exact)) > 0
+    assert bool(pushes.all())  # every point stays in the solve
+    total, added = terms.generalized(pushes, dt)
+    lhs, rhs = (mass + added) @ exact, force + total
+    assert float((lhs - rhs).norm() / rhs.norm()) < 1e-10

@@ -330,6 +330,31 @@ def test_resume_of_a_finished_run_rewrites_nothing_and_takes_only_safe_overrides
     assert saved["budget"]["env_steps"] == steps + 15 and saved["model"]["hidden"] == 16
 
 
+def test_resume_of_a_finished_run_saved_without_newer_fields_completes_its_summary(
+    finished_run: Path, tmp_path: Path, run_main
+) -> None:
+    """A finished run whose summary.json predates the zero-control baseline and the median
+    episode length gets them on resume= (the baseline evaluated, the median read from its
+    last evaluation), every other field as it was."""
+    from mbrl_delan.train import main
+
+    run_dir = tmp_path / "older"
+    shutil.copytree(finished_run, run_dir)
+    full = json.loads((run_dir / "summary.json").read_text())
+    newer = ("zero_torque_return_mean", "gap_closed", "eval_steps_median")
+    older = {k: v for k, v in full.items() if k not in newer}
+    (run_dir / "summary.json").write_text(json.dumps(older))
+    code, text = run_main(main, *TINY, f"resume={run_dir}")
+    assert code == 0, text
+    completed = json.loads((run_dir / "summary.json").read_text())
+    assert completed["eval_steps_median"] == records(run_dir)[-1]["eval_steps_median"]
+    assert completed["eval_steps_median"] == full["eval_steps_median"]
+    r0 = completed["zero_torque_return_mean"]
+    gap = (completed["eval_return_mean"] - r0) / (completed["oracle_return_mean"] - r0)
+    assert completed["gap_closed"] == pytest.approx(gap)
+    assert {k: completed[k] for k in older} == older
+
+
 def test_new_run_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was(
     finished_run: Path, tmp_path: Path
 ) -> None:

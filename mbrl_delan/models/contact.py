@@ -414,10 +414,11 @@ def _solve(
     for terms, on in zip(parts, active, strict=True):
         extra, inertia = terms.generalized(on, dt)
         total, added = total + extra, added + inertia
-    # in float64: stiff contacts add gains 10^6 times M's, past float32's precision
-    factor = torch.linalg.cholesky_ex(added.double()).L  # M PD, each J^T K J PSD
-    solved = torch.cholesky_solve(total.double().unsqueeze(-1), factor).squeeze(-1)
-    return solved.to(force.dtype)
+    # equilibrated (unit diagonal): stiff contacts add gains 10^6 times M's on a few DoFs
+    scale = added.diagonal(dim1=-2, dim2=-1).rsqrt()  # (..., nv)
+    factor = torch.linalg.cholesky_ex(added * scale.unsqueeze(-1) * scale.unsqueeze(-2)).L
+    solved = torch.cholesky_solve((total * scale).unsqueeze(-1), factor).squeeze(-1)
+    return solved * scale
 
 
 def _subtree_mask(parent: list[int], body: int) -> list[bool]:
