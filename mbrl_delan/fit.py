@@ -26,7 +26,7 @@ import pickle
 import sys
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -53,10 +53,12 @@ from mbrl_delan.config import (
 from mbrl_delan.data.arrays import SPLITS as ARRAY_SPLITS
 from mbrl_delan.data.arrays import VAL_BY, ArrayFormatError, DerivativeSettings, save_arrays
 from mbrl_delan.data.buffer import NonFiniteDataError, check_finite
+from mbrl_delan.data.excitation import EXCITATION_FORMAT, ExcitationSettings, excitation_arrays
 from mbrl_delan.data.inverse_data import (
     FitSystem,
     InverseData,
     array_inverse_data,
+    fields_inverse_data,
     mocap_inverse_data,
     system_of,
 )
@@ -84,6 +86,7 @@ from mbrl_delan.models.inverse import (
 )
 from mbrl_delan.models.structure import Structure
 from mbrl_delan.models.tangent_mlp import ACTIVATIONS as DELAN_ACTIVATIONS
+from mbrl_delan.systems.arms import ARMS, arm
 from mbrl_delan.systems.system import JOINT_TYPES, JointLayout
 from mbrl_delan.training.fit import TrainingDivergedError
 from mbrl_delan.training.inverse_fit import (
@@ -106,7 +109,7 @@ from mbrl_delan.training.schedule import LearningRateStages, run_stages
 
 log = logging.getLogger("mbrl_delan.fit")
 
-DATA_NAMES = ("cmu_mocap", "arrays")
+DATA_NAMES = ("cmu_mocap", "arrays", "excitation")
 LR_SCHEDULES = ("constant", "cosine", "stages")
 PROVENANCE_FILE = "dataset_provenance.json"
 RANDOM_POSES = 1024  # poses over the whole joint space where the summary checks a DeLaN's M
@@ -118,6 +121,8 @@ TAU_DEFINITION = {
     "cmu_mocap": "all nv generalized forces (humanoid_CMU: 62 = 6 root residual [world-frame "
     "force, body-frame torque] + 56 hinge torques), the dataset's tau",
     "arrays": "the file's tau: all nv generalized forces applied",
+    "excitation": "the motors' torques (MuJoCo's inverse dynamics, joint friction included) "
+    "with measurement noise",
 }
 
 
@@ -178,6 +183,10 @@ def _validate_arrays(cfg: DictConfig) -> None:
             raise ConfigError(f"data.joints={cfg.joints!r} is not valid; give a list of types")
         for i, name in enumerate(cfg.joints):
             _choice(f"data.joints[{i}]", name, tuple(JOINT_TYPES))
+    _validate_split(cfg)
+
+
+def _validate_split(cfg: DictConfig) -> None:
     check_number("data.split.val_fraction", cfg.split.val_fraction, 0.0, 0.9, open_low=True)
     check_number("data.split.test_fraction", cfg.split.test_fraction, 0.0, 0.9)
     check_whole("data.split.seed", cfg.split.seed, 0)
@@ -187,10 +196,30 @@ def _validate_arrays(cfg: DictConfig) -> None:
     check_whole("data.filter.order", cfg.filter.order, 1)
 
 
+def _validate_excitation(cfg: DictConfig) -> None:
+    _choice("data.robot", cfg.robot, tuple(ARMS))
+    _flag("data.friction", cfg.friction)
+    check_whole("data.samples", cfg.samples, 1)
+    check_whole("data.seed", cfg.seed, 0)
+    check_number("data.period_s", cfg.period_s, 0.0, open_low=True)
+    check_whole("data.harmonics", cfg.harmonics, 1)
+    check_number("data.rate_hz", cfg.rate_hz, 0.0, open_low=True)
+    check_number("data.use", cfg.use, 0.0, 1.0, open_low=True)
+    check_number("data.q_noise", cfg.q_noise, 0.0)
+    check_number("data.tau_noise", cfg.tau_noise, 0.0)
+    if cfg.velocity_cutoff_hz is not None:
+        check_number("data.velocity_cutoff_hz", cfg.velocity_cutoff_hz, 0.0, cfg.rate_hz / 2,
+                     open_low=True)  # fmt: skip
+    _validate_split(cfg)
+
+
 def _validate_data(cfg: DictConfig) -> None:
     _choice("data.name", cfg.name, DATA_NAMES)
     if cfg.name == "arrays":
         _validate_arrays(cfg)
+        return
+    if cfg.name == "excitation":
+        _validate_excitation(cfg)
         return
     _choice("data.torques", cfg.torques, TORQUE_SOURCES)
     _flag("data.skip_bad_clips", cfg.skip_bad_clips)
@@ -258,7 +287,7 @@ def validate_fit_config(cfg: DictConfig) -> None:
 
 def _split_names(data: DictConfig) -> tuple[str, ...]:
     """The splits a data config gives (`InverseData.splits`)."""
-    if data.name == "arrays":
+    if data.name in ("arrays", "excitation"):
         return ARRAY_SPLITS
     return ("train", "val_time", "val_clip", *(("test",) if data.get("test_clips") else ()))
 
@@ -319,11 +348,32 @@ def make_inverse_data(cfg: DictConfig) -> InverseData:
             seed=cfg.split.seed,
             val_by=cfg.split.val_by,
         )
+    if cfg.name == "excitation":
+        return excitation_inverse_data(cfg)
     dataset = make_dataset(cfg)
     try:
         return mocap_inverse_data(dataset, list(cfg.get("test_clips", [])))
     except ValueError as err:  # test clips that a saved dataset does not hold out
         raise ConfigError(f"data.test_clips: {err}") from err
+
+
+def excitation_inverse_data(cfg: DictConfig) -> InverseData:
+    """A shipped arm's excitation data (`mbrl_delan.data.excitation`), fitted on the arm's
+    frictionless MJCF (its tree; no armature: the fit learns what the motors drive)."""
+    settings = ExcitationSettings(
+        samples=cfg.samples, period_s=cfg.period_s, harmonics=cfg.harmonics,
+        rate_hz=cfg.rate_hz, use=cfg.use, q_noise=cfg.q_noise, tau_noise=cfg.tau_noise,
+        cutoff_hz=cfg.velocity_cutoff_hz,
+    )  # fmt: skip
+    fields = excitation_arrays(cfg.robot, cfg.friction, settings, cfg.seed)
+    source = {"format": EXCITATION_FORMAT, "robot": cfg.robot, "friction": cfg.friction,
+              "seed": cfg.seed, "settings": asdict(settings)}  # fmt: skip
+    return fields_inverse_data(
+        f"excitation data of {cfg.robot}", fields, FitSystem.of(arm(cfg.robot).asset), source,
+        derivative=DerivativeSettings(cutoff_hz=cfg.filter.cutoff_hz, order=cfg.filter.order),
+        val_fraction=cfg.split.val_fraction, test_fraction=cfg.split.test_fraction,
+        seed=cfg.split.seed, val_by=cfg.split.val_by,
+    )  # fmt: skip
 
 
 def branches(dof_parents: Sequence[int] | None) -> bool:
@@ -594,7 +644,10 @@ def fit_summary(
             "torques": provenance.get("torques", {}).get("source", "inverse"),
         }
     else:
-        summary |= {"path": provenance["path"], "trajectories": len(data.group_names)}
+        where = {"path": provenance["path"]} if "path" in provenance else {
+            k: provenance[k] for k in ("robot", "friction", "seed")
+        }  # fmt: skip
+        summary |= {**where, "trajectories": len(data.group_names)}
     for name, part in summary["final"].items():
         part[data.group_kind] = group_errors(
             model, splits[name], data.groups[name], data.group_names, cfg.eval_batch_size

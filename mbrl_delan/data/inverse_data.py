@@ -27,6 +27,7 @@ from mbrl_delan.data.arrays import (
     read_arrays,
     split_trajectories,
 )
+from mbrl_delan.data.excitation import EXCITATION_FORMAT
 from mbrl_delan.data.mocap import MocapDataset, dof_groups, humanoid_cmu_xml, split_dataset
 from mbrl_delan.systems.system import (
     FREE,
@@ -114,9 +115,10 @@ class InverseData:
 
 
 def system_of(provenance: dict[str, Any]) -> FitSystem:
-    """The system a dataset's provenance names: an arrays file's MJCF or joint list, else the
-    model mocap data were retargeted onto (its DoFs grouped by body part)."""
-    if provenance.get("format") != ARRAYS_FORMAT:
+    """The system a dataset's provenance names: an arrays file's (or generated excitation
+    data's) MJCF or joint list, else the model mocap data were retargeted onto (its DoFs
+    grouped by body part)."""
+    if provenance.get("format") not in (ARRAYS_FORMAT, EXCITATION_FORMAT):
         return FitSystem.of_mjcf(mocap_xml(provenance), dof_groups)
     return FitSystem.of(provenance["system"].get("mjcf") or provenance["system"]["joints"])
 
@@ -191,15 +193,35 @@ def array_inverse_data(
     malformed one)."""
     path = Path(path)
     fields = read_arrays(path)
-    data = arrays_tensordict(path, fields, system.layout, derivative)
+    source = {
+        "format": ARRAYS_FORMAT,
+        "path": str(path.resolve()),
+        "sha256": sha256(path.read_bytes()).hexdigest(),
+    }
+    split = dict(val_fraction=val_fraction, test_fraction=test_fraction, seed=seed, val_by=val_by)
+    return fields_inverse_data(path, fields, system, source, derivative, **split)
+
+
+def fields_inverse_data(
+    origin: str | Path,
+    fields: dict[str, Any],
+    system: FitSystem,
+    source: dict[str, Any],
+    derivative: DerivativeSettings | None = None,
+    val_fraction: float = 0.1,
+    test_fraction: float = 0.2,
+    seed: int = 0,
+    val_by: str = "segments",
+) -> InverseData:
+    """Arrays' fields in memory (the schema of `mbrl_delan.data.arrays`; `origin` in errors)
+    on the joints of `system`, split by `split_trajectories`; `source` opens the provenance."""
+    data = arrays_tensordict(origin, fields, system.layout, derivative)
     masks = split_trajectories(data[keys.TRAJECTORY], val_fraction, test_fraction, seed, val_by)
     ids = data[keys.TRAJECTORY].reshape(-1)
     unique = ids.unique()
     index = torch.searchsorted(unique, ids)  # (N,) position of each sample's trajectory
     provenance = {
-        "format": ARRAYS_FORMAT,
-        "path": str(path.resolve()),
-        "sha256": sha256(path.read_bytes()).hexdigest(),
+        **source,
         "samples": int(data.shape[0]),
         "trajectories": [str(int(i)) for i in unique],
         "system": system.source,

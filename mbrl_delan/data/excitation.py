@@ -1,0 +1,142 @@
+"""Excitation data of an arm as robot identification makes it, in the arrays schema.
+
+Each trajectory is one period T of a finite Fourier series per joint,
+
+    q_j(t) = c_j + s_j sum_{l=1..L} (a_jl sin(l w t) - b_jl cos(l w t)) / (l w),  w = 2 pi / T,
+
+with a, b ~ N(0, 1) / l (seeded), shifted to zero mean and scaled (s_j) so that the joint
+stays within `use` of its range about the range's centre c_j (at most +-pi where the range is
+wider) and of its velocity limit; qd and qdd are the series' exact derivatives. The true
+generalized forces come from MuJoCo's inverse dynamics (`mj_inverse`, joint friction and
+armature included when the model has them), split into M qdd, c(q, qd) and g(q). What a
+robot logs is then made of them: q and tau with Gaussian noise (q: `q_noise` rad; tau:
+`tau_noise` of each joint's torque RMS), qd from zero-phase low-passed q by central
+differences; qdd is left to the fit, which takes it from qd (`data.filter`).
+
+`excitation_arrays` returns the fields of `data.arrays`' schema (q, qd, tau, t, trajectory
+and the true tau_inertial, tau_coriolis, tau_gravity), ready for `save_arrays`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from scipy.signal import butter, sosfiltfilt
+
+from mbrl_delan import keys
+from mbrl_delan.systems.arms import arm, arm_model
+
+EXCITATION_FORMAT = "mbrl_delan.excitation/1"  # the provenance format of a fit on such data
+
+
+@dataclass(frozen=True)
+class ExcitationSettings:
+    """How trajectories are drawn and measured."""
+
+    samples: int = 10_000  # samples in all (whole trajectories: the last one may be longer)
+    period_s: float = 10.0  # one trajectory: one period of the series
+    harmonics: int = 5
+    rate_hz: float = 100.0  # sampling rate
+    use: float = 0.8  # share of the joint range (half-width about its centre) and speed limit
+    q_noise: float = 1e-4  # rad, std of the position noise
+    tau_noise: float = 0.01  # std of the torque noise, a share of each joint's torque RMS
+    cutoff_hz: float | None = 10.0  # low-pass of q before its differences (None: none)
+
+
+@dataclass
+class Excitation:
+    """True trajectories of one arm: t (T,), q, qd, qdd (K, T, nv)."""
+
+    t: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+
+
+def fourier_trajectories(
+    model: mujoco.MjModel,
+    max_velocity: np.ndarray,
+    trajectories: int,
+    settings: ExcitationSettings,
+    rng: np.random.Generator,
+) -> Excitation:
+    """`trajectories` seeded Fourier-series trajectories inside the joints' ranges and
+    velocity limits (module docstring)."""
+    steps = round(settings.period_s * settings.rate_hz)
+    t = np.arange(steps) / settings.rate_hz
+    w = 2 * math.pi / settings.period_s
+    l = np.arange(1, settings.harmonics + 1)  # noqa: E741 (the harmonic's number)
+    shape = (trajectories, model.nv, settings.harmonics)
+    a, b = rng.normal(size=shape) / l, rng.normal(size=shape) / l
+    phase = np.outer(t, l * w)  # (T, L)
+    sin, cos = np.sin(phase), np.cos(phase)
+    q = np.einsum("kjl,tl->ktj", a / (l * w), sin) - np.einsum("kjl,tl->ktj", b / (l * w), cos)
+    qd = np.einsum("kjl,tl->ktj", a, cos) + np.einsum("kjl,tl->ktj", b, sin)
+    qdd = w * (np.einsum("kjl,tl->ktj", -a * l, sin) + np.einsum("kjl,tl->ktj", b * l, cos))
+    q = q - q.mean(1, keepdims=True)
+    low, high = model.jnt_range[:, 0], model.jnt_range[:, 1]
+    centre = np.where(model.jnt_limited > 0, (low + high) / 2, 0.0)
+    half = np.minimum(np.where(model.jnt_limited > 0, (high - low) / 2, math.pi), math.pi)
+    reach = settings.use * np.minimum(half / np.abs(q).max(1), max_velocity / np.abs(qd).max(1))
+    scale = reach[:, None, :]  # (K, 1, nv)
+    return Excitation(t, centre + scale * q, scale * qd, scale * qdd)
+
+
+def inverse_dynamics(
+    model: mujoco.MjModel, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
+) -> dict[str, np.ndarray]:
+    """MuJoCo's generalized forces along states (N, nv): tau (all of them, friction
+    included) and its parts M qdd, c(q, qd), g(q)."""
+    data = mujoco.MjData(model)
+    out = {k: np.zeros_like(q) for k in ("tau", *_PARTS)}
+    mass = np.zeros((model.nv, model.nv))
+    for i in range(q.shape[0]):
+        data.qpos[:], data.qvel[:], data.qacc[:] = q[i], qd[i], qdd[i]
+        mujoco.mj_inverse(model, data)
+        out["tau"][i] = data.qfrc_inverse
+        mujoco.mj_fullM(model, data, mass)
+        out[keys.TAU_INERTIAL][i] = mass @ qdd[i]
+        bias = data.qfrc_bias.copy()
+        data.qvel[:] = 0
+        mujoco.mj_forward(model, data)  # the bias at rest: gravity
+        out[keys.TAU_GRAVITY][i] = data.qfrc_bias
+        out[keys.TAU_CORIOLIS][i] = bias - data.qfrc_bias
+    return out
+
+
+_PARTS = (keys.TAU_INERTIAL, keys.TAU_CORIOLIS, keys.TAU_GRAVITY)
+
+
+def excitation_arrays(
+    robot: str, friction: bool, settings: ExcitationSettings, seed: int
+) -> dict[str, np.ndarray]:
+    """Measured excitation data of a shipped arm in `data.arrays`' schema (module docstring):
+    whole trajectories until `settings.samples`, seeded by `seed`."""
+    model = arm_model(robot, friction)
+    rng = np.random.default_rng(seed)
+    steps = round(settings.period_s * settings.rate_hz)
+    count = max(1, math.ceil(settings.samples / steps))
+    true = fourier_trajectories(model, np.array(arm(robot).max_velocity), count, settings, rng)
+    flat = lambda x: x.reshape(-1, model.nv)  # noqa: E731
+    forces = inverse_dynamics(model, flat(true.q), flat(true.qd), flat(true.qdd))
+    rms = np.sqrt((forces["tau"] ** 2).mean(0))
+    tau = forces["tau"] + settings.tau_noise * rms * rng.normal(size=forces["tau"].shape)
+    q = true.q + settings.q_noise * rng.normal(size=true.q.shape)
+    qd = _velocity(q, settings)
+    return {
+        "q": flat(q), "qd": flat(qd), "tau": tau,
+        "t": np.tile(true.t, count),
+        "trajectory": np.repeat(np.arange(count), steps),
+        **{k: forces[k] for k in _PARTS},
+    }  # fmt: skip
+
+
+def _velocity(q: np.ndarray, settings: ExcitationSettings) -> np.ndarray:
+    """qd of measured positions (K, T, nv): central differences of zero-phase low-passed q."""
+    if settings.cutoff_hz is not None:
+        sos = butter(4, settings.cutoff_hz, fs=settings.rate_hz, output="sos")
+        q = sosfiltfilt(sos, q, axis=1)
+    return np.gradient(q, 1.0 / settings.rate_hz, axis=1)
