@@ -6,7 +6,10 @@ Each trajectory is one period T of a finite Fourier series per joint,
 
 with a, b ~ N(0, 1) / l (seeded), shifted to zero mean and scaled (s_j) so that the joint
 stays within `use` of its range about the range's centre c_j (at most +-pi where the range is
-wider) and of its velocity limit; qd and qdd are the series' exact derivatives. The true
+wider) and of its velocity limit; qd and qdd are the series' exact derivatives. A
+trajectory whose torques pass a motor's limit is shrunk about its mean position until they
+do not (the gravity torque does not scale with it). Many short trajectories cover the joint
+space better than few long ones (the defaults: 2 s, 3 harmonics). The true
 generalized forces come from MuJoCo's inverse dynamics (`mj_inverse`, joint friction and
 armature included when the model has them), split into M qdd, c(q, qd) and g(q). What a
 robot logs is then made of them: q and tau with Gaussian noise (q: `q_noise` rad; tau:
@@ -27,9 +30,11 @@ import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
 from mbrl_delan import keys
-from mbrl_delan.systems.arms import arm, arm_model
+from mbrl_delan.systems.arms import arm, arm_model, torque_limits
 
 EXCITATION_FORMAT = "mbrl_delan.excitation/1"  # the provenance format of a fit on such data
+SHRINK = 0.9  # a trajectory past a torque limit is shrunk by this factor until it is within
+MAX_SHRINKS = 60  # ... at most this many times (0.9^60: 0.2% of its size)
 
 
 @dataclass(frozen=True)
@@ -37,8 +42,8 @@ class ExcitationSettings:
     """How trajectories are drawn and measured."""
 
     samples: int = 10_000  # samples in all (whole trajectories: the last one may be longer)
-    period_s: float = 10.0  # one trajectory: one period of the series
-    harmonics: int = 5
+    period_s: float = 2.0  # one trajectory: one period of the series
+    harmonics: int = 3
     rate_hz: float = 100.0  # sampling rate
     use: float = 0.8  # share of the joint range (half-width about its centre) and speed limit
     q_noise: float = 1e-4  # rad, std of the position noise
@@ -120,8 +125,8 @@ def excitation_arrays(
     steps = round(settings.period_s * settings.rate_hz)
     count = max(1, math.ceil(settings.samples / steps))
     true = fourier_trajectories(model, np.array(arm(robot).max_velocity), count, settings, rng)
+    forces = _within_torque_limits(model, true)
     flat = lambda x: x.reshape(-1, model.nv)  # noqa: E731
-    forces = inverse_dynamics(model, flat(true.q), flat(true.qd), flat(true.qdd))
     rms = np.sqrt((forces["tau"] ** 2).mean(0))
     tau = forces["tau"] + settings.tau_noise * rms * rng.normal(size=forces["tau"].shape)
     q = true.q + settings.q_noise * rng.normal(size=true.q.shape)
@@ -132,6 +137,30 @@ def excitation_arrays(
         "trajectory": np.repeat(np.arange(count), steps),
         **{k: forces[k] for k in _PARTS},
     }  # fmt: skip
+
+
+def _within_torque_limits(model: mujoco.MjModel, true: Excitation) -> dict[str, np.ndarray]:
+    """The forces of each trajectory, shrunk about its mean position (qd and qdd with it) by
+    `SHRINK` until its torques are within the motors' limits; `true` is changed in place.
+    The forces' fields (K x T, nv)."""
+    limits = torque_limits(model)
+    parts = []
+    for k in range(true.q.shape[0]):
+        for _ in range(MAX_SHRINKS):
+            forces = inverse_dynamics(model, true.q[k], true.qd[k], true.qdd[k])
+            if (np.abs(forces["tau"]) <= limits).all():
+                break
+            mean = true.q[k].mean(0)
+            true.q[k] = mean + SHRINK * (true.q[k] - mean)
+            true.qd[k] *= SHRINK
+            true.qdd[k] *= SHRINK
+        else:
+            raise ValueError(
+                f"trajectory {k}: torques past the motors' limits even nearly at rest "
+                f"(joints {np.flatnonzero((np.abs(forces['tau']) > limits).any(0)).tolist()})"
+            )
+        parts.append(forces)
+    return {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
 
 
 def _velocity(q: np.ndarray, settings: ExcitationSettings) -> np.ndarray:
