@@ -26,7 +26,7 @@ import pickle
 import sys
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -173,6 +173,12 @@ def _validate_model(cfg: DictConfig) -> None:
 def _validate_arrays(cfg: DictConfig) -> None:
     if not isinstance(cfg.path, str) or not cfg.path:
         raise ConfigError(f"data.path={cfg.path!r} is not valid; give the data file (npz/pt/csv)")
+    test_path = cfg.get("test_path")
+    if test_path is not None:
+        if not isinstance(test_path, str) or not test_path:
+            raise ConfigError(f"data.test_path={test_path!r} is not valid; give a file")
+        if not Path(test_path).is_file():
+            raise ConfigError(f"data.test_path={test_path!r}: no such file")
     if (cfg.joints is None) == (cfg.mjcf is None):
         raise ConfigError(
             f"data.joints={cfg.joints!r}, data.mjcf={cfg.mjcf!r}: give one of them (the joint "
@@ -207,6 +213,10 @@ def _validate_excitation(cfg: DictConfig) -> None:
     check_number("data.use", cfg.use, 0.0, 1.0, open_low=True)
     check_number("data.q_noise", cfg.q_noise, 0.0)
     check_number("data.tau_noise", cfg.tau_noise, 0.0)
+    if cfg.get("test_seed") is not None:
+        check_whole("data.test_seed", cfg.test_seed, 0)
+        if cfg.test_seed == cfg.seed:
+            raise ConfigError(f"data.test_seed={cfg.test_seed}: the training data's own seed")
     if cfg.velocity_cutoff_hz is not None:
         check_number("data.velocity_cutoff_hz", cfg.velocity_cutoff_hz, 0.0, cfg.rate_hz / 2,
                      open_low=True)  # fmt: skip
@@ -347,6 +357,7 @@ def make_inverse_data(cfg: DictConfig) -> InverseData:
             test_fraction=cfg.split.test_fraction,
             seed=cfg.split.seed,
             val_by=cfg.split.val_by,
+            test_path=cfg.get("test_path"),
         )
     if cfg.name == "excitation":
         return excitation_inverse_data(cfg)
@@ -366,13 +377,19 @@ def excitation_inverse_data(cfg: DictConfig) -> InverseData:
         cutoff_hz=cfg.velocity_cutoff_hz,
     )  # fmt: skip
     fields = excitation_arrays(cfg.robot, cfg.friction, settings, cfg.seed)
+    test_seed = cfg.get("test_seed")
     source = {"format": EXCITATION_FORMAT, "robot": cfg.robot, "friction": cfg.friction,
-              "seed": cfg.seed, "settings": asdict(settings)}  # fmt: skip
+              "seed": cfg.seed, "test_seed": test_seed, "settings": asdict(settings)}  # fmt: skip
+    test = None
+    if test_seed is not None:  # held-out trajectories of their own seed, test_fraction's size
+        size = replace(settings, samples=max(1, round(cfg.samples * cfg.split.test_fraction)))
+        test = (f"excitation test data of {cfg.robot}",
+                excitation_arrays(cfg.robot, cfg.friction, size, test_seed))  # fmt: skip
     return fields_inverse_data(
         f"excitation data of {cfg.robot}", fields, FitSystem.of(arm(cfg.robot).asset), source,
         derivative=DerivativeSettings(cutoff_hz=cfg.filter.cutoff_hz, order=cfg.filter.order),
         val_fraction=cfg.split.val_fraction, test_fraction=cfg.split.test_fraction,
-        seed=cfg.split.seed, val_by=cfg.split.val_by,
+        seed=cfg.split.seed, val_by=cfg.split.val_by, test=test,
     )  # fmt: skip
 
 

@@ -143,3 +143,15 @@ def test_trajectories_past_a_motors_limit_are_shrunk_within_it() -> None:
     assert (np.abs(inverse_dynamics(model, *flat)["tau"]) > torque_limits(model)).any()
     data = excitation_arrays("panda", False, fast, seed=0)
     assert (np.abs(data["tau"]) <= torque_limits(model)).all()
+
+
+def test_excitation_test_seed_draws_the_test_trajectories_apart(tmp_path) -> None:
+    overrides = ["data=excitation", "data.robot=ur5e", "data.samples=3000",
+                 "data.test_seed=7", "model=mlp", "logger=none", "epochs=1",
+                 "model.hidden=16", "threads=1"]  # fmt: skip
+    summary, _ = _run(compose_config(FIT_CONFIG_DIR, overrides), tmp_path / "run")
+    assert summary["samples"] == {"train": 2700, "val": 300, "test": 600}
+    assert set(summary["final"]["test"]["trajectories"]) == {"test:0", "test:1", "test:2"}
+    same = compose_config(FIT_CONFIG_DIR, [*overrides, "data.test_seed=0"])
+    with pytest.raises(ConfigError, match="data.test_seed=0: the training data's own seed"):
+        _run(same, tmp_path / "again")

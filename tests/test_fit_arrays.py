@@ -360,3 +360,43 @@ def test_worked_example(tmp_path) -> None:
     result = json.loads(report.read_text())["splits"]["data"]
     assert result["n"] == 60 and set(result["rollout"]["trajectories"]) == {"0", "1"}
     assert set(result["components"]) == {"tau_inertial", "tau_coriolis", "tau_gravity"}
+
+
+def test_a_named_test_file_is_the_test_split(arm2_data, arm2_file, tmp_path) -> None:
+    """data.test_path: the other file's trajectories are the test split and every trajectory
+    of data.path trains or validates; the provenance records both files."""
+    other = trajectory_dataset(load_system("arm2"), 2, 40, torch.Generator().manual_seed(5))
+    test_file = save_arrays(other, tmp_path / "held_out.npz")
+    result = fit_inverse_dynamics(
+        arm2_file, "arm2", tmp_path / "run", "delan", [*SMALL, f"data.test_path={test_file}"]
+    )
+    assert result.summary["samples"] == {"train": 6 * 36, "val": 6 * 4, "test": 80}
+    assert set(result.summary["final"]["test"]["trajectories"]) == {"test:0", "test:1"}
+    provenance = json.loads((tmp_path / "run" / "dataset_provenance.json").read_text())
+    assert provenance["test"]["path"] == str(test_file.resolve())
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda d: d / "missing.npz", "data.test_path='{}': no such file"),
+        (lambda d: _three_joint_file(d), "field 'q'"),
+    ],
+)
+def test_a_missing_or_mismatched_test_file_is_one_line_naming_it(
+    arm2_file, tmp_path, make, message
+) -> None:
+    path = make(tmp_path)
+    cmd = [sys.executable, "-m", "mbrl_delan.fit", "data=arrays", f"data.path={arm2_file}",
+           "data.mjcf=arm2", f"data.test_path={path}", "logger=none", "epochs=1",
+           f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
+    text = out.stdout + out.stderr
+    assert out.returncode == 2 and "Traceback" not in text, text
+    assert message.format(path) in text and str(path) in text
+    assert not (tmp_path / "run" / "model.pt").exists()
+
+
+def _three_joint_file(folder: Path) -> Path:
+    data = trajectory_dataset(load_system("arm3"), 1, 20, torch.Generator().manual_seed(0))
+    return save_arrays(data, folder / "arm3.npz")

@@ -187,19 +187,25 @@ def array_inverse_data(
     test_fraction: float = 0.2,
     seed: int = 0,
     val_by: str = "segments",
+    test_path: str | Path | None = None,
 ) -> InverseData:
     """Logged arrays (`mbrl_delan.data.arrays`) on the joints of `system`, split by
-    `split_trajectories`. Raises FileNotFoundError (a missing file) and ArrayFormatError (a
-    malformed one)."""
+    `split_trajectories`, or with `test_path` a file of held-out trajectories as the test
+    split. Raises FileNotFoundError (a missing file) and ArrayFormatError (a malformed one,
+    or a test file whose widths do not match the joints)."""
     path = Path(path)
     fields = read_arrays(path)
-    source = {
-        "format": ARRAYS_FORMAT,
-        "path": str(path.resolve()),
-        "sha256": sha256(path.read_bytes()).hexdigest(),
-    }
+    source = {"format": ARRAYS_FORMAT, **_file_record(path)}
+    test = None
+    if test_path is not None:
+        test = (Path(test_path), read_arrays(test_path))
+        source["test"] = _file_record(Path(test_path))
     split = dict(val_fraction=val_fraction, test_fraction=test_fraction, seed=seed, val_by=val_by)
-    return fields_inverse_data(path, fields, system, source, derivative, **split)
+    return fields_inverse_data(path, fields, system, source, derivative, **split, test=test)
+
+
+def _file_record(path: Path) -> dict[str, str]:
+    return {"path": str(path.resolve()), "sha256": sha256(path.read_bytes()).hexdigest()}
 
 
 def fields_inverse_data(
@@ -212,31 +218,44 @@ def fields_inverse_data(
     test_fraction: float = 0.2,
     seed: int = 0,
     val_by: str = "segments",
+    test: tuple[str | Path, dict[str, Any]] | None = None,
 ) -> InverseData:
     """Arrays' fields in memory (the schema of `mbrl_delan.data.arrays`; `origin` in errors)
-    on the joints of `system`, split by `split_trajectories`; `source` opens the provenance."""
+    on the joints of `system`, split by `split_trajectories`; `source` opens the provenance.
+    `test`: (origin, fields) of held-out data that is the test split instead (its
+    trajectories named ``test:<id>``; then none of `fields` is tested)."""
     data = arrays_tensordict(origin, fields, system.layout, derivative)
-    masks = split_trajectories(data[keys.TRAJECTORY], val_fraction, test_fraction, seed, val_by)
+    share = 0.0 if test is not None else test_fraction
+    masks = split_trajectories(data[keys.TRAJECTORY], val_fraction, share, seed, val_by)
     ids = data[keys.TRAJECTORY].reshape(-1)
     unique = ids.unique()
-    index = torch.searchsorted(unique, ids)  # (N,) position of each sample's trajectory
+    names = [str(int(i)) for i in unique]
+    splits = {name: data[mask].select(*_present(data)) for name, mask in masks.items()}
+    groups = {name: torch.searchsorted(unique, ids)[mask] for name, mask in masks.items()}
+    if test is not None:
+        held = arrays_tensordict(test[0], test[1], system.layout, derivative)
+        held_ids = held[keys.TRAJECTORY].reshape(-1)
+        held_unique = held_ids.unique()
+        groups["test"] = len(names) + torch.searchsorted(held_unique, held_ids)
+        names += [f"test:{int(i)}" for i in held_unique]
+        splits["test"] = held.select(*_present(held))
     provenance = {
         **source,
         "samples": int(data.shape[0]),
-        "trajectories": [str(int(i)) for i in unique],
+        "trajectories": names,
         "system": system.source,
         "qdd": "from the file" if "qdd" in fields else _derivative_note(derivative),
         "split": {
             "val_fraction": val_fraction,
-            "test_fraction": test_fraction,
+            "test_fraction": share,
             "seed": seed,
             "val_by": val_by,
         },
     }
     return InverseData(
-        splits={name: data[mask].select(*_present(data)) for name, mask in masks.items()},
-        groups={name: index[mask] for name, mask in masks.items()},
-        group_names=provenance["trajectories"],
+        splits=splits,
+        groups=groups,
+        group_names=names,
         group_kind="trajectories",
         system=system,
         provenance=provenance,
