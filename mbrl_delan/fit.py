@@ -53,7 +53,12 @@ from mbrl_delan.config import (
 from mbrl_delan.data.arrays import SPLITS as ARRAY_SPLITS
 from mbrl_delan.data.arrays import VAL_BY, ArrayFormatError, DerivativeSettings, save_arrays
 from mbrl_delan.data.buffer import NonFiniteDataError, check_finite
-from mbrl_delan.data.excitation import EXCITATION_FORMAT, ExcitationSettings, excitation_arrays
+from mbrl_delan.data.excitation import (
+    EXCITATION_FORMAT,
+    ExcitationSettings,
+    excitation_arrays,
+    mass_matrix_error,
+)
 from mbrl_delan.data.inverse_data import (
     FitSystem,
     InverseData,
@@ -680,7 +685,26 @@ def fit_summary(
         if data.system.mj_model is not None:
             poses = random_poses(data.system.mj_model, RANDOM_POSES).to(q_all)  # off the data
             summary["mass_matrix_random_poses"] = check_mass_matrix(model, poses).as_dict()
+        if cfg.data.name == "excitation":  # the true M is the arm's own
+            summary["mass_matrix_error"] = _mass_matrix_errors(cfg.data, model, splits)
     return summary
+
+
+def _mass_matrix_errors(
+    data: DictConfig, model: DeLaNInverse, splits: dict[str, TensorDictBase]
+) -> dict[str, float]:
+    """Per non-empty split: the median relative Frobenius error of the learned M against
+    the arm's (`data.excitation.mass_matrix_error`)."""
+    out = {}
+    for name, td in splits.items():
+        if td.shape[0] == 0:
+            continue
+        q = td[keys.Q]
+        with torch.no_grad():
+            mass = model.mass_matrix(q).to("cpu", torch.float64).numpy()
+        q64 = q.to("cpu", torch.float64).numpy()
+        out[name] = mass_matrix_error(data.robot, data.friction, q64, mass)
+    return out
 
 
 def _log_summary(run_dir: Path, s: dict[str, Any]) -> None:
@@ -702,6 +726,8 @@ def _log_summary(run_dir: Path, s: dict[str, Any]) -> None:
             s["positive_definite_fraction"],
             s["mass_matrix"]["n"],
         )
+    for name, error in s.get("mass_matrix_error", {}).items():
+        log.info("DeLaN: M's median relative error against the arm's, %s: %.4f", name, error)
     log.info("wall time %.1f s", s["wall_time_s"])
 
 

@@ -19,6 +19,7 @@ from mbrl_delan.data.excitation import (
     excitation_arrays,
     fourier_trajectories,
     inverse_dynamics,
+    mass_matrix_error,
 )
 from mbrl_delan.evaluate import evaluate_run
 from mbrl_delan.fit import FIT_CONFIG_DIR, _run
@@ -121,6 +122,7 @@ def test_fit_on_excitation_data_learns_and_evaluates_from_its_provenance(tmp_pat
     assert summary["final"]["train"]["mse"] < first["train_mse"]
     result = evaluate_run(tmp_path)
     assert result["splits"]["test"]["mse"] == pytest.approx(summary["final"]["test"]["mse"])
+    assert summary["mass_matrix_error"]["test"] > 0  # the arm's M known: the error measured
     assert set(result["splits"]["test"]["components"]) == {
         keys.TAU_INERTIAL, keys.TAU_CORIOLIS, keys.TAU_GRAVITY
     }  # fmt: skip
@@ -155,3 +157,17 @@ def test_excitation_test_seed_draws_the_test_trajectories_apart(tmp_path) -> Non
     same = compose_config(FIT_CONFIG_DIR, [*overrides, "data.test_seed=0"])
     with pytest.raises(ConfigError, match="data.test_seed=0: the training data's own seed"):
         _run(same, tmp_path / "again")
+
+
+def test_mass_matrix_error_is_zero_for_the_arms_own_and_relative() -> None:
+    q = excitation_arrays("panda", True, replace(QUIET, samples=1000), seed=2)["q"][::100]
+    model = arm_model("panda", True)
+    data = mujoco.MjData(model)
+    own = np.zeros((q.shape[0], 7, 7))
+    for i, qi in enumerate(q):
+        data.qpos[:] = qi
+        mujoco.mj_forward(model, data)
+        mujoco.mj_fullM(model, data, own[i])
+    assert mass_matrix_error("panda", True, q, own) < 1e-12
+    assert mass_matrix_error("panda", True, q, 1.1 * own) == pytest.approx(0.1)
+    assert mass_matrix_error("panda", False, q, own) > 0  # the friction arm's armature

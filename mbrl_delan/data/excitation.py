@@ -169,3 +169,18 @@ def _velocity(q: np.ndarray, settings: ExcitationSettings) -> np.ndarray:
         sos = butter(4, settings.cutoff_hz, fs=settings.rate_hz, output="sos")
         q = sosfiltfilt(sos, q, axis=1)
     return np.gradient(q, 1.0 / settings.rate_hz, axis=1)
+
+
+def mass_matrix_error(robot: str, friction: bool, q: np.ndarray, mass: np.ndarray) -> float:
+    """Median over states q (N, nv) of ||M_model - M||_F / ||M||_F, M the arm's own
+    (`mj_fullM`, armature included) and `mass` (N, nv, nv) a model's."""
+    model = arm_model(robot, friction)
+    data = mujoco.MjData(model)
+    true = np.zeros((model.nv, model.nv))
+    errors = []
+    for qi, mi in zip(q, mass, strict=True):
+        data.qpos[:] = qi
+        mujoco.mj_forward(model, data)
+        mujoco.mj_fullM(model, data, true)
+        errors.append(np.linalg.norm(mi - true) / np.linalg.norm(true))
+    return float(np.median(errors))
