@@ -545,8 +545,7 @@ def _complete_summary(
         _save(run_dir, loop)
         summary = _with_zero_baseline(loop, summary)
     if "eval_steps_median" not in summary:
-        records = [r for r in read_metrics(run_dir / METRICS_FILE) if "eval_return_mean" in r]
-        summary["eval_steps_median"] = records[-1].get("eval_steps_median") if records else None
+        summary["eval_steps_median"] = _last_evaluation(run_dir).get("eval_steps_median")
     text = json.dumps(summary, indent=2, sort_keys=True) + "\n"
     atomic_write(run_dir / SUMMARY_FILE, lambda f: f.write(text.encode("utf-8")), keep_prev=False)
     log.info("completed %s with the fields it was saved without", run_dir / SUMMARY_FILE)
@@ -606,8 +605,7 @@ def _run(
 
 
 def _summary(cfg: DictConfig, run_dir: Path, loop: MBRLLoop) -> dict[str, Any]:
-    records = [r for r in read_metrics(run_dir / METRICS_FILE) if "eval_return_mean" in r]
-    last = records[-1] if records else {}
+    last = _last_evaluation(run_dir)
     oracle = loop.oracle_returns or []
     oracle_mean = loop.oracle_mean
     eval_mean = last.get("eval_return_mean", float("nan"))
@@ -633,6 +631,12 @@ def _summary(cfg: DictConfig, run_dir: Path, loop: MBRLLoop) -> dict[str, Any]:
             "eval_steps_median": last.get("eval_steps_median"),
         },
     )
+
+
+def _last_evaluation(run_dir: Path) -> dict[str, Any]:
+    """The run's last record with evaluation figures ({} before its first)."""
+    records = [r for r in read_metrics(run_dir / METRICS_FILE) if "eval_return_mean" in r]
+    return records[-1] if records else {}
 
 
 def _with_zero_baseline(loop: MBRLLoop, summary: dict[str, Any]) -> dict[str, Any]:

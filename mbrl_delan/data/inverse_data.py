@@ -230,8 +230,9 @@ def fields_inverse_data(
     ids = data[keys.TRAJECTORY].reshape(-1)
     unique = ids.unique()
     names = [str(int(i)) for i in unique]
+    index = torch.searchsorted(unique, ids)  # (N,) position of each sample's trajectory
     splits = {name: data[mask].select(*_present(data)) for name, mask in masks.items()}
-    groups = {name: torch.searchsorted(unique, ids)[mask] for name, mask in masks.items()}
+    groups = {name: index[mask] for name, mask in masks.items()}
     if test is not None:
         held = arrays_tensordict(test[0], test[1], system.layout, derivative)
         held_ids = held[keys.TRAJECTORY].reshape(-1)
