@@ -22,6 +22,7 @@ from mbrl_delan.benchmarks import (
     HUMANOID_MODELS,
     HUMANOID_ORACLE_TASKS,
     ILQR_TASKS,
+    OWN_ARM_MODELS,
     PLANNER_MODELS,
     REALTIME_DYNAMICS,
     SuiteOptions,
@@ -62,6 +63,7 @@ def _models(values: list[str] | None, suite: str) -> tuple[str, ...] | None:
         "humanoid": HUMANOID_MODELS + HUMANOID_MODEL_VARIANTS,
         "realtime": REALTIME_DYNAMICS,
         "fidelity": FIDELITY_CASES,
+        "own_arm": OWN_ARM_MODELS,
     }.get(suite, PLANNER_MODELS)
     if (not values and not humanoid) or any(v not in known for v in values):
         empty = " (or [] for none)" if humanoid else ""
@@ -73,7 +75,9 @@ def _models(values: list[str] | None, suite: str) -> tuple[str, ...] | None:
 
 def _check_lists(cfg: DictConfig) -> None:
     """The lists that must not be empty (the rules on their elements are the schema's)."""
-    for name in ("nv", "batch", "planners", "num_samples", "horizons", "iterations", "transitions"):
+    lists = ("nv", "batch", "planners", "num_samples", "horizons", "iterations", "transitions",
+             "robots", "friction", "samples")  # fmt: skip
+    for name in lists:
         if cfg[name] is not None and len(cfg[name]) == 0:
             raise ConfigError(f"{name}=[] is not valid; give at least one value (or null)")
 
@@ -149,6 +153,9 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         tasks=tuples("tasks"),
         overrides=tuple(v["overrides"]),
         runs=tuple(v["runs"]),
+        robots=tuples("robots"),
+        friction=tuples("friction"),
+        samples=tuples("samples"),
     )
 
 

@@ -12,8 +12,9 @@ Per split (JSON on stdout, or in ``out=FILE``):
   torque std of the model's training data; of this data for a train run's DeLaN), MSE in SI
   units, R^2, per DoF group, and per trajectory or clip;
 - ``components`` where the data carry the parts of tau (``tau_inertial``, ``tau_coriolis``,
-  ``tau_gravity``) and the model has them (DeLaN): ``rel_error`` = ||learned - logged||_F /
-  ||logged||_F over the split, and ``mse_si``;
+  ``tau_gravity``, ``tau_friction``) and the model has them (DeLaN): ``rel_error`` =
+  ||learned - logged||_F / ||logged||_F over the split (None where the logged part is zero),
+  and ``mse_si``;
 - ``rollout`` (DeLaN, data with times): each trajectory integrated open loop from its first
   state by the learned forward dynamics (RK4, the logged torque held over each sample
   interval); ``rollout_s`` is the time until the position error, the RMS over coordinates of
@@ -112,7 +113,8 @@ def run_system(run: Run) -> FitSystem:
 
 @torch.no_grad()
 def component_errors(dynamics: LagrangianDynamics, data: TensorDict) -> dict[str, Any]:
-    """Learned M qdd, c and g against the data's logged parts of tau (those it has)."""
+    """Learned M qdd, c, g and friction against the data's logged parts of tau (those it
+    has)."""
     present = [k for k in COMPONENTS if k in data.keys()]
     if not present:
         return {}
@@ -121,12 +123,13 @@ def component_errors(dynamics: LagrangianDynamics, data: TensorDict) -> dict[str
         keys.TAU_INERTIAL: (terms.mass_matrix @ data[keys.QDD].unsqueeze(-1)).squeeze(-1),
         keys.TAU_CORIOLIS: terms.coriolis,
         keys.TAU_GRAVITY: terms.gravity,
+        keys.TAU_FRICTION: terms.dissipation,
     }
     out = {}
     for name in present:
-        diff = learned[name] - data[name]
-        out[name] = {
-            "rel_error": float(diff.norm() / data[name].norm().clamp_min(1e-300)),
+        diff, norm = learned[name] - data[name], float(data[name].norm())
+        out[name] = {  # rel_error: None for a part that is zero (friction-free joints)
+            "rel_error": float(diff.norm()) / norm if norm > 0 else None,
             "mse_si": float(diff.pow(2).mean()),
         }
     return out

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import hydra
+import mujoco
 import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -89,10 +90,11 @@ from mbrl_delan.models.inverse import (
     MLPEnsembleInverse,
     MLPInverse,
 )
+from mbrl_delan.models.rigid_body import WhiteBoxInverse
 from mbrl_delan.models.structure import Structure
 from mbrl_delan.models.tangent_mlp import ACTIVATIONS as DELAN_ACTIVATIONS
 from mbrl_delan.systems.arms import ARMS, arm
-from mbrl_delan.systems.system import JOINT_TYPES, JointLayout
+from mbrl_delan.systems.system import HINGE, JOINT_TYPES, JointLayout
 from mbrl_delan.training.fit import TrainingDivergedError
 from mbrl_delan.training.inverse_fit import (
     EpochResult,
@@ -115,6 +117,7 @@ from mbrl_delan.training.schedule import LearningRateStages, run_stages
 log = logging.getLogger("mbrl_delan.fit")
 
 DATA_NAMES = ("cmu_mocap", "arrays", "excitation")
+FIT_MODELS = (*MODEL_NAMES, "white_box")  # the learned models and the identified rigid body
 LR_SCHEDULES = ("constant", "cosine", "stages")
 PROVENANCE_FILE = "dataset_provenance.json"
 RANDOM_POSES = 1024  # poses over the whole joint space where the summary checks a DeLaN's M
@@ -159,7 +162,11 @@ def _clip_names(path: str, value: Any, allow_empty: bool = False) -> list[str]:
 
 
 def _validate_model(cfg: DictConfig) -> None:
-    _choice("model.name", cfg.name, MODEL_NAMES)
+    _choice("model.name", cfg.name, FIT_MODELS)
+    if cfg.name == "white_box":
+        check_number("model.prior_scale", cfg.prior_scale, 0.0, open_low=True)
+        check_number("model.prior_weight", cfg.prior_weight, 0.0)
+        return
     check_number("model.hidden", cfg.hidden, 1)
     if cfg.name == "delan":
         check_number("model.layers", cfg.layers, 1)
@@ -195,6 +202,9 @@ def _validate_arrays(cfg: DictConfig) -> None:
         for i, name in enumerate(cfg.joints):
             _choice(f"data.joints[{i}]", name, tuple(JOINT_TYPES))
     _validate_split(cfg)
+    if cfg.filter.cutoff_hz is not None:
+        check_number("data.filter.cutoff_hz", cfg.filter.cutoff_hz, 0.0, open_low=True)
+    check_whole("data.filter.order", cfg.filter.order, 1)
 
 
 def _validate_split(cfg: DictConfig) -> None:
@@ -202,9 +212,6 @@ def _validate_split(cfg: DictConfig) -> None:
     check_number("data.split.test_fraction", cfg.split.test_fraction, 0.0, 0.9)
     check_whole("data.split.seed", cfg.split.seed, 0)
     _choice("data.split.val_by", cfg.split.val_by, VAL_BY)
-    if cfg.filter.cutoff_hz is not None:
-        check_number("data.filter.cutoff_hz", cfg.filter.cutoff_hz, 0.0, open_low=True)
-    check_whole("data.filter.order", cfg.filter.order, 1)
 
 
 def _validate_excitation(cfg: DictConfig) -> None:
@@ -222,9 +229,8 @@ def _validate_excitation(cfg: DictConfig) -> None:
         check_whole("data.test_seed", cfg.test_seed, 0)
         if cfg.test_seed == cfg.seed:
             raise ConfigError(f"data.test_seed={cfg.test_seed}: the training data's own seed")
-    if cfg.velocity_cutoff_hz is not None:
-        check_number("data.velocity_cutoff_hz", cfg.velocity_cutoff_hz, 0.0, cfg.rate_hz / 2,
-                     open_low=True)  # fmt: skip
+    if cfg.cutoff_hz is not None:
+        check_number("data.cutoff_hz", cfg.cutoff_hz, 0.0, cfg.rate_hz / 2, open_low=True)
     _validate_split(cfg)
 
 
@@ -295,9 +301,22 @@ def validate_fit_config(cfg: DictConfig) -> None:
         check_number("max_grad_norm", cfg.max_grad_norm, 0.0, open_low=True)
     check_number("loss.std_floor", cfg.loss.std_floor, 0.0, 1.0, open_low=True)
     _flag("translation_invariant", cfg.translation_invariant)
+    _flag("periodic_hinges", cfg.get("periodic_hinges", False))
+    if cfg.get("coulomb") is not None:
+        _flag("coulomb", cfg.coulomb)
+    if cfg.get("friction_init") is not None:
+        check_number("friction_init", cfg.friction_init, 0.0, open_low=True)
     _choice("logger.backend", cfg.logger.backend, LOGGERS)
     _validate_model(cfg.model)
     _validate_data(cfg.data)
+    if cfg.model.name == "white_box" and cfg.data.name == "arrays" and cfg.data.mjcf is None:
+        raise ConfigError(
+            "model=white_box needs the robot's kinematic tree: give data.mjcf=MODEL.xml"
+        )
+    if cfg.model.name == "white_box" and cfg.data.name == "cmu_mocap":
+        raise ConfigError(
+            "model=white_box fits arms (data=excitation or data=arrays data.mjcf=...)"
+        )
 
 
 def _split_names(data: DictConfig) -> tuple[str, ...]:
@@ -379,7 +398,7 @@ def excitation_inverse_data(cfg: DictConfig) -> InverseData:
     settings = ExcitationSettings(
         samples=cfg.samples, period_s=cfg.period_s, harmonics=cfg.harmonics,
         rate_hz=cfg.rate_hz, use=cfg.use, q_noise=cfg.q_noise, tau_noise=cfg.tau_noise,
-        cutoff_hz=cfg.velocity_cutoff_hz,
+        cutoff_hz=cfg.cutoff_hz,
     )  # fmt: skip
     fields = excitation_arrays(cfg.robot, cfg.friction, settings, cfg.seed)
     test_seed = cfg.get("test_seed")
@@ -392,7 +411,6 @@ def excitation_inverse_data(cfg: DictConfig) -> InverseData:
                 excitation_arrays(cfg.robot, cfg.friction, size, test_seed))  # fmt: skip
     return fields_inverse_data(
         f"excitation data of {cfg.robot}", fields, FitSystem.of(arm(cfg.robot).asset), source,
-        derivative=DerivativeSettings(cutoff_hz=cfg.filter.cutoff_hz, order=cfg.filter.order),
         val_fraction=cfg.split.val_fraction, test_fraction=cfg.split.test_fraction,
         seed=cfg.split.seed, val_by=cfg.split.val_by, test=test,
     )  # fmt: skip
@@ -414,14 +432,22 @@ def build_inverse_model(
     translation_invariant: bool = False,
     dof_parents: Sequence[int] | None = None,
     armature: Sequence[float] | None = None,
+    mj_model: mujoco.MjModel | None = None,
+    friction_init: float | None = None,
+    coulomb: bool | None = None,
 ) -> InverseDynamicsModel:
     """The inverse-dynamics model named by ``cfg.name``. `translation_invariant`: no model
     sees the root's position (DeLaN keeps gravity's exact w z potential in its height).
     `dof_parents`: the kinematic tree, for DeLaN's ``model.tree_sparse`` (a tree that does not
     branch, an arm's chain, gets the dense lower factor L L^T instead: the same matrices, and
     the fit of the upper factor trains to a 7x larger torque error on arm2). `armature`: the
-    model's ``dof_armature``, for DeLaN's ``model.armature``."""
+    model's ``dof_armature``, for DeLaN's ``model.armature``. `mj_model`: the robot's MJCF,
+    the white box's structure."""
     root_height = not translation_invariant
+    if cfg.name == "white_box":
+        if mj_model is None:
+            raise ConfigError("model=white_box needs an MJCF of the robot (data.mjcf)")
+        return WhiteBoxInverse(mj_model, cfg.prior_scale, cfg.prior_weight, std_floor)
     if cfg.name == "delan":
         structure = Structure(
             hidden=cfg.hidden,
@@ -429,11 +455,12 @@ def build_inverse_model(
             activation=cfg.activation,
             diag_shift=cfg.diag_shift,
             dissipation=cfg.dissipation,
-            coulomb=cfg.coulomb,
+            coulomb=cfg.coulomb if coulomb is None else coulomb,
             translation_invariant=translation_invariant,
             still_first_order=cfg.still_first_order,
             dof_parents=dof_parents if cfg.tree_sparse and branches(dof_parents) else None,
             armature=armature if cfg.get("armature", False) else None,
+            friction_init=friction_init,
         )
         return DeLaNInverse(layout, structure, std_floor=std_floor)
     if cfg.name == "mlp":
@@ -455,15 +482,25 @@ def build_inverse_model(
 
 
 def build_system_model(cfg: DictConfig, system: FitSystem) -> InverseDynamicsModel:
-    """`build_inverse_model` of a fit config (``model``, ``loss``, ``translation_invariant``)
-    for a system."""
+    """`build_inverse_model` of a fit config (``model``, ``loss``, ``translation_invariant``,
+    ``periodic_hinges``, ``friction_init``, ``coulomb``) for a system."""
+    layout = system.layout
+    if cfg.get("periodic_hinges", False):  # every hinge's features (sin q, cos q)
+        hinges = [t == HINGE for t in layout.types]
+        layout = replace(
+            layout,
+            limited=tuple(lim and not h for lim, h in zip(layout.limited, hinges, strict=True)),
+        )
     return build_inverse_model(
         cfg.model,
-        system.layout,
+        layout,
         cfg.loss.std_floor,
         cfg.get("translation_invariant", False),
         system.dof_parents,
         system.armature,
+        system.mj_model,
+        cfg.get("friction_init"),
+        cfg.get("coulomb"),
     )
 
 
@@ -480,11 +517,18 @@ def run(cfg: DictConfig, run_dir: Path) -> dict[str, Any]:
 
     The data are read before anything is written: a missing or malformed file leaves the
     run dir as it was."""
-    return _run(cfg, run_dir)[0]
+    return fit_splits(cfg, run_dir)[0]
 
 
 def _run(cfg: DictConfig, run_dir: Path) -> tuple[dict[str, Any], InverseDynamicsModel]:
     """`run`; the summary and the trained model."""
+    return fit_splits(cfg, run_dir)[:2]
+
+
+def fit_splits(
+    cfg: DictConfig, run_dir: Path
+) -> tuple[dict[str, Any], InverseDynamicsModel, dict[str, TensorDict]]:
+    """`run`; the summary, the trained model and the splits it was fitted and scored on."""
     validate_fit_config(cfg)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
@@ -506,13 +550,19 @@ def _run(cfg: DictConfig, run_dir: Path) -> tuple[dict[str, Any], InverseDynamic
     with Recorder(
         run_dir, logger.backend, logger.project, logger.group, container, step_key="epoch"
     ) as recorder:
-        results = _train(cfg, model, splits, recorder, device)
+        train_start = time.perf_counter()
+        if isinstance(model, WhiteBoxInverse):
+            results = [_identify(model, splits, recorder, cfg.eval_batch_size)]
+        else:
+            results = _train(cfg, model, splits, recorder, device)
+        train_s = time.perf_counter() - train_start
         summary = fit_summary(cfg, data, model, splits, results)
+        summary["train_s"] = train_s  # training (identification) with its evaluations
         summary["wall_time_s"] = time.perf_counter() - start
         recorder.write_summary(summary)
         recorder.log_image("loss_curves", _save_model_and_curves(cfg, model, run_dir))
     _log_summary(run_dir, summary)
-    return summary, model
+    return summary, model, splits
 
 
 def _settings(cfg: DictConfig, epochs: int) -> InverseFitSettings:
@@ -574,6 +624,19 @@ def _train(
     else:
         fit(cfg.epochs)
     return results
+
+
+def _identify(
+    model: WhiteBoxInverse, splits: dict[str, TensorDict], recorder: Recorder, batch_size: int
+) -> EpochResult:
+    """The white box identified on the training split (one step, logged as epoch 1)."""
+    start = time.perf_counter()
+    model.fit_normalization(splits["train"])
+    found = model.identify(splits["train"])
+    errors = {k: evaluate_torques(model, v, batch_size) for k, v in splits.items() if v.shape[0]}
+    result = EpochResult(1, found.mse, time.perf_counter() - start, errors)
+    recorder.log(result.record(), result.epoch)
+    return result
 
 
 def _save_model_and_curves(cfg: DictConfig, model: InverseDynamicsModel, run_dir: Path) -> Path:
@@ -685,13 +748,15 @@ def fit_summary(
         if data.system.mj_model is not None:
             poses = random_poses(data.system.mj_model, RANDOM_POSES).to(q_all)  # off the data
             summary["mass_matrix_random_poses"] = check_mass_matrix(model, poses).as_dict()
-        if cfg.data.name == "excitation":  # the true M is the arm's own
-            summary["mass_matrix_error"] = _mass_matrix_errors(cfg.data, model, splits)
+    if isinstance(model, WhiteBoxInverse):
+        summary["identified"] = model.identified()
+    if cfg.data.name == "excitation" and isinstance(model, DeLaNInverse | WhiteBoxInverse):
+        summary["mass_matrix_error"] = _mass_matrix_errors(cfg.data, model, splits)  # the arm's
     return summary
 
 
 def _mass_matrix_errors(
-    data: DictConfig, model: DeLaNInverse, splits: dict[str, TensorDictBase]
+    data: DictConfig, model: DeLaNInverse | WhiteBoxInverse, splits: dict[str, TensorDictBase]
 ) -> dict[str, float]:
     """Per non-empty split: the median relative Frobenius error of the learned M against
     the arm's (`data.excitation.mass_matrix_error`)."""
@@ -727,7 +792,7 @@ def _log_summary(run_dir: Path, s: dict[str, Any]) -> None:
             s["mass_matrix"]["n"],
         )
     for name, error in s.get("mass_matrix_error", {}).items():
-        log.info("DeLaN: M's median relative error against the arm's, %s: %.4f", name, error)
+        log.info("M's median relative error against the arm's, %s: %.4f", name, error)
     log.info("wall time %.1f s", s["wall_time_s"])
 
 

@@ -35,3 +35,4 @@ TRAJECTORY = "trajectory"  # index of the trajectory a sample belongs to, (..., 
 TAU_INERTIAL = "tau_inertial"  # the inertial part M(q) qdd of tau, (..., nv)
 TAU_CORIOLIS = "tau_coriolis"  # the Coriolis and centripetal part c(q, qd), (..., nv)
 TAU_GRAVITY = "tau_gravity"  # the gravity part g(q), (..., nv)
+TAU_FRICTION = "tau_friction"  # the joints' friction d(q, qd), (..., nv)

@@ -24,6 +24,7 @@ from omegaconf import MISSING, ListConfig
 from mbrl_delan.benchmarks import (
     HUMANOID_ORACLE_TASKS,
     ORACLE_PLANNERS,
+    OWN_ARM_ROBOTS,
     REALTIME_TASKS,
     SUITE_NAMES,
 )
@@ -382,6 +383,9 @@ class BenchConfig:
     tasks: list[str] | None = rule(None, choices=REALTIME_TASKS)
     overrides: list[str] = field(default_factory=list)
     runs: list[str] = field(default_factory=list)  # suite fidelity: train run dirs to score
+    robots: list[str] | None = rule(None, choices=OWN_ARM_ROBOTS)  # suite own_arm
+    friction: list[bool] | None = None  # suite own_arm: the arms without/with joint friction
+    samples: list[int] | None = rule(None, low=1)  # suite own_arm: training-set sizes
 
 
 def store_schemas(store: ConfigStore) -> None:

@@ -42,7 +42,7 @@ from mbrl_delan.data.mocap.retarget import joint_layout
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.fit import build_inverse_model, validate_fit_config
 from mbrl_delan.systems.external import humanoid_cmu_xml
-from mbrl_delan.systems.system import JointLayout, System
+from mbrl_delan.systems.system import System
 
 REPO = Path(__file__).resolve().parents[1]
 DOCS = REPO / "docs"
@@ -74,14 +74,15 @@ def check_train_config(cfg: DictConfig) -> None:
 
 
 @functools.cache
-def _humanoid_cmu_layout() -> JointLayout:
-    return joint_layout(mujoco.MjModel.from_xml_path(str(humanoid_cmu_xml())))
+def _humanoid_cmu() -> mujoco.MjModel:
+    return mujoco.MjModel.from_xml_path(str(humanoid_cmu_xml()))
 
 
 def check_fit_config(cfg: DictConfig) -> None:
     """`fit`'s own checks, then its model built on humanoid_CMU (the data are not loaded)."""
     validate_fit_config(cfg)
-    build_inverse_model(cfg.model, _humanoid_cmu_layout(), cfg.loss.std_floor)
+    model = _humanoid_cmu()
+    build_inverse_model(cfg.model, joint_layout(model), cfg.loss.std_floor, mj_model=model)
 
 
 @dataclass(frozen=True)

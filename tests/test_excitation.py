@@ -85,6 +85,7 @@ def test_joint_friction_takes_power_from_the_motors() -> None:
     data = excitation_arrays("iiwa14", True, replace(QUIET, samples=1000), seed=0)
     parts = sum(data[k] for k in (keys.TAU_INERTIAL, keys.TAU_CORIOLIS, keys.TAU_GRAVITY))
     friction = data["tau"] - parts
+    np.testing.assert_allclose(data[keys.TAU_FRICTION], friction, atol=1e-9)  # before noise
     moving = np.abs(data["qd"]) > 0.05
     assert (friction[moving] * data["qd"][moving] > 0).mean() > 0.99
     model = arm_model("iiwa14", True)
@@ -123,9 +124,11 @@ def test_fit_on_excitation_data_learns_and_evaluates_from_its_provenance(tmp_pat
     result = evaluate_run(tmp_path)
     assert result["splits"]["test"]["mse"] == pytest.approx(summary["final"]["test"]["mse"])
     assert summary["mass_matrix_error"]["test"] > 0  # the arm's M known: the error measured
-    assert set(result["splits"]["test"]["components"]) == {
-        keys.TAU_INERTIAL, keys.TAU_CORIOLIS, keys.TAU_GRAVITY
+    components = result["splits"]["test"]["components"]
+    assert set(components) == {
+        keys.TAU_INERTIAL, keys.TAU_CORIOLIS, keys.TAU_GRAVITY, keys.TAU_FRICTION
     }  # fmt: skip
+    assert components[keys.TAU_FRICTION]["rel_error"] is None  # the arm has no friction
 
 
 def test_an_unknown_robot_is_a_config_error_naming_the_choices(tmp_path) -> None:
@@ -171,3 +174,27 @@ def test_mass_matrix_error_is_zero_for_the_arms_own_and_relative() -> None:
     assert mass_matrix_error("panda", True, q, own) < 1e-12
     assert mass_matrix_error("panda", True, q, 1.1 * own) == pytest.approx(0.1)
     assert mass_matrix_error("panda", False, q, own) > 0  # the friction arm's armature
+
+
+def test_measured_accelerations_hold_up_at_the_trajectories_ends() -> None:
+    """The filters see the periodic motion on either side: qdd at a trajectory's first and
+    last samples is as close to the true one (M^-1 of the inertial part) as inside."""
+    data = excitation_arrays("panda", False, replace(ExcitationSettings(), samples=1000,
+                             q_noise=0.0, tau_noise=0.0), seed=0)  # fmt: skip
+    model = arm_model("panda")
+    mj = mujoco.MjData(model)
+    true = np.zeros_like(data["qdd"])
+    mass = np.zeros((7, 7))
+    for i, qi in enumerate(data["q"]):
+        mj.qpos[:] = qi
+        mujoco.mj_forward(model, mj)
+        mujoco.mj_fullM(model, mj, mass)
+        true[i] = np.linalg.solve(mass, data[keys.TAU_INERTIAL][i])
+    error = np.abs(data["qdd"] - true).max(1)
+    starts = np.flatnonzero(np.diff(data["trajectory"], prepend=-1))
+    ends = np.r_[starts[1:] - 1, len(error) - 1]
+    inside = np.ones(len(error), dtype=bool)
+    inside[np.r_[starts, ends]] = False
+    assert error[starts].max() < 2 * error[inside].max()
+    assert error[ends].max() < 2 * error[inside].max()
+    assert error.max() < 0.05 * np.abs(true).max()

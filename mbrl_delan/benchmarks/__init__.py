@@ -33,6 +33,7 @@ _SUITES = {
     "fit_arrays": "mbrl_delan.benchmarks.fit_arrays:run_fit_arrays_suite",
     "soak": "mbrl_delan.benchmarks.soak:run_soak_suite",
     "fidelity": "mbrl_delan.benchmarks.fidelity:run_fidelity_suite",
+    "own_arm": "mbrl_delan.benchmarks.own_arm:run_own_arm_suite",
 }
 SUITE_NAMES = tuple(_SUITES)
 # world-model cases of suite planner (here so the entry point can check names without
@@ -74,6 +75,10 @@ FIDELITY_CASES = (
     "friction_0.2", "contact_3x_softer", "contact_10x_softer", "foot_x0.7", "contacts_off",
     "whitebox_start", "rigid_contact_start",
 )  # fmt: skip
+
+# suite own_arm: the shipped arms (`mbrl_delan.systems.arms.ARMS`) and the fits' models
+OWN_ARM_ROBOTS = ("panda", "iiwa14", "ur5e")
+OWN_ARM_MODELS = ("delan", "mlp", "white_box")
 
 
 class UnknownSuiteError(KeyError):
@@ -170,6 +175,10 @@ class SuiteOptions:
     overrides: tuple[str, ...] = ()  # train-config overrides of every case
     # suite fidelity
     runs: tuple[str, ...] = ()  # train run dirs whose final world models are scored
+    # suite own_arm (None: the suite's default, or its quick size under `quick`)
+    robots: tuple[str, ...] | None = None  # of OWN_ARM_ROBOTS
+    friction: tuple[bool, ...] | None = None  # the arms without and with joint friction
+    samples: tuple[int, ...] | None = None  # training-set sizes (data.samples)
 
 
 def synchronizer(device: torch.device) -> Callable[[], None]:

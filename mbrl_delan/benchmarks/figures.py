@@ -54,10 +54,15 @@ def describe_curves(curves: dict[str, list[tuple[int, list[float]]]]) -> list[st
 
 
 def plot_error_curves(
-    curves: dict[str, list[tuple[int, list[float]]]], path: Path, title: str
+    curves: dict[str, list[tuple[int, list[float]]]],
+    path: Path,
+    title: str,
+    xlabel: str = "horizon (control steps, open loop)",
+    ylabel: str = "rollout_error (normalised RMS)",
+    xlog: bool = False,
 ) -> Path:
-    """Draw the curves (log y) into the PNG at `path`: the mean, and the min-max band where a
-    horizon has several values."""
+    """Draw the curves (log y; `xlog`: log x too) into the PNG at `path`: the mean, and the
+    min-max band where an x has several values."""
     fig, axes = page_figure(4.4)
     ax = axes[0, 0]
     for label, points in curves.items():
@@ -69,8 +74,10 @@ def plot_error_curves(
             lo, hi = [min(v) for _, v in points], [max(v) for _, v in points]
             ax.fill_between(h, lo, hi, color=line.get_color(), alpha=0.2, linewidth=0)
     ax.set_yscale("log")
-    ax.set_xlabel("horizon (control steps, open loop)")
-    ax.set_ylabel("rollout_error (normalised RMS)")
+    if xlog:
+        ax.set_xscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
     fig.suptitle(title)
     ax.grid(True, which="both", alpha=0.3)
     legend_below(fig)

@@ -10,8 +10,9 @@ The schema (`read_arrays`; one row per sample, N rows):
 - ``t`` (N,), optional: time in s; or ``dt``, one number: the sampling interval in s;
 - ``trajectory`` (N,), optional: integer id of each sample's trajectory; without it a new
   trajectory starts wherever ``t`` does not increase, else the file is one trajectory;
-- ``tau_inertial``, ``tau_coriolis``, ``tau_gravity`` (N, nv), optional: the parts M qdd,
-  c(q, qd) and g(q) of tau, which ``python -m mbrl_delan.evaluate`` compares with the model's.
+- ``tau_inertial``, ``tau_coriolis``, ``tau_gravity``, ``tau_friction`` (N, nv), optional: the
+  parts M qdd, c(q, qd), g(q) and the joints' friction of tau, which ``python -m
+  mbrl_delan.evaluate`` compares with the model's.
 
 Files: ``.npz`` (`numpy.savez`, one array per field), ``.pt`` (`torch.save` of a dict of
 tensors or arrays) or ``.csv`` (a header row; a vector field's columns are named
@@ -45,8 +46,8 @@ from mbrl_delan.systems.system import JointLayout
 log = logging.getLogger(__name__)
 
 SUFFIXES = (".npz", ".pt", ".csv")
-VECTOR_FIELDS = ("q", "qd", "tau", "qdd", keys.TAU_INERTIAL, keys.TAU_CORIOLIS, keys.TAU_GRAVITY)
-COMPONENTS = (keys.TAU_INERTIAL, keys.TAU_CORIOLIS, keys.TAU_GRAVITY)
+COMPONENTS = (keys.TAU_INERTIAL, keys.TAU_CORIOLIS, keys.TAU_GRAVITY, keys.TAU_FRICTION)
+VECTOR_FIELDS = ("q", "qd", "tau", "qdd", *COMPONENTS)
 REQUIRED = ("q", "qd", "tau")
 SPLITS = ("train", "val", "test")
 _COLUMN = re.compile(r"^([a-z_]+?)(\d+)$")

@@ -11,13 +11,15 @@ trajectory whose torques pass a motor's limit is shrunk about its mean position 
 do not (the gravity torque does not scale with it). Many short trajectories cover the joint
 space better than few long ones (the defaults: 2 s, 3 harmonics). The true
 generalized forces come from MuJoCo's inverse dynamics (`mj_inverse`, joint friction and
-armature included when the model has them), split into M qdd, c(q, qd) and g(q). What a
+armature included when the model has them), split into M qdd, c(q, qd), g(q) and friction. What a
 robot logs is then made of them: q and tau with Gaussian noise (q: `q_noise` rad; tau:
-`tau_noise` of each joint's torque RMS), qd from zero-phase low-passed q by central
-differences; qdd is left to the fit, which takes it from qd (`data.filter`).
+`tau_noise` of each joint's torque RMS), qd by central differences of zero-phase low-passed q
+and qdd so of qd. The robot moves on through the periods before and after each one, as a
+logged excitation run does: the filters see `PAD_S` of it on either side (no edge effects).
 
-`excitation_arrays` returns the fields of `data.arrays`' schema (q, qd, tau, t, trajectory
-and the true tau_inertial, tau_coriolis, tau_gravity), ready for `save_arrays`.
+`excitation_arrays` returns the fields of `data.arrays`' schema (q, qd, qdd, tau, t,
+trajectory and the true tau_inertial, tau_coriolis, tau_gravity, tau_friction), ready for
+`save_arrays`.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from mbrl_delan.systems.arms import arm, arm_model, torque_limits
 EXCITATION_FORMAT = "mbrl_delan.excitation/1"  # the provenance format of a fit on such data
 SHRINK = 0.9  # a trajectory past a torque limit is shrunk by this factor until it is within
 MAX_SHRINKS = 60  # ... at most this many times (0.9^60: 0.2% of its size)
+PAD_S = 0.5  # s of the periodic motion on either side of a trajectory that the filters see
 
 
 @dataclass(frozen=True)
@@ -48,7 +51,7 @@ class ExcitationSettings:
     use: float = 0.8  # share of the joint range (half-width about its centre) and speed limit
     q_noise: float = 1e-4  # rad, std of the position noise
     tau_noise: float = 0.01  # std of the torque noise, a share of each joint's torque RMS
-    cutoff_hz: float | None = 10.0  # low-pass of q before its differences (None: none)
+    cutoff_hz: float | None = 10.0  # low-pass of q before qd, of qd before qdd (None: none)
 
 
 @dataclass
@@ -94,7 +97,8 @@ def inverse_dynamics(
     model: mujoco.MjModel, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
 ) -> dict[str, np.ndarray]:
     """MuJoCo's generalized forces along states (N, nv): tau (all of them, friction
-    included) and its parts M qdd, c(q, qd), g(q)."""
+    included) and its parts M qdd (armature included), c(q, qd), g(q) and the joints'
+    friction (the rest)."""
     data = mujoco.MjData(model)
     out = {k: np.zeros_like(q) for k in ("tau", *_PARTS)}
     mass = np.zeros((model.nv, model.nv))
@@ -109,10 +113,12 @@ def inverse_dynamics(
         mujoco.mj_forward(model, data)  # the bias at rest: gravity
         out[keys.TAU_GRAVITY][i] = data.qfrc_bias
         out[keys.TAU_CORIOLIS][i] = bias - data.qfrc_bias
+    rough = (model.dof_damping > 0) | (model.dof_frictionloss > 0)  # (nv,) joints with friction
+    out[keys.TAU_FRICTION] = np.where(rough, out["tau"] - sum(out[k] for k in _PARTS[:3]), 0.0)
     return out
 
 
-_PARTS = (keys.TAU_INERTIAL, keys.TAU_CORIOLIS, keys.TAU_GRAVITY)
+_PARTS = (keys.TAU_INERTIAL, keys.TAU_CORIOLIS, keys.TAU_GRAVITY, keys.TAU_FRICTION)
 
 
 def excitation_arrays(
@@ -129,10 +135,15 @@ def excitation_arrays(
     flat = lambda x: x.reshape(-1, model.nv)  # noqa: E731
     rms = np.sqrt((forces["tau"] ** 2).mean(0))
     tau = forces["tau"] + settings.tau_noise * rms * rng.normal(size=forces["tau"].shape)
-    q = true.q + settings.q_noise * rng.normal(size=true.q.shape)
-    qd = _velocity(q, settings)
+    pad = min(round(PAD_S * settings.rate_hz), steps)
+    q = _periodic(true.q, pad) + settings.q_noise * rng.normal(
+        size=(count, steps + 2 * pad, model.nv)
+    )
+    qd = _derivative(q, settings)
+    qdd = _derivative(qd, settings)
+    inner = slice(pad, pad + steps)
     return {
-        "q": flat(q), "qd": flat(qd), "tau": tau,
+        "q": flat(q[:, inner]), "qd": flat(qd[:, inner]), "qdd": flat(qdd[:, inner]), "tau": tau,
         "t": np.tile(true.t, count),
         "trajectory": np.repeat(np.arange(count), steps),
         **{k: forces[k] for k in _PARTS},
@@ -163,12 +174,17 @@ def _within_torque_limits(model: mujoco.MjModel, true: Excitation) -> dict[str, 
     return {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
 
 
-def _velocity(q: np.ndarray, settings: ExcitationSettings) -> np.ndarray:
-    """qd of measured positions (K, T, nv): central differences of zero-phase low-passed q."""
+def _periodic(x: np.ndarray, pad: int) -> np.ndarray:
+    """Periodic trajectories (K, T, nv) with `pad` steps of the periods before and after."""
+    return np.concatenate([x[:, x.shape[1] - pad :], x, x[:, :pad]], axis=1)
+
+
+def _derivative(x: np.ndarray, settings: ExcitationSettings) -> np.ndarray:
+    """d/dt of measured signals (K, T, nv): central differences of zero-phase low-passed x."""
     if settings.cutoff_hz is not None:
         sos = butter(4, settings.cutoff_hz, fs=settings.rate_hz, output="sos")
-        q = sosfiltfilt(sos, q, axis=1)
-    return np.gradient(q, 1.0 / settings.rate_hz, axis=1)
+        x = sosfiltfilt(sos, x, axis=1)
+    return np.gradient(x, 1.0 / settings.rate_hz, axis=1)
 
 
 def mass_matrix_error(robot: str, friction: bool, q: np.ndarray, mass: np.ndarray) -> float:

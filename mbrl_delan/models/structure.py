@@ -7,6 +7,7 @@ friction (`DeLaN.load_mechanics`) when their `Structure`s agree on `Structure.ME
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
@@ -39,6 +40,8 @@ class Structure:
         M = L L^T + diag(armature). None: none.
     inertia_scaling: M, V and the friction get units from the data (`DeLaN.fit_normalization`).
     diagonal_init: L's off-diagonal and V heads start at zero, the friction at 0.69 of its unit.
+    friction_init: the friction's start in its unit instead (> 0; 1e-4: none until the data
+        ask for it). None: as `diagonal_init` says.
     residual: a learned unstructured generalized force r(q, qd, a) beside B a (`ResidualForce`).
     root_inertia: what a user knows of a free root (the first joint): its six diagonal
         inertias at the rest pose (the total mass, then the body's rotational inertia about
@@ -61,6 +64,7 @@ class Structure:
     armature: tuple[float, ...] | None = None
     inertia_scaling: bool = False
     diagonal_init: bool = False
+    friction_init: float | None = None
     residual: bool = False
     root_inertia: tuple[float, ...] | None = None
     root_weight: float | None = None
@@ -77,6 +81,8 @@ class Structure:
         if self.armature is not None:
             values = torch.as_tensor(self.armature, dtype=torch.float64).reshape(-1).tolist()
             object.__setattr__(self, "armature", tuple(values))
+        if self.friction_init is not None and self.friction_init <= 0:
+            raise ValueError(f"friction_init must be > 0, got {self.friction_init}")
         if self.root_inertia is not None:
             values = tuple(float(v) for v in self.root_inertia)
             if len(values) != 6 or min(values) <= 0:
@@ -118,6 +124,8 @@ class Structure:
             root_frame=self.yaw_invariant,
         )
         raw_init = 0.0 if self.diagonal_init else -4.0
+        if self.friction_init is not None:  # softplus(raw) = friction_init
+            raw_init = math.log(math.expm1(self.friction_init))
         dissipation = (
             Dissipation(n, coulomb=self.coulomb, raw_init=raw_init) if self.dissipation else None
         )

@@ -1,0 +1,64 @@
+"""Suite `own_arm` of `python -m mbrl_delan.bench`: the benchmark contract's metrics and
+fields, its choices checked, and its sample-efficiency figure. No timed assertions."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from mbrl_delan.bench import build_options, run
+from mbrl_delan.benchmarks import OWN_ARM_ROBOTS, SUITE_NAMES, get_suite
+from mbrl_delan.benchmarks.own_arm import main, run_own_arm_suite, sample_curves
+from mbrl_delan.benchmarks.records import read_records
+from mbrl_delan.config import ConfigError
+from mbrl_delan.systems.arms import ARMS
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def _bench(overrides: list[str]):
+    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
+        return compose("bench", overrides=["suite=own_arm", *overrides])
+
+
+def test_suite_is_registered_with_the_shipped_arms() -> None:
+    assert "own_arm" in SUITE_NAMES and get_suite("own_arm") is run_own_arm_suite
+    assert OWN_ARM_ROBOTS == tuple(ARMS)
+
+
+def test_quick_run_writes_the_contracts_records_and_its_figure(tmp_path: Path) -> None:
+    out = tmp_path / "own_arm.jsonl"
+    run(_bench(["quick=true", "models=[white_box,mlp]", "samples=[400,800]", f"out={out}"]))
+    records = read_records(out)
+    by_model: dict[str, set[str]] = {}
+    for r in records:
+        assert r["suite"] == "own_arm" and r["robot"] == "panda" and r["friction"] is False
+        assert r["seed"] == 0 and r["samples"] in (400, 800)
+        assert r["value"] is not None and math.isfinite(r["value"]), r
+        by_model.setdefault(r["model"], set()).add(r["metric"])
+    common = {"test_torque_r2", "test_torque_mse", "fit_wall_s"}
+    assert by_model["white_box"] == common | {"mass_matrix_error", "friction_torque_share"}
+    assert by_model["mlp"] == common | {"fit_epoch_s"}
+    box = [r for r in records if r["model"] == "white_box" and r["metric"] == "test_torque_r2"]
+    assert min(r["value"] for r in box) > 0.99  # identified from a few hundred samples
+    curves = sample_curves(records, "panda", False)
+    assert [n for n, _ in curves["white_box"]] == [400, 800]
+    assert main([str(out), "--out", str(tmp_path / "fig.png")]) == 0
+    assert (tmp_path / "fig.png").stat().st_size > 0
+    assert main([str(out), "--out", str(tmp_path / "f.png"), "--robot", "ur5e"]) == 2
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("models=[delan,gp]", "models=.*delan, mlp, white_box"),
+        ("robots=[ur10]", "robots"),
+        ("samples=[]", "samples=\\[\\] is not valid"),
+    ],
+)
+def test_bad_choices_are_config_errors(override: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        build_options(_bench([override]))
