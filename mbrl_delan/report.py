@@ -502,12 +502,16 @@ def _panels(
 def returns_figure(summaries: list[dict[str, Any]], path: Path) -> Path:
     """Returns vs env steps, one panel per env: per model x planner the evaluation return
     (solid) and each round's on-policy episode return (dotted, logged every round), mean and
-    95% CI band over seeds; each planner's oracle (mean over its runs) a dashed grey line."""
+    95% CI band over seeds; each planner's oracle (mean over its runs) a dashed grey line and
+    the zero-torque return (mean over the runs that logged it) a dash-dotted one."""
     fig, envs, _ = _panels(summaries, RETURN_LINES, "Return vs env steps (mean, 95% CI)")
     for ax, env in zip(fig.axes, envs, strict=True):
         for i, (planner, oracle) in enumerate(_oracles(summaries, env).items()):
             grey = str(0.3 * (i % 3))
             ax.axhline(oracle, color=grey, ls="--", lw=1.2, label=f"oracle: {planner} on MuJoCo")
+        zero = _finite([s.get("zero_torque_return_mean") for s in summaries if s["env"] == env])
+        if zero:
+            ax.axhline(statistics.fmean(zero), color="0.5", ls="-.", lw=1.2, label="zero torque")
         ax.set_ylabel("return")
     legend_below(fig)
     return save_figure(fig, path)

@@ -1,8 +1,8 @@
 """Suite `fit_arrays`: ``python -m mbrl_delan.fit data=arrays`` at its defaults on arms.
 
-For arm2 and arm3 (`mbrl_delan/systems/assets/`): 22 smooth random trajectories of 160
-control steps (4 s) each, tracked in MuJoCo by PD control
-(`mbrl_delan.data.synthetic.trajectory_dataset`), written to an ``.npz`` file; the fit's
+For arm2 and arm3 (`mbrl_delan/systems/assets/`, their joints' damping removed: frictionless
+arms): 22 smooth random trajectories of 160 control steps (4 s) each, tracked in MuJoCo by PD
+control (`mbrl_delan.data.synthetic.trajectory_dataset`), written to an ``.npz`` file; the fit's
 split holds out 4 whole trajectories for test and a 10% segment of each other one for
 validation (2,592 training samples). Fitted
 at the defaults with no other flag (`mbrl_delan.fit.fit_inverse_dynamics`): DeLaN and the
@@ -15,6 +15,8 @@ trajectories. On the test trajectories (case ``<system>_<setting>``, setting ``d
 - ``mass_matrix_rel_error_median`` (DeLaN settings): median over the test samples of
   ||M_learned(q) - M(q)||_F / ||M(q)||_F, M from `mj_fullM`;
 - ``mse_ratio_to_identify`` (delan, mlp): the setting's test MSE / the identify recipe's;
+- ``friction_torque_share`` (delan): RMS over the test samples of DeLaN's friction torque /
+  RMS of the test torques (the arms have none: the share is what DeLaN learned in error);
 - ``fit_s``: wall time of the fit.
 
 ``seed=N`` (the bench option) seeds the fits' weights and minibatches; the data stay the same.
@@ -36,6 +38,7 @@ from tensordict import TensorDict
 from mbrl_delan import keys
 from mbrl_delan.benchmarks import SuiteOptions, host_fields
 from mbrl_delan.benchmarks.identify import IdentifyConfig, fit_identification, make_model
+from mbrl_delan.benchmarks.own_arm import friction_torque_share
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.data.arrays import save_arrays
 from mbrl_delan.data.inverse_data import FitSystem, array_inverse_data
@@ -107,8 +110,9 @@ def _test_mse(predict: Any, test: TensorDict) -> float:
 def run_system(name: str, cfg: FitArraysConfig, folder: Path) -> Iterator[BenchRecord]:
     system = load_system(name)
     data = trajectory_dataset(
-        system, cfg.trajectories, cfg.steps, torch.Generator().manual_seed(cfg.seed)
-    )
+        system, cfg.trajectories, cfg.steps, torch.Generator().manual_seed(cfg.seed),
+        damping=False,
+    )  # fmt: skip
     path = save_arrays(data, folder / f"{name}.npz")
     split = array_inverse_data(path, FitSystem.of(name))
     test = split.splits["test"]
@@ -130,6 +134,7 @@ def run_system(name: str, cfg: FitArraysConfig, folder: Path) -> Iterator[BenchR
             figures["mass_matrix_rel_error_median"] = _mass_matrix_error(
                 result.model, system, test[keys.Q]
             )
+            figures["friction_torque_share"] = friction_torque_share(result.model, test)
         results[model_name] = figures | {"epochs": result.summary["epochs"]}
     identify_cfg = replace(cfg.identify, seed=cfg.fit_seed)
     model, seconds = _identify_fit(system, split, identify_cfg)

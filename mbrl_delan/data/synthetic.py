@@ -284,6 +284,7 @@ def trajectory_dataset(
     knot_s: float = 1.0,
     q_scale: float = math.pi,
     omega: float = 2.0 * math.pi,
+    damping: bool = True,
 ) -> TensorDict:
     """Logged data of `trajectories` smooth random motions of `steps` control steps each.
 
@@ -296,7 +297,8 @@ def trajectory_dataset(
     index, and MuJoCo's parts of tau = M qdd + c + g + D qd: ``tau_inertial`` = M qdd,
     ``tau_coriolis`` = c(q, qd) and ``tau_gravity`` = g(q) (`qfrc_bias` at qd and at rest).
     Hinge and slide joints only. A float64 TensorDict (trajectories x steps,) in the schema
-    of `mbrl_delan.data.arrays` (``t``, ``trajectory``).
+    of `mbrl_delan.data.arrays` (``t``, ``trajectory``). `damping=False`: the system with its
+    joints' damping D removed (frictionless joints).
     """
     if trajectories < 1 or steps < 2:
         raise ValueError(f"need trajectories >= 1 and steps >= 2, got {trajectories}, {steps}")
@@ -304,6 +306,8 @@ def trajectory_dataset(
     if system.nu != system.nv:
         raise ValueError(f"{system.name}: PD tracking needs one actuator per joint")
     model = _contact_free_model(system)
+    if not damping:
+        model.dof_damping[:] = 0.0
     data = mujoco.MjData(model)
     n, dt = trajectories * steps, system.control_dt
     out = {name: np.zeros((n, model.nv)) for name in ("qd", "qdd", "tau", "ti", "tc")}

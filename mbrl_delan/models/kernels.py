@@ -67,8 +67,8 @@ def activate(name: str, z: Tensor) -> tuple[Tensor, Tensor]:
 def linear(x: Tensor, weight: Tensor, bias: Tensor | None = None) -> Tensor:
     """x W^T (+ b): (..., k), (m, k) -> (..., m). Small k under compilation: broadcast
     products that fuse into the next elementwise kernel (same value)."""
-    if not (torch.compiler.is_compiling() and weight.shape[-1] <= SMALL_DIM):
-        return F.linear(x, weight, bias)
+    if not (torch.compiler.is_compiling() and 0 < weight.shape[-1] <= SMALL_DIM):
+        return F.linear(x, weight, bias)  # k = 0 too (no joint held still: an empty sum)
     out = _broadcast_products(x, weight, dim=1)
     return out if bias is None else out + bias
 
