@@ -442,7 +442,8 @@ def build_inverse_model(
     branch, an arm's chain, gets the dense lower factor L L^T instead: the same matrices, and
     the fit of the upper factor trains to a 7x larger torque error on arm2). `armature`: the
     model's ``dof_armature``, for DeLaN's ``model.armature``. `mj_model`: the robot's MJCF,
-    the white box's structure."""
+    the white box's structure. `friction_init`: DeLaN's friction start (`Structure`);
+    `coulomb`: whether it learns Coulomb friction (None: ``cfg.coulomb``)."""
     root_height = not translation_invariant
     if cfg.name == "white_box":
         if mj_model is None:
