@@ -43,14 +43,26 @@ def error_curves(records: list[dict[str, Any]]) -> dict[str, list[tuple[int, lis
     return {label: sorted(by_h.items()) for label, by_h in sorted(curves.items())}
 
 
-def describe_curves(curves: dict[str, list[tuple[int, list[float]]]]) -> list[str]:
-    """One line per case and horizon: `case h=H mean M (min A, max B, n N)`."""
+def describe_curves(curves: dict[str, list[tuple[int, list[float]]]], x: str = "h") -> list[str]:
+    """One line per case and x (a horizon): `case h=H mean M (min A, max B, n N)`."""
     return [
-        f"{label} h={h}: mean {statistics.fmean(v):.4g} (min {min(v):.4g}, max {max(v):.4g}, "
-        f"n {len(v)})"
+        f"{label} {x}={h}: mean {statistics.fmean(v):.4g} (min {min(v):.4g}, "
+        f"max {max(v):.4g}, n {len(v)})"
         for label, points in curves.items()
         for h, v in points
     ]
+
+
+def read_record_files(paths: list[Path]) -> list[dict[str, Any]] | None:
+    """The records of every file; None (the reason logged) when one cannot be read."""
+    records: list[dict[str, Any]] = []
+    for path in paths:
+        try:
+            records += read_records(path)
+        except (OSError, json.JSONDecodeError) as err:
+            log.error("cannot read records from %s: %s", path, err)
+            return None
+    return records
 
 
 def plot_error_curves(
@@ -91,13 +103,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--title", default="Humanoid-v5: open-loop rollout error")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    records: list[dict[str, Any]] = []
-    for path in args.files:
-        try:
-            records += read_records(path)
-        except (OSError, json.JSONDecodeError) as err:
-            log.error("cannot read records from %s: %s", path, err)
-            return 2
+    records = read_record_files(args.files)
+    if records is None:
+        return 2
     try:
         curves = error_curves(records)
     except ValueError as err:

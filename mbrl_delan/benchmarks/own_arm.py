@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import logging
 import tempfile
 import time
@@ -41,8 +40,8 @@ import torch
 
 from mbrl_delan import keys
 from mbrl_delan.benchmarks import OWN_ARM_MODELS, OWN_ARM_ROBOTS, SuiteOptions, host_fields
-from mbrl_delan.benchmarks.figures import describe_curves, plot_error_curves
-from mbrl_delan.benchmarks.records import BenchRecord, read_records
+from mbrl_delan.benchmarks.figures import describe_curves, plot_error_curves, read_record_files
+from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.config import compose_config
 from mbrl_delan.fit import FIT_CONFIG_DIR, fit_splits
 from mbrl_delan.models.inverse import DeLaNInverse, InverseDynamicsModel
@@ -169,20 +168,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--friction", action="store_true", help="the arm with joint friction")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    records: list[dict[str, Any]] = []
-    for path in args.files:
-        try:
-            records += read_records(path)
-        except (OSError, json.JSONDecodeError) as err:
-            log.error("cannot read records from %s: %s", path, err)
-            return 2
+    records = read_record_files(args.files)
+    if records is None:
+        return 2
     curves = sample_curves(records, args.robot, args.friction)
     if not curves:
         log.error("no %s test_torque_mse records of %s in %s", SUITE, args.robot,
                   ", ".join(map(str, args.files)))  # fmt: skip
         return 2
-    for line in describe_curves(curves):
-        log.info("%s", line.replace(" h=", " samples="))
+    for line in describe_curves(curves, x="samples"):
+        log.info("%s", line)
     title = f"{args.robot}{' with joint friction' if args.friction else ''}: held-out torque error"
     figure = plot_error_curves(curves, args.out, title, "training samples",
                                "test torque MSE (N$^2$ m$^2$)", xlog=True)  # fmt: skip
