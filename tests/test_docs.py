@@ -36,7 +36,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig
 
 from mbrl_delan import bench, evaluate, fit_report, report
-from mbrl_delan.benchmarks import figures
+from mbrl_delan.benchmarks import figures, own_arm
 from mbrl_delan.config import DTYPES, build_model, build_planner, validate_train_config
 from mbrl_delan.data.mocap.retarget import joint_layout
 from mbrl_delan.envs.registry import make_env_parts
@@ -101,6 +101,7 @@ ARGPARSE_ENTRY_POINTS: dict[str, Callable[[list[str]], Any]] = {
     "mbrl_delan.report": report.main,  # main(argv) builds its parser and parses argv first
     "mbrl_delan.fit_report": fit_report.main,
     "mbrl_delan.benchmarks.figures": figures.main,
+    "mbrl_delan.benchmarks.own_arm": own_arm.main,
     "mbrl_delan.evaluate": evaluate.main,
 }
 
