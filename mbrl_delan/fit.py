@@ -295,6 +295,7 @@ def validate_fit_config(cfg: DictConfig) -> None:
     check_number("stages.decay", cfg.stages.decay, 0.0, 1.0, open_low=True)
     check_whole("stages.warmup_steps", cfg.stages.warmup_steps, 0)
     check_whole("patience", cfg.patience, 1, optional=True)
+    check_number("min_improvement", cfg.min_improvement, 0.0, 0.5)
     if cfg.stop_on is not None:
         _choice("stop_on", cfg.stop_on, _split_names(cfg.data))
     if cfg.max_grad_norm is not None:
@@ -575,6 +576,7 @@ def _settings(cfg: DictConfig, epochs: int) -> InverseFitSettings:
         eval_every=cfg.eval_every,
         stop_on=cfg.stop_on,
         patience=cfg.patience,
+        min_improvement=cfg.min_improvement,
     )
 
 

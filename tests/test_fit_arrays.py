@@ -177,6 +177,33 @@ def test_early_stopping_keeps_the_lowest_validation_error(arm2_data) -> None:
     assert evaluate_torques(model, val).mse == pytest.approx(best, rel=1e-9)
 
 
+def test_min_improvement_stops_on_small_gains_and_keeps_the_best(arm2_data) -> None:
+    """Gains under the share do not restart the patience; the lowest error is still kept."""
+    from mbrl_delan.training.inverse_fit import evaluate_torques
+
+    def fit(share: float) -> tuple[MLPInverse, list]:
+        torch.manual_seed(0)
+        model = MLPInverse(load_system("arm2").layout, hidden=8).double()
+        settings = InverseFitSettings(
+            epochs=30, batch_size=32, stop_on="val", patience=2, min_improvement=share
+        )
+        optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)  # small: it keeps improving
+        results = fit_inverse_model(
+            model, optimizer, arm2_data[:160], {"val": arm2_data[160:]}, settings,
+            torch.Generator().manual_seed(0),
+        )  # fmt: skip
+        return model, results
+
+    _, plain = fit(0.0)
+    model, strict = fit(0.9)  # only a 10x lower error counts
+    errors = [r.errors["val"].mse for r in strict]
+    assert len(plain) == 30 and len(strict) == 3  # the first epoch, then two without 10x
+    assert errors[2] < errors[0]  # it did improve, by less than the share
+    assert evaluate_torques(model, arm2_data[160:]).mse == pytest.approx(min(errors), rel=1e-9)
+    with pytest.raises(ValueError, match="min_improvement"):
+        InverseFitSettings(min_improvement=1.0)
+
+
 # ---------------------------------------------------------------- reading a run back
 
 

@@ -9,13 +9,14 @@ stays within `use` of its range about the range's centre c_j (at most +-pi where
 wider) and of its velocity limit; qd and qdd are the series' exact derivatives. A
 trajectory whose torques pass a motor's limit is shrunk about its mean position until they
 do not (the gravity torque does not scale with it). Many short trajectories cover the joint
-space better than few long ones (the defaults: 2 s, 3 harmonics). The true
-generalized forces come from MuJoCo's inverse dynamics (`mj_inverse`, joint friction and
-armature included when the model has them), split into M qdd, c(q, qd), g(q) and friction. What a
-robot logs is then made of them: q and tau with Gaussian noise (q: `q_noise` rad; tau:
-`tau_noise` of each joint's torque RMS), qd by central differences of zero-phase low-passed q
-and qdd so of qd. The robot moves on through the periods before and after each one, as a
-logged excitation run does: the filters see `PAD_S` of it on either side (no edge effects).
+space better than few long ones, and more harmonics than few (the defaults: 2 s, 5
+harmonics). The true generalized forces come from MuJoCo's inverse dynamics (`mj_inverse`,
+joint friction and armature included when the model has them), split into M qdd, c(q, qd),
+g(q) and friction. What a robot logs is then made of them: q and tau with Gaussian noise
+(q: `q_noise` rad; tau: `tau_noise` of each joint's torque RMS), qd by central differences
+of zero-phase low-passed q and qdd so of qd. The robot moves on through the periods before
+and after each one, as a logged excitation run does: the filters see `PAD_S` of it on either
+side (no edge effects).
 
 `excitation_arrays` returns the fields of `data.arrays`' schema (q, qd, qdd, tau, t,
 trajectory and the true tau_inertial, tau_coriolis, tau_gravity, tau_friction), ready for
@@ -46,7 +47,7 @@ class ExcitationSettings:
 
     samples: int = 10_000  # samples in all (whole trajectories: the last one may be longer)
     period_s: float = 2.0  # one trajectory: one period of the series
-    harmonics: int = 3
+    harmonics: int = 5
     rate_hz: float = 100.0  # sampling rate
     use: float = 0.8  # share of the joint range (half-width about its centre) and speed limit
     q_noise: float = 1e-4  # rad, std of the position noise

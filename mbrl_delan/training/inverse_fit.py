@@ -125,6 +125,7 @@ class InverseFitSettings:
     eval_every: int = 1  # evaluate the splits after every k-th epoch and the last; 0: the last
     stop_on: str | None = None  # split evaluated after every epoch: its lowest error is kept
     patience: int | None = None  # with stop_on: epochs without a lower error that end the fit
+    min_improvement: float = 0.0  # patience restarts only below best x (1 - min_improvement)
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch_size < 1 or self.eval_batch_size < 1:
@@ -133,6 +134,8 @@ class InverseFitSettings:
             raise ValueError(f"eval_every must be >= 0: {self}")
         if self.patience is not None and self.patience < 1:
             raise ValueError(f"patience must be >= 1 or None: {self}")
+        if not 0.0 <= self.min_improvement < 1.0:
+            raise ValueError(f"min_improvement must be in [0, 1): {self}")
 
     def evaluates(self, epoch: int) -> bool:
         """Whether the splits are evaluated after `epoch` (counted from 1)."""
@@ -302,12 +305,12 @@ def fit_inverse_model(
             on_epoch(result)
         if stop_on is None:
             continue
-        if errors[stop_on].mse < best_error:
-            best, best_error, since_best = last_good, errors[stop_on].mse, 0
-        else:
-            since_best += 1
-            if settings.patience is not None and since_best >= settings.patience:
-                break
+        error = errors[stop_on].mse
+        since_best = 0 if error < (1.0 - settings.min_improvement) * best_error else since_best + 1
+        if error < best_error:
+            best, best_error = last_good, error
+        if settings.patience is not None and since_best >= settings.patience:
+            break
     if stop_on is not None:
         model.load_state_dict(best)
     return results
