@@ -197,7 +197,7 @@ def test_min_improvement_stops_on_small_gains_and_keeps_the_best(arm2_data) -> N
     _, plain = fit(0.0)
     model, strict = fit(0.9)  # only a 10x lower error counts
     errors = [r.errors["val"].mse for r in strict]
-    assert len(plain) == 30 and len(strict) == 3  # the first epoch, then two without 10x
+    assert len(strict) == 3 < len(plain)  # the first epoch, then two without a 10x gain
     assert errors[2] < errors[0]  # it did improve, by less than the share
     assert evaluate_torques(model, arm2_data[160:]).mse == pytest.approx(min(errors), rel=1e-9)
     with pytest.raises(ValueError, match="min_improvement"):
