@@ -109,6 +109,16 @@ def exit_on_config_errors(hydra_main: Callable[[], Any]) -> Any:
         return hydra_main()
     except (ConfigError, *COMPOSE_ERRORS) as err:
         exit_config_error(err)
+    except AssertionError as err:
+        line = _override_under_null(err)
+        if line is None:
+            raise
+        exit_config_error(
+            ConfigError(
+                f"{line}: a node on its path is null in this config (it is set only for "
+                "another choice of its config group, e.g. env.task for env=cmu_track)"
+            )
+        )
     except RunWriteError as err:
         log.error("%s", err)
         sys.exit(2)
@@ -117,6 +127,19 @@ def exit_on_config_errors(hydra_main: Callable[[], Any]) -> Any:
             os.environ.pop("HYDRA_FULL_ERROR", None)
         else:
             os.environ["HYDRA_FULL_ERROR"] = previous
+
+
+def _override_under_null(err: AssertionError) -> str | None:
+    """The command-line override whose key OmegaConf could not set because a node on its
+    path is null (an AssertionError from inside Hydra's `_apply_overrides_to_config`), else
+    None: any other AssertionError is not a config error."""
+    tb = err.__traceback__
+    while tb is not None:
+        if tb.tb_frame.f_code.co_name == "_apply_overrides_to_config":
+            override = tb.tb_frame.f_locals.get("override")
+            return getattr(override, "input_line", None) or "an override"
+        tb = tb.tb_next
+    return None
 
 
 def check_whole(path: str, value: Any, low: int, optional: bool = False) -> None:

@@ -295,7 +295,7 @@ def validate_fit_config(cfg: DictConfig) -> None:
     check_number("stages.decay", cfg.stages.decay, 0.0, 1.0, open_low=True)
     check_whole("stages.warmup_steps", cfg.stages.warmup_steps, 0)
     check_whole("patience", cfg.patience, 1, optional=True)
-    check_number("min_improvement", cfg.min_improvement, 0.0, 0.5)
+    check_number("min_delta", cfg.min_delta, 0.0)
     if cfg.stop_on is not None:
         _choice("stop_on", cfg.stop_on, _split_names(cfg.data))
     if cfg.max_grad_norm is not None:
@@ -305,6 +305,7 @@ def validate_fit_config(cfg: DictConfig) -> None:
     _flag("periodic_hinges", cfg.get("periodic_hinges", False))
     if cfg.get("coulomb") is not None:
         _flag("coulomb", cfg.coulomb)
+    _flag("coulomb_lead", cfg.get("coulomb_lead", False))
     if cfg.get("friction_init") is not None:
         check_number("friction_init", cfg.friction_init, 0.0, open_low=True)
     _choice("logger.backend", cfg.logger.backend, LOGGERS)
@@ -436,6 +437,7 @@ def build_inverse_model(
     mj_model: mujoco.MjModel | None = None,
     friction_init: float | None = None,
     coulomb: bool | None = None,
+    coulomb_lead: bool = False,
 ) -> InverseDynamicsModel:
     """The inverse-dynamics model named by ``cfg.name``. `translation_invariant`: no model
     sees the root's position (DeLaN keeps gravity's exact w z potential in its height).
@@ -444,7 +446,8 @@ def build_inverse_model(
     the fit of the upper factor trains to a 7x larger torque error on arm2). `armature`: the
     model's ``dof_armature``, for DeLaN's ``model.armature``. `mj_model`: the robot's MJCF,
     the white box's structure. `friction_init`: DeLaN's friction start (`Structure`);
-    `coulomb`: whether it learns Coulomb friction (None: ``cfg.coulomb``)."""
+    `coulomb`: whether it learns Coulomb friction (None: ``cfg.coulomb``); `coulomb_lead`:
+    its argument qd + l qdd with a learned lead l (`Structure`)."""
     root_height = not translation_invariant
     if cfg.name == "white_box":
         if mj_model is None:
@@ -458,6 +461,7 @@ def build_inverse_model(
             diag_shift=cfg.diag_shift,
             dissipation=cfg.dissipation,
             coulomb=cfg.coulomb if coulomb is None else coulomb,
+            coulomb_lead=coulomb_lead,
             translation_invariant=translation_invariant,
             still_first_order=cfg.still_first_order,
             dof_parents=dof_parents if cfg.tree_sparse and branches(dof_parents) else None,
@@ -485,7 +489,7 @@ def build_inverse_model(
 
 def build_system_model(cfg: DictConfig, system: FitSystem) -> InverseDynamicsModel:
     """`build_inverse_model` of a fit config (``model``, ``loss``, ``translation_invariant``,
-    ``periodic_hinges``, ``friction_init``, ``coulomb``) for a system."""
+    ``periodic_hinges``, ``friction_init``, ``coulomb``, ``coulomb_lead``) for a system."""
     layout = system.layout
     if cfg.get("periodic_hinges", False):  # every hinge's features (sin q, cos q)
         hinges = [t == HINGE for t in layout.types]
@@ -503,6 +507,7 @@ def build_system_model(cfg: DictConfig, system: FitSystem) -> InverseDynamicsMod
         system.mj_model,
         cfg.get("friction_init"),
         cfg.get("coulomb"),
+        cfg.get("coulomb_lead", False),
     )
 
 
@@ -576,7 +581,7 @@ def _settings(cfg: DictConfig, epochs: int) -> InverseFitSettings:
         eval_every=cfg.eval_every,
         stop_on=cfg.stop_on,
         patience=cfg.patience,
-        min_improvement=cfg.min_improvement,
+        min_delta=cfg.min_delta,
     )
 
 

@@ -32,6 +32,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from mbrl_delan.config import (
     ConfigError,
     exit_config_error,
+    migrate,
     refuse_used_run_dir,
     validate_train_config,
 )
@@ -48,13 +49,16 @@ from mbrl_delan.training.recorder import (
     SUMMARY_FILE,
     read_metrics,
 )
+from mbrl_delan.training.run_lock import RunLock, RunLockedError
 
 log = logging.getLogger(__name__)
 
 CRASH_FILE = "crash.json"
 TRACEBACK_CHARS = 4000  # the tail of the traceback kept in crash.json
 # files that mark a folder as holding a run of mbrl_delan.train (finished, stopped or crashed)
-RUN_FILES = (RUN_CONFIG, CHECKPOINT_FILE, METRICS_FILE, SUMMARY_FILE, CRASH_FILE)
+# a run's files: a folder with one of them holds a run (``crash.json`` alone: a start that
+# failed before the run's config was written, which a corrected rerun may reuse)
+RUN_FILES = (RUN_CONFIG, CHECKPOINT_FILE, METRICS_FILE, SUMMARY_FILE)
 
 T = TypeVar("T")
 
@@ -191,19 +195,27 @@ class StartChecks(Callback):
     configs/config.yaml): before Hydra creates the run dir or writes its ``.hydra/`` record,
     the composed config is checked (`validate_train_config`) and a new run in a folder that
     holds another run is refused: one line naming the cause, exit code 2, nothing written.
-    (Hydra turns a callback's exceptions into warnings, so it exits itself.) A resumed run's
-    own config is checked when it is loaded, and each job of a sweep (``-m``) when it starts:
-    a bad job fails with ``crash.json`` in its folder while the others run."""
+    (Hydra turns a callback's exceptions into warnings, so it exits itself.) A resume is
+    checked the same way, its saved config with the command line's overrides (`resumed_config`),
+    and so is the folder (a run dir, writable): a refused resume leaves every file as it was.
+    Each job of a sweep (``-m``) is checked when it starts: a bad job fails with ``crash.json``
+    in its folder while the others run."""
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         cfg = _task_config(config)
         if cfg.get("resume") is not None:
             saved = Path(cfg.resume) / RUN_CONFIG
             try:
-                if saved.is_file():  # else the run itself names what is missing
-                    resume_override_keys(config.hydra.overrides.task, cfg, OmegaConf.load(saved))
+                if not saved.is_file():
+                    raise ConfigError(
+                        f"resume={cfg.resume!r}: no {RUN_CONFIG} in that folder, so it is not "
+                        "a run dir of mbrl_delan.train"
+                    )
+                run_cfg, _ = resumed_config(config.hydra.overrides.task, cfg, saved)
+                validate_train_config(run_cfg)
             except ConfigError as err:
                 exit_config_error(err)
+            self.lock = lock_run_dir(saved.parent)
             return
         run_dir = Path(config.hydra.run.dir)
         instead = f"continue it with resume={run_dir}, or start a new one in another hydra.run.dir"
@@ -212,17 +224,51 @@ class StartChecks(Callback):
             refuse_used_run_dir(run_dir, RUN_FILES, instead)
         except ConfigError as err:
             exit_config_error(err)
-        exit_unless_writable(run_dir)
+        self.lock = lock_run_dir(run_dir)
+
+    def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
+        release(self)
 
 
 class WritableRunDir(Callback):
     """Hydra callback of ``python -m mbrl_delan.fit`` and ``python -m mbrl_delan.bench``
     (``hydra.callbacks`` in configs/fit/config.yaml, configs/bench.yaml): a run dir that
     cannot be made or written ends the command with one line naming it and exit 2, before
-    Hydra's log file there fails with a raw error."""
+    Hydra's log file there fails with a raw error. With `lock` (fit) the run dir's `RunLock`
+    is held until the run ends: a second writer exits 2 naming the holder."""
+
+    def __init__(self, lock: bool = False) -> None:
+        self.take_lock = lock
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        exit_unless_writable(Path(config.hydra.run.dir))
+        run_dir = Path(config.hydra.run.dir)
+        if self.take_lock:
+            self.lock = lock_run_dir(run_dir)
+        else:
+            exit_unless_writable(run_dir)
+
+    def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
+        release(self)
+
+
+def lock_run_dir(run_dir: Path) -> RunLock:
+    """`exit_unless_writable(run_dir)`, then its `RunLock`, held until the run ends: a folder
+    another process writes is one line naming that process and exit 2."""
+    exit_unless_writable(run_dir)
+    lock = RunLock(run_dir)
+    try:
+        lock.acquire()
+    except RunLockedError as err:
+        log.error("%s", err)
+        sys.exit(2)
+    return lock
+
+
+def release(callback: Callback) -> None:
+    """Release the run-dir lock a callback took in ``on_run_start`` (if it did)."""
+    lock = getattr(callback, "lock", None)
+    if lock is not None:
+        lock.release()
 
 
 def exit_unless_writable(run_dir: Path) -> None:
@@ -255,6 +301,20 @@ def resume_override_keys(overrides: Sequence[str], cfg: DictConfig, saved: DictC
             "device, threads, logger and video*"
         )
     return changed
+
+
+def resumed_config(
+    overrides: Sequence[str], cfg: DictConfig, saved: Path
+) -> tuple[DictConfig, list[str]]:
+    """A resumed run's config: its `saved` one (``config.yaml``, migrated) with the keys of
+    the command line's `overrides` that `resume_override_keys` allows set from the composed
+    `cfg`, and those keys. Reads only: the caller writes it once it is checked."""
+    run_cfg = migrate(OmegaConf.load(saved))
+    keys = resume_override_keys(overrides, cfg, run_cfg)
+    for key in keys:
+        OmegaConf.update(run_cfg, key, OmegaConf.select(cfg, key), merge=False)
+    run_cfg.resume = str(saved.parent)
+    return run_cfg, keys
 
 
 def _plain(cfg: DictConfig, key: str) -> Any:

@@ -34,7 +34,6 @@ from mbrl_delan.config import (
     check_device,
     delan_structure,
     exit_on_config_errors,
-    migrate,
     structure_overrides,
     validate_train_config,
 )
@@ -55,7 +54,7 @@ from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.humanoid_residual import HUMANOID_ILQR, humanoid_ilqr_policy
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, tracking_ilqr_policy
-from mbrl_delan.sweep import exit_or_raise, marks_crash, resume_override_keys, with_sweep_group
+from mbrl_delan.sweep import exit_or_raise, marks_crash, resumed_config, with_sweep_group
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.humanoid import HumanoidTask
@@ -65,6 +64,7 @@ from mbrl_delan.training.checkpoint import (
     CheckpointError,
     atomic_write,
     load_checkpoint,
+    prev_path,
     remove_stale_temps,
     rng_state,
     save_checkpoint,
@@ -442,11 +442,13 @@ def _start_mechanics(model_cfg: DictConfig, model: DeLaN, system: System) -> Non
     log.info("started M, V and the friction from the mocap fit in %s", model_cfg.init_from)
 
 
-def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | None]:
-    """The config and run dir to use, and the checkpoint when resuming."""
+def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | None, bool]:
+    """The config and run dir to use, the checkpoint when resuming, and whether the command
+    line changed the resumed run's config (saved only once it is checked). Writes nothing
+    but an unreadable checkpoint's move aside (`load_checkpoint`'s `set_aside`)."""
     if cfg.resume is None:
         run_dir = Path(HydraConfig.get().runtime.output_dir)
-        return with_sweep_group(cfg), run_dir, None
+        return with_sweep_group(cfg), run_dir, None, False
     run_dir = Path(cfg.resume)
     saved = run_dir / RUN_CONFIG
     if not saved.is_file():
@@ -454,26 +456,15 @@ def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | No
             f"resume={cfg.resume!r}: no {RUN_CONFIG} in that folder, so it is not "
             "a run dir of mbrl_delan.train"
         )
-    run_cfg = migrate(OmegaConf.load(saved))
-    run_cfg.resume = str(run_dir)
-    if _apply_resume_overrides(run_cfg, cfg):
-        OmegaConf.save(run_cfg, saved, resolve=True)  # a later resume continues with them
-    remove_stale_temps(run_dir)
-    ckpt = run_dir / CHECKPOINT_FILE
-    state = load_checkpoint(ckpt, weights_only=False) if ckpt.exists() else None
-    return run_cfg, run_dir, state
-
-
-def _apply_resume_overrides(run_cfg: DictConfig, cfg: DictConfig) -> list[str]:
-    """Set the command line's overrides of a resumed run (`resume_override_keys`: budget,
-    device, threads, logger, video) from `cfg` in its saved `run_cfg`. Returns the keys set."""
-    if not HydraConfig.initialized():
-        return []
-    keys = resume_override_keys(HydraConfig.get().overrides.task, cfg, run_cfg)
-    for key in keys:
-        OmegaConf.update(run_cfg, key, OmegaConf.select(cfg, key), merge=False)
+    overrides = HydraConfig.get().overrides.task if HydraConfig.initialized() else []
+    run_cfg, changed = resumed_config(overrides, cfg, saved)
+    for key in changed:
         log.info("resume: %s=%s", key, OmegaConf.select(run_cfg, key))
-    return keys
+    ckpt = run_dir / CHECKPOINT_FILE
+    state = None
+    if ckpt.exists() or prev_path(ckpt).exists():
+        state = load_checkpoint(ckpt, weights_only=False, set_aside=True)
+    return run_cfg, run_dir, state, bool(changed)
 
 
 @marks_crash
@@ -482,7 +473,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
 
     When it raises, the run dir gets ``crash.json`` (see ``mbrl_delan.sweep``).
     """
-    cfg, run_dir, state = _resolve_run(cfg)
+    cfg, run_dir, state, changed = _resolve_run(cfg)
     cfg = validate_train_config(cfg)
     if state is None and cfg.model.get("init_from") is not None:
         cfg = with_fit_structure(cfg)
@@ -491,11 +482,16 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     run_dir.mkdir(parents=True, exist_ok=True)
-    if state is None:
-        OmegaConf.save(cfg, run_dir / RUN_CONFIG, resolve=True)
+    if cfg.resume is not None:
+        remove_stale_temps(run_dir)
     loop, oracle = build_loop(cfg, run_dir)
     if state is None and cfg.model.get("init_from") is not None:
         _start_mechanics(cfg.model, loop.model, loop.system)
+    # written once the run is built: an error found while building (a missing clip) leaves a
+    # folder that a corrected rerun can use; a resume's accepted overrides stay for later ones
+    if state is None or changed:
+        text = OmegaConf.to_yaml(cfg, resolve=True).encode()
+        atomic_write(run_dir / RUN_CONFIG, lambda f: f.write(text), keep_prev=False)
     if state is not None:
         loop.load_state_dict(state["loop"])
         set_rng_state(state["rng"])

@@ -129,3 +129,14 @@ def test_the_command_exits_2_and_writes_nothing(override: str, tmp_path: Path, r
     assert code == 2, text
     assert f"config error: {override.split('=')[0]}" in text and "Traceback" not in text
     assert not run_dir.exists()  # no run folder, no crash.json
+
+
+def test_a_key_under_a_null_node_is_one_line_and_writes_nothing(tmp_path: Path, run_main) -> None:
+    """env.task.clip belongs to env=cmu_track; elsewhere env.task is null: one line naming the
+    override, exit 2, no folder (OmegaConf alone fails with a bare AssertionError)."""
+    run_dir = tmp_path / "run"
+    code, text = run_main(train_module.main, "env.task.clip=02_01", f"hydra.run.dir={run_dir}")
+    assert code == 2 and "Traceback" not in text, text
+    assert "config error: env.task.clip=02_01: a node on its path is null" in text, text
+    assert len(text.strip().splitlines()) <= 3, text
+    assert not run_dir.exists()

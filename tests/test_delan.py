@@ -208,6 +208,10 @@ def test_bad_arguments_are_named() -> None:
         DeLaN(layout(2), torch.eye(2), 0.01, integrator="leapfrog")
     with pytest.raises(ValueError, match="diag_shift"):
         DeLaN(layout(2), torch.eye(2), 0.01, Structure(diag_shift=0.0))
+    with pytest.raises(ValueError, match="coulomb_lead needs Coulomb friction"):
+        Structure(coulomb=False, coulomb_lead=True)
+    with pytest.raises(ValueError, match="coulomb_lead acts in joint axes"):
+        Structure(yaw_invariant=True, coulomb_lead=True)
 
 
 def test_planner_survives_a_model_that_returns_inf_and_nan() -> None:

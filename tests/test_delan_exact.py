@@ -120,3 +120,71 @@ def test_closed_form_gravity_is_the_potential_gradient() -> None:
     q, _, _ = random_states(2)
     grad = torch.func.vmap(torch.func.grad(arm2_potential))(q)
     torch.testing.assert_close(grad, arm2_gravity(q))
+
+
+def _frictional_arm2(lead: bool) -> tuple[LagrangianDynamics, mujoco.MjModel]:
+    """arm2 with MuJoCo's ``frictionloss`` 0.5 N m on both joints, and the exact DeLaN with
+    Coulomb friction F = 0.5 (v_c 1e-3) and, with `lead`, the lead l = 1 / b of MuJoCo's
+    soft friction constraint."""
+    from mbrl_delan.models.rigid_body import friction_damping
+
+    system = load_system("arm2")
+    model = system.mj_model()
+    model.dof_frictionloss[:] = 0.5
+    dissipation = Dissipation(system.nv, coulomb=True, coulomb_velocity=1e-3, lead=lead).double()
+    inverse_softplus = lambda x: torch.log(torch.expm1(torch.as_tensor(x)))  # noqa: E731
+    with torch.no_grad():
+        dissipation.raw_viscous.copy_(inverse_softplus(system.damping))
+        dissipation.raw_coulomb.copy_(inverse_softplus(torch.full((2,), 0.5)))
+        if lead:
+            unit = Dissipation.LEAD_UNIT
+            dissipation.raw_lead.copy_(inverse_softplus(1.0 / friction_damping(model) / unit))
+    dynamics = LagrangianDynamics(ExactField(*SYSTEMS["arm2"]), dissipation, system.actuation)
+    return dynamics, model
+
+
+def test_a_coulomb_lead_gives_mujocos_frictionloss() -> None:
+    """MuJoCo's soft ``frictionloss`` opposes qdd + b qd, not qd: with the lead l = 1 / b the
+    DeLaN's inverse dynamics is `mj_inverse`'s wherever the constraint is saturated; without
+    it, the states whose qd and qdd + b qd point apart are 2 F off."""
+    from mbrl_delan.models.rigid_body import friction_damping
+
+    q, qd, qdd = random_states(2, 1024)
+    qd = 0.01 * qd  # slow enough that qdd decides the friction's direction in some states
+    model = _frictional_arm2(lead=True)[1]
+    argument = qdd + torch.from_numpy(friction_damping(model)) * qd
+    saturated = argument.abs() > 5.0  # (N, 2): the constraint's force is +-F there
+    data = mujoco.MjData(model)
+    reference = []
+    for i in range(q.shape[0]):
+        data.qpos[:], data.qvel[:], data.qacc[:] = q[i].numpy(), qd[i].numpy(), qdd[i].numpy()
+        mujoco.mj_inverse(model, data)
+        reference.append(data.qfrc_inverse.copy())
+    reference = torch.from_numpy(np.stack(reference))[saturated]
+    with torch.no_grad():
+        led = _frictional_arm2(lead=True)[0].inverse_dynamics(q, qd, qdd)[saturated]
+        plain = _frictional_arm2(lead=False)[0].inverse_dynamics(q, qd, qdd)[saturated]
+    assert int(saturated.sum()) > 150
+    torch.testing.assert_close(led, reference, rtol=0.0, atol=1e-6)
+    apart = ((torch.sign(qd) != torch.sign(argument)) & (qd.abs() > 0.01))[saturated]
+    assert int(apart.sum()) > 10
+    torch.testing.assert_close((plain - reference)[apart].abs(), torch.ones_like(plain[apart]))
+
+
+def test_forward_dynamics_takes_the_lead_linearly_implicit() -> None:
+    """With a lead, forward dynamics solves (M + diag(dd/dqdd at 0)) qdd = tau - c - g - d(qd, 0)
+    and `lead_inertia` is that derivative."""
+    dynamics, _ = _frictional_arm2(lead=True)
+    q, qd, tau = random_states(2)
+    qd = 0.002 * qd  # inside the tanh's band, where the lead's inertia is large
+    with torch.no_grad():
+        qdd = dynamics.forward_dynamics(q, qd, tau)
+        terms = dynamics.terms(q, qd)
+    friction = dynamics.dissipation
+    slope = torch.func.vmap(torch.func.jacrev(lambda v, a: friction(v, a), argnums=1))(
+        qd, torch.zeros_like(qd)
+    )  # (N, 2, 2)
+    torch.testing.assert_close(torch.diagonal(slope, dim1=-2, dim2=-1), friction.lead_inertia(qd))
+    lhs = (terms.mass_matrix + slope) @ qdd.unsqueeze(-1)
+    rhs = tau - terms.coriolis - terms.gravity - terms.dissipation
+    torch.testing.assert_close(lhs.squeeze(-1), rhs, rtol=1e-9, atol=1e-9)

@@ -15,6 +15,8 @@ import logging
 import os
 import random
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -30,6 +32,7 @@ from mbrl_delan.training.checkpoint import (
     prev_path,
     save_checkpoint,
 )
+from mbrl_delan.training.run_lock import RunLock, RunLockedError
 
 RUN = [*TINY_TRAIN, "env.episode_len=10", "budget.iterations=2"]
 KILLS = 10
@@ -119,6 +122,135 @@ def test_a_cut_checkpoint_resumes_from_the_previous_one_to_the_same_result(
     assert _summary(run_dir) == _summary(ref_dir)
 
 
+def _files(run_dir: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(run_dir)): p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+
+
+@pytest.mark.parametrize(
+    ("override", "named"),
+    [("device=cuda", "device"), ("budget.iterations=-1", "budget.iterations"),
+     ("model.hidden=7", "model.hidden")],
+)  # fmt: skip
+def test_a_refused_resume_leaves_every_file_as_it_was(
+    reference: tuple[Path, dict[str, int]], tmp_path: Path, override: str, named: str
+) -> None:
+    """A resume whose overrides are refused (a device the host lacks, a bad budget, a key a
+    resume cannot change) is exit 2 in one line naming the key, and the run's folder keeps
+    every byte: no config change, no log, no crash marker."""
+    if override == "device=cuda" and torch.cuda.is_available():
+        pytest.skip("the host has CUDA: device=cuda is not refused")
+    run_dir = _copy(reference[0], tmp_path)
+    before = _files(run_dir)
+    code, text = _resume(run_dir, override)
+    assert code == 2 and "Traceback" not in text and named in text, text
+    assert len(text.strip().splitlines()) <= 3, text
+    assert _files(run_dir) == before
+    code, text = _resume(run_dir)  # the plain resume of the finished run still works
+    assert code == 0, text
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_a_resume_of_a_read_only_run_dir_is_one_line(
+    reference: tuple[Path, dict[str, int]], tmp_path: Path
+) -> None:
+    run_dir = _copy(reference[0], tmp_path)
+    before = _files(run_dir)
+    run_dir.chmod(0o555)
+    try:
+        code, text = _resume(run_dir)
+    finally:
+        run_dir.chmod(0o755)
+    assert code == 2 and "Traceback" not in text and str(run_dir) in text, text
+    assert len(text.strip().splitlines()) <= 3, text
+    assert _files(run_dir) == before
+
+
+def test_a_mistyped_resume_creates_nothing(tmp_path: Path) -> None:
+    missing = tmp_path / "runs" / "typo"
+    code = start([f"resume={missing}"], None, tmp_path / "resume.log")
+    text = (tmp_path / "resume.log").read_text()
+    assert code == 2 and "Traceback" not in text and f"resume='{missing}'" in text, text
+    assert not (tmp_path / "runs").exists()
+
+
+def test_two_cuts_in_a_row_recover(reference: tuple[Path, dict[str, int]], tmp_path: Path) -> None:
+    """Cut, resume, cut, resume: the first fallback sets the damaged file aside (named in its
+    warning) and keeps the good one as the backup, so the second cut recovers too."""
+    ref_dir, _ = reference
+    run_dir = _copy(ref_dir, tmp_path)
+    ckpt = run_dir / "checkpoint.pt"
+    for cut in (1, 2):
+        ckpt.write_bytes(ckpt.read_bytes()[: ckpt.stat().st_size // 2])
+        code, text = _resume(run_dir)
+        assert code == 0, f"cut {cut}: {text}"
+        assert f"the damaged file is kept as {ckpt}.damaged" in text, text
+        assert _records(run_dir) == _records(ref_dir), cut
+        assert _summary(run_dir) == _summary(ref_dir), cut
+        assert load_checkpoint(ckpt, weights_only=False)  # a fresh, readable checkpoint
+
+
+def test_a_resume_killed_after_a_fallback_loads_the_backup(tmp_path: Path) -> None:
+    """The damaged checkpoint set aside and nothing saved since: the backup is loaded."""
+    path = tmp_path / "checkpoint.pt"
+    save_checkpoint(path, {"round": torch.tensor(1)})
+    save_checkpoint(path, {"round": torch.tensor(2)})
+    path.write_bytes(b"cut")
+    assert int(load_checkpoint(path, set_aside=True)["round"]) == 1
+    assert not path.exists() and (tmp_path / "checkpoint.pt.damaged").read_bytes() == b"cut"
+    assert int(load_checkpoint(path)["round"]) == 1
+    save_checkpoint(path, {"round": torch.tensor(2)})
+    assert int(load_checkpoint(prev_path(path))["round"]) == 1  # the good one stays the backup
+
+
+def test_a_second_writer_exits_2_naming_the_first(
+    reference: tuple[Path, dict[str, int]], tmp_path: Path
+) -> None:
+    """While another process holds the run dir's lock (a live run; here the test itself), a
+    resume of it is exit 2 in one line naming that pid, and every file stays as it was; once
+    the lock is free the resume ends as the run did."""
+    run_dir = _copy(reference[0], tmp_path)
+    holder = RunLock(run_dir)
+    holder.acquire()
+    try:
+        before = _files(run_dir)
+        code, text = _resume(run_dir)
+        assert code == 2 and "Traceback" not in text, text
+        assert f"is in use by another process (pid {os.getpid()})" in text, text
+        assert len(text.strip().splitlines()) <= 3, text
+        assert _files(run_dir) == before
+    finally:
+        holder.release()
+    code, text = _resume(run_dir)
+    assert code == 0, text
+    assert _records(run_dir) == _records(reference[0])
+
+
+def test_a_run_lock_is_one_holder_at_a_time_and_freed_by_its_end(tmp_path: Path) -> None:
+    """Two locks of one folder: the second names the first's pid; after a release, or the
+    holder's death (SIGKILL), the folder is free."""
+    first = RunLock(tmp_path)
+    first.acquire()
+    with pytest.raises(RunLockedError, match=f"pid {os.getpid()}"):
+        RunLock(tmp_path).acquire()
+    first.release()
+    child = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from pathlib import Path; "
+         "from mbrl_delan.training.run_lock import RunLock; lock = RunLock(Path(sys.argv[1])); "
+         "lock.acquire(); print('held', flush=True); time.sleep(600)", str(tmp_path)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert child.stdout.readline().strip() == "held"
+        with pytest.raises(RunLockedError, match=f"pid {child.pid}"):
+            RunLock(tmp_path).acquire()
+    finally:
+        child.kill()
+        child.wait()
+    second = RunLock(tmp_path)
+    second.acquire()
+    second.release()
+
+
 def test_both_checkpoints_cut_is_exit_2_naming_them_and_deleting_nothing(
     reference: tuple[Path, dict[str, int]], tmp_path: Path
 ) -> None:
@@ -134,6 +266,7 @@ def test_both_checkpoints_cut_is_exit_2_naming_them_and_deleting_nothing(
     assert f"nor its previous version {run_dir / 'checkpoint.pt.prev'}" in text, text
     after = {p.name: p.read_bytes() for p in run_dir.iterdir() if p.is_file()}
     assert after.pop("train.log").startswith(before.pop("train.log"))  # the attempt's lines
+    after.pop(".lock"), before.pop(".lock")  # the lock file: the last writer's pid
     assert "crash.json" in after  # the failed resume, for `report` and sweeps
     assert {name: after[name] for name in before} == before
 
@@ -347,3 +480,18 @@ def test_an_os_error_in_a_writer_names_the_file_and_keeps_its_last_version(
     assert message.startswith(f"cannot write {path}: {os.strerror(errno_)} (errno {errno_})")
     assert "MB free there; its previous version is kept" in message
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_a_full_disk_at_the_start_names_the_folder_and_leaves_none(tmp_path, monkeypatch):
+    """`check_writable` (before Hydra writes its record) writes real bytes: a full disk fails
+    there, naming the path and the reason, and the folder it made is gone."""
+    from mbrl_delan.training import checkpoint
+
+    def full(fd: int) -> None:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(checkpoint.os, "fsync", full)
+    folder = tmp_path / "runs" / "new"
+    with pytest.raises(RunWriteError, match=f"{folder}.*No space left on device"):
+        checkpoint.check_writable(folder)
+    assert not folder.exists()

@@ -177,15 +177,15 @@ def test_early_stopping_keeps_the_lowest_validation_error(arm2_data) -> None:
     assert evaluate_torques(model, val).mse == pytest.approx(best, rel=1e-9)
 
 
-def test_min_improvement_stops_on_small_gains_and_keeps_the_best(arm2_data) -> None:
-    """Gains under the share do not restart the patience; the lowest error is still kept."""
+def test_min_delta_stops_on_small_gains_and_keeps_the_best(arm2_data) -> None:
+    """Gains under min_delta do not restart the patience; the lowest error is still kept."""
     from mbrl_delan.training.inverse_fit import evaluate_torques
 
-    def fit(share: float) -> tuple[MLPInverse, list]:
+    def fit(delta: float) -> tuple[MLPInverse, list]:
         torch.manual_seed(0)
         model = MLPInverse(load_system("arm2").layout, hidden=8).double()
         settings = InverseFitSettings(
-            epochs=30, batch_size=32, stop_on="val", patience=2, min_improvement=share
+            epochs=30, batch_size=32, stop_on="val", patience=2, min_delta=delta
         )
         optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)  # small: it keeps improving
         results = fit_inverse_model(
@@ -195,13 +195,14 @@ def test_min_improvement_stops_on_small_gains_and_keeps_the_best(arm2_data) -> N
         return model, results
 
     _, plain = fit(0.0)
-    model, strict = fit(0.9)  # only a 10x lower error counts
+    first = plain[0].errors["val"].mse
+    model, strict = fit(0.9 * first)  # only an error below a tenth of the first counts
     errors = [r.errors["val"].mse for r in strict]
-    assert len(strict) == 3 < len(plain)  # the first epoch, then two without a 10x gain
-    assert errors[2] < errors[0]  # it did improve, by less than the share
+    assert len(strict) == 3 < len(plain)  # the first epoch, then two without that gain
+    assert errors[2] < errors[0]  # it did improve, by less than min_delta
     assert evaluate_torques(model, arm2_data[160:]).mse == pytest.approx(min(errors), rel=1e-9)
-    with pytest.raises(ValueError, match="min_improvement"):
-        InverseFitSettings(min_improvement=1.0)
+    with pytest.raises(ValueError, match="min_delta"):
+        InverseFitSettings(min_delta=-1.0)
 
 
 # ---------------------------------------------------------------- reading a run back
@@ -245,10 +246,14 @@ def test_evaluate_out_that_cannot_be_written_is_exit_2_naming_it(
     out = tmp_path / "eval.json"
     out.write_text("earlier")
 
-    def full(fd: int) -> None:
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    calls = []
 
-    monkeypatch.setattr(os, "fsync", full)
+    def full_after_the_probe(fd: int) -> None:  # the disk fills during the work
+        calls.append(fd)
+        if len(calls) > 1:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full_after_the_probe)
     caplog.clear()
     assert evaluate_main([str(fitted), f"out={out}"]) == 2
     assert f"cannot write {out}: No space left on device (errno 28)" in caplog.text
@@ -337,7 +342,31 @@ def test_malformed_file_exits_2_and_writes_nothing(arm2_data, tmp_path) -> None:
     assert f"{path}: field 'q': 1 NaN or inf values (first: row 17)" in text
     assert "Traceback" not in text
     written = {p.name for p in run_dir.iterdir()} if run_dir.exists() else set()
-    assert written <= {".hydra", "fit.log"}, written
+    assert written <= {".hydra", "fit.log", ".lock"}, written
+
+
+def test_a_fit_into_a_folder_another_process_writes_exits_2(arm2_data, tmp_path) -> None:
+    """A fit whose run dir another live process holds (here the test) stops before writing,
+    naming that process."""
+    from mbrl_delan.training.run_lock import RunLock
+
+    path = tmp_path / "arm2.npz"
+    np.savez(path, **_fields(arm2_data))
+    run_dir = tmp_path / "run"
+    holder = RunLock(run_dir)
+    run_dir.mkdir()
+    holder.acquire()
+    try:
+        cmd = [sys.executable, "-m", "mbrl_delan.fit", "data=arrays", f"data.path={path}"]
+        cmd += ["data.joints=[hinge,hinge]", "logger=none", f"hydra.run.dir={run_dir}"]
+        env = {**os.environ, "WANDB_MODE": "disabled"}
+        out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
+    finally:
+        holder.release()
+    text = out.stdout + out.stderr
+    assert out.returncode == 2 and "Traceback" not in text, text
+    assert f"is in use by another process (pid {os.getpid()})" in text, text
+    assert {p.name for p in run_dir.iterdir()} == {".lock"}
 
 
 # ---------------------------------------------------------------- the docs' worked example

@@ -355,6 +355,21 @@ def test_resume_of_a_finished_run_saved_without_newer_fields_completes_its_summa
     assert {k: completed[k] for k in older} == older
 
 
+def test_an_error_found_while_building_leaves_a_folder_a_corrected_rerun_uses(
+    tmp_path: Path,
+) -> None:
+    """A config error found once the run has started (a clip that does not exist) is exit 2
+    before the run's config is written, so the same folder takes the corrected command."""
+    run_dir = tmp_path / "run"
+    out = train(run_dir, "env=cmu_track", "env.task.clip='99_99'")
+    text = out.stdout + out.stderr
+    assert out.returncode == 2 and "Traceback" not in text and "99_99" in text, text
+    assert not (run_dir / "config.yaml").exists() and (run_dir / "crash.json").exists()
+    out = train(run_dir, "budget.iterations=1")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert (run_dir / "summary.json").is_file() and not (run_dir / "crash.json").exists()
+
+
 def test_new_run_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was(
     finished_run: Path, tmp_path: Path
 ) -> None:

@@ -212,3 +212,20 @@ def test_tiny_whitebox_loop_identifies_and_resumes(tmp_path: Path) -> None:
     assert state["_extra_state"]["identifications"] == 3
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["model"] == "whitebox" and summary["iterations"] == 2
+
+
+@pytest.mark.parametrize(("case", "factor"), [("mass_x1.25", 1.25), ("gear_x0.65", 0.65)])
+def test_fidelity_cases_scale_what_they_name(humanoid, case: str, factor: float) -> None:
+    """The suite's scaled cases: every body's mass and inertia, or every actuator's gear, times
+    the factor, and nothing else."""
+    from mbrl_delan.benchmarks.fidelity import TASK, perturbed_model
+    from mbrl_delan.config import compose_train_config
+
+    cfg = compose_train_config([f"env={TASK}"])
+    true = humanoid.system.mj_model()
+    model, _ = perturbed_model(cfg, humanoid, case, 0, 1).mj_model()
+    mass, gear = (factor, 1.0) if case.startswith("mass") else (1.0, factor)
+    np.testing.assert_allclose(model.body_mass, mass * true.body_mass, rtol=1e-12)
+    np.testing.assert_allclose(model.body_inertia, mass * true.body_inertia, rtol=1e-12)
+    np.testing.assert_allclose(model.actuator_gear, gear * true.actuator_gear, rtol=1e-12)
+    np.testing.assert_allclose(model.dof_damping, true.dof_damping, rtol=1e-12)

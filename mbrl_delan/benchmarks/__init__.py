@@ -71,7 +71,8 @@ REALTIME_DYNAMICS = ("mujoco", "delan", "ensemble")
 # white-box model's documented wrong start, and MuJoCo's rigid body with the contact model
 # (`benchmarks/fidelity.py`)
 FIDELITY_CASES = (
-    "mujoco", "mass_x0.5", "mass_x2", "mass_random", "com_2cm", "gear_x0.5", "damping_x2",
+    "mujoco", "mass_x0.5", "mass_x0.8", "mass_x1.25", "mass_x1.5", "mass_x2", "mass_random",
+    "com_2cm", "gear_x0.8", "gear_x0.65", "gear_x0.5", "damping_x2",
     "friction_0.2", "contact_3x_softer", "contact_10x_softer", "foot_x0.7", "contacts_off",
     "whitebox_start", "rigid_contact_start",
 )  # fmt: skip

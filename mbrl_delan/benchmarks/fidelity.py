@@ -88,9 +88,14 @@ def _move_com(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
     spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_AUTO
 
 
-def _half_gear(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
-    for actuator in spec.actuators:
-        actuator.gear = np.array(actuator.gear) * 0.5
+def _gear(factor: float) -> Callable[[mujoco.MjSpec, np.random.Generator], None]:
+    """An edit that scales every actuator's gear by `factor`."""
+
+    def edit(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
+        for actuator in spec.actuators:
+            actuator.gear = np.array(actuator.gear) * factor
+
+    return edit
 
 
 def _small_feet(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
@@ -107,10 +112,15 @@ def _no_contacts(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
 PERTURBATIONS = {
     "mujoco": Perturbation("the oracle's planning physics"),
     "mass_x0.5": Perturbation("every mass and inertia x0.5", {"mass": 0.5}),
+    "mass_x0.8": Perturbation("every mass and inertia x0.8", {"mass": 0.8}),
+    "mass_x1.25": Perturbation("every mass and inertia x1.25", {"mass": 1.25}),
+    "mass_x1.5": Perturbation("every mass and inertia x1.5", {"mass": 1.5}),
     "mass_x2": Perturbation("every mass and inertia x2", {"mass": 2.0}),
     "mass_random": Perturbation("each body's mass and inertia x U(0.5, 1.5)", mass_spread=0.5),
     "com_2cm": Perturbation("each centre of mass moved 2 cm", edit=_move_com),
-    "gear_x0.5": Perturbation("every actuator gear x0.5", edit=_half_gear),
+    "gear_x0.8": Perturbation("every actuator gear x0.8", edit=_gear(0.8)),
+    "gear_x0.65": Perturbation("every actuator gear x0.65", edit=_gear(0.65)),
+    "gear_x0.5": Perturbation("every actuator gear x0.5", edit=_gear(0.5)),
     "damping_x2": Perturbation("hinge damping x2", {"damping": 2.0}),
     "friction_0.2": Perturbation("floor friction 0.2 (true 1)", {"friction": 0.2}),
     "contact_3x_softer": Perturbation("contact solref time constant x3", {"timeconst": 3.0}),

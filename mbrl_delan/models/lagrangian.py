@@ -9,7 +9,8 @@
   along qd, Mdot qd = Ldot w + L (Ldot^T qd) and 1/2 d/dq (qd^T M qd) = (dL/dq)^T [qd w^T]:
   one tangent pass and one cotangent pass through the L network, whatever the DoF count.
 - d(q, qd) = D qd + F tanh(qd / v_c): viscous and Coulomb friction with D, F >= 0, so
-  qd^T d >= 0 always (dissipative).
+  qd^T d >= 0 always (dissipative). With a Coulomb lead l >= 0 its argument is qd + l qdd
+  (`Dissipation`); the forward solve then takes it linearly implicit.
 - Forward dynamics qdd = M^-1 (B a - c - g - d) by two triangular solves with L.
 
 L and V come from a swappable `MechanicsField`: a network with one trunk and two heads, or,
@@ -121,18 +122,33 @@ def root_frame_jet(jet: MechanicsJet, q: Tensor, qd: Tensor) -> MechanicsJet:
 
 
 class Dissipation(nn.Module):
-    """d(q, qd) = D qd + F tanh(qd / v_c), D = a softplus(.), F = b softplus(.) per DoF.
+    """d(q, qd) = D qd + F tanh((qd + l qdd) / v_c), D = a softplus(.), F = b softplus(.) per
+    DoF.
 
     a and b (`viscous_scale`, `coulomb_scale`, buffers, 1 by default) are positive units set
     from data (`DeLaN.fit_normalization` with `inertia_scaling`): d stays dissipative.
+    `lead`: a learned Coulomb lead l = `LEAD_UNIT` softplus(.) >= 0 per DoF (else l = 0): the
+    friction opposes where the velocity is going, as a soft friction constraint (MuJoCo's
+    ``frictionloss`` opposes qdd + b qd, l = 1 / b) does; it starts at 0.69 `LEAD_UNIT`.
+    Without qdd (energy, `LagrangianDynamics.terms`) the argument is qd.
     """
 
+    LEAD_UNIT = 0.01  # s
+
     def __init__(
-        self, n: int, coulomb: bool = True, coulomb_velocity: float = 0.01, raw_init: float = -4.0
+        self,
+        n: int,
+        coulomb: bool = True,
+        coulomb_velocity: float = 0.01,
+        raw_init: float = -4.0,
+        lead: bool = False,
     ) -> None:
         super().__init__()
+        if lead and not coulomb:
+            raise ValueError("a Coulomb lead needs Coulomb friction (coulomb=True)")
         self.raw_viscous = nn.Parameter(torch.full((n,), raw_init))
         self.raw_coulomb = nn.Parameter(torch.full((n,), raw_init - 2.0)) if coulomb else None
+        self.raw_lead = nn.Parameter(torch.zeros(n)) if lead else None
         self.coulomb_velocity = coulomb_velocity
         self.register_buffer("viscous_scale", torch.ones(n))
         self.register_buffer("coulomb_scale", torch.ones(n))
@@ -142,20 +158,38 @@ class Dissipation(nn.Module):
         """Learned viscous damping per DoF, (n,)."""
         return self.viscous_scale * F.softplus(self.raw_viscous)
 
+    @property
+    def lead(self) -> Tensor | None:
+        """The Coulomb lead l per DoF (n,) in s; None without."""
+        return None if self.raw_lead is None else self.LEAD_UNIT * F.softplus(self.raw_lead)
+
+    def _coulomb(self) -> Tensor:
+        return self.coulomb_scale * F.softplus(self.raw_coulomb)
+
     def slope(self, qd: Tensor) -> Tensor:
-        """dd/dqd, per DoF (..., n): D + F sech^2(qd / v_c) / v_c, >= 0."""
+        """dd/dqd at qdd = 0, per DoF (..., n): D + F sech^2(qd / v_c) / v_c, >= 0."""
         slope = self.viscous.expand_as(qd)
         if self.raw_coulomb is not None:
-            coulomb = self.coulomb_scale * F.softplus(self.raw_coulomb)
-            sech2 = 1.0 - torch.tanh(qd / self.coulomb_velocity).square()
-            slope = slope + coulomb * sech2 / self.coulomb_velocity
+            slope = slope + self._coulomb() * self._sech2(qd) / self.coulomb_velocity
         return slope
 
-    def forward(self, qd: Tensor) -> Tensor:
+    def lead_inertia(self, qd: Tensor) -> Tensor | None:
+        """dd/dqdd at qdd = 0, per DoF (..., n): F l sech^2(qd / v_c) / v_c, >= 0 (what a
+        linearly implicit solve adds to M's diagonal); None without a lead."""
+        lead = self.lead
+        if lead is None:
+            return None
+        return self._coulomb() * lead * self._sech2(qd) / self.coulomb_velocity
+
+    def _sech2(self, qd: Tensor) -> Tensor:
+        return 1.0 - torch.tanh(qd / self.coulomb_velocity).square()
+
+    def forward(self, qd: Tensor, qdd: Tensor | None = None) -> Tensor:
+        """d at (qd, qdd) (..., n); qdd None: at qdd = 0."""
         force = self.viscous * qd
         if self.raw_coulomb is not None:
-            coulomb = self.coulomb_scale * F.softplus(self.raw_coulomb)
-            force = force + coulomb * torch.tanh(qd / self.coulomb_velocity)
+            argument = qd if qdd is None or self.raw_lead is None else qd + self.lead * qdd
+            force = force + self._coulomb() * torch.tanh(argument / self.coulomb_velocity)
         return force
 
 
@@ -204,13 +238,17 @@ class LagrangianDynamics(nn.Module):
         w, w_dot = matvec_t(jet.L, qd), matvec_t(jet.L_dot, qd)
         return w, matvec(jet.L_dot, w) + matvec(jet.L, w_dot)
 
-    def _dissipation(self, qd: Tensor, frame: Tensor | None = None) -> Tensor:
-        """d(qd); with a root `frame` R, in the root's frame: S d(S^T qd) (still qd^T d >= 0)."""
+    def _dissipation(
+        self, qd: Tensor, frame: Tensor | None = None, qdd: Tensor | None = None
+    ) -> Tensor:
+        """d(qd, qdd); with a root `frame` R, in the root's frame: S d(S^T qd, S^T qdd)
+        (still qd^T d >= 0 at qdd = 0)."""
         if self.dissipation is None:
             return torch.zeros_like(qd)
         if frame is None:
-            return self.dissipation(qd)
-        return from_root_frame(frame, self.dissipation(to_root_frame(frame, qd)))
+            return self.dissipation(qd, qdd)
+        qdd = None if qdd is None else to_root_frame(frame, qdd)
+        return from_root_frame(frame, self.dissipation(to_root_frame(frame, qd), qdd))
 
     def terms(self, q: Tensor, qd: Tensor) -> LagrangianTerms:
         """All terms at (q, qd): (..., nq), (..., n). Two reverse passes (c and g apart)."""
@@ -237,8 +275,11 @@ class LagrangianDynamics(nn.Module):
             potential_energy=jet.potential_energy,
         )
 
-    def _bias_and_jet(self, q: Tensor, qd: Tensor) -> tuple[Tensor, MechanicsJet]:
-        """c + g + d with one reverse pass (the pullback is linear), and the jet (L)."""
+    def _bias_and_jet(
+        self, q: Tensor, qd: Tensor, qdd: Tensor | None = None
+    ) -> tuple[Tensor, MechanicsJet]:
+        """c + g + d with one reverse pass (the pullback is linear), and the jet (L); d at
+        (qd, qdd), qdd None: at qdd = 0."""
         jet = self.field.jet(q, qd)
         w, m_dot_qd = self._velocity_products(jet, qd)
         minus_kinetic_cotangent = (-qd).unsqueeze(-1) * w.unsqueeze(-2)  # -qd w^T
@@ -246,7 +287,7 @@ class LagrangianDynamics(nn.Module):
             minus_kinetic_cotangent, torch.ones_like(jet.potential_energy)
         )
         coriolis_gravity = self._add_euler_poincare(coriolis_gravity, jet.L, w, qd)
-        return coriolis_gravity + self._dissipation(qd, jet.frame), jet
+        return coriolis_gravity + self._dissipation(qd, jet.frame, qdd), jet
 
     def mass_and_bias(
         self, q: Tensor, qd: Tensor, damping_dt: float = 0.0
@@ -254,11 +295,17 @@ class LagrangianDynamics(nn.Module):
         """M (..., n, n) and c + g + d (..., n) at (q, qd), for solves with M changed (an
         implicit contact step adds to it). `damping_dt` > 0: M + damping_dt dd/dqd, the
         friction taken at the end of a step of that length too (linearly implicit; not with
-        a free root's frame, whose friction acts in the root's axes)."""
+        a free root's frame, whose friction acts in the root's axes). A Coulomb lead adds its
+        `Dissipation.lead_inertia` to M's diagonal (`forward_dynamics`)."""
         bias, jet = self._bias_and_jet(q, qd)
         mass = self.with_armature(jet.L @ jet.L.transpose(-1, -2))
-        if damping_dt > 0 and self.dissipation is not None and jet.frame is None:
-            mass = mass + torch.diag_embed(damping_dt * self.dissipation.slope(qd))
+        if self.dissipation is not None and jet.frame is None:
+            diagonal = self.dissipation.lead_inertia(qd)
+            if damping_dt > 0:
+                slope = damping_dt * self.dissipation.slope(qd)
+                diagonal = slope if diagonal is None else diagonal + slope
+            if diagonal is not None:
+                mass = mass + torch.diag_embed(diagonal)
         return mass, bias
 
     def with_armature(self, inner: Tensor) -> Tensor:
@@ -268,8 +315,8 @@ class LagrangianDynamics(nn.Module):
         return inner + torch.diag(self.armature.to(inner.dtype))
 
     def inverse_dynamics(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
-        """Generalized force tau = M qdd + c + g + d. (..., n)"""
-        bias, jet = self._bias_and_jet(q, qd)
+        """Generalized force tau = M qdd + c + g + d(qd, qdd). (..., n)"""
+        bias, jet = self._bias_and_jet(q, qd, qdd)
         L = jet.L
         m_qdd = matvec(L, matvec_t(L, qdd))
         if self.has_armature:
@@ -277,7 +324,13 @@ class LagrangianDynamics(nn.Module):
         return m_qdd + bias
 
     def forward_dynamics(self, q: Tensor, qd: Tensor, tau: Tensor) -> Tensor:
-        """qdd = M^-1 (tau - c - g - d) by two triangular solves with L. (..., n)"""
+        """qdd = M^-1 (tau - c - g - d) by two triangular solves with L. (..., n)
+
+        With a Coulomb lead l, d is taken linearly implicit in qdd: (M + diag(F l sech^2 /
+        v_c)) qdd = tau - c - g - d(qd, 0) (`Dissipation.lead_inertia`)."""
+        if self.dissipation is not None and self.dissipation.lead is not None:
+            mass, bias = self.mass_and_bias(q, qd)
+            return cholesky_solve(torch.linalg.cholesky_ex(mass).L, tau - bias)
         bias, jet = self._bias_and_jet(q, qd)
         if self.has_armature:  # M = L L^T + diag(armature): factor it whole
             L = jet.L

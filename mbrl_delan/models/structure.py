@@ -28,6 +28,8 @@ class Structure:
     hidden, layers, activation: the trunk of `LagrangianNetwork` (and of the residual).
     diag_shift: added to L's softplus diagonal (> 0), so M stays positive definite.
     dissipation, coulomb: viscous friction, and Coulomb friction beside it (`Dissipation`).
+    coulomb_lead: the Coulomb friction opposes qd + l qdd with a learned lead l per DoF (a
+        soft friction constraint's, as MuJoCo's ``frictionloss``); not with `yaw_invariant`.
     translation_invariant: M and V's network do not see a free root's height; V gains an
         exact gravity term w z in it (`LagrangianNetwork`, ``heights``).
     yaw_invariant: a free root's heading and horizontal position enter nothing; M turns with
@@ -57,6 +59,7 @@ class Structure:
     diag_shift: float = 1e-3
     dissipation: bool = True
     coulomb: bool = True
+    coulomb_lead: bool = False
     translation_invariant: bool = False
     yaw_invariant: bool = False
     still_first_order: bool = False
@@ -71,7 +74,7 @@ class Structure:
 
     # what M, V and the friction are made of: `load_mechanics` needs these equal
     MECHANICS: ClassVar[tuple[str, ...]] = (
-        "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb",
+        "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb", "coulomb_lead",
         "translation_invariant", "yaw_invariant", "still_first_order", "dof_parents", "armature",
     )  # fmt: skip
 
@@ -81,6 +84,10 @@ class Structure:
         if self.armature is not None:
             values = torch.as_tensor(self.armature, dtype=torch.float64).reshape(-1).tolist()
             object.__setattr__(self, "armature", tuple(values))
+        if self.coulomb_lead and not (self.dissipation and self.coulomb):
+            raise ValueError("coulomb_lead needs Coulomb friction (dissipation and coulomb)")
+        if self.coulomb_lead and self.yaw_invariant:
+            raise ValueError("coulomb_lead acts in joint axes: not with yaw_invariant")
         if self.friction_init is not None and self.friction_init <= 0:
             raise ValueError(f"friction_init must be > 0, got {self.friction_init}")
         if self.root_inertia is not None:
@@ -127,7 +134,9 @@ class Structure:
         if self.friction_init is not None:  # softplus(raw) = friction_init
             raw_init = math.log(math.expm1(self.friction_init))
         dissipation = (
-            Dissipation(n, coulomb=self.coulomb, raw_init=raw_init) if self.dissipation else None
+            Dissipation(n, coulomb=self.coulomb, raw_init=raw_init, lead=self.coulomb_lead)
+            if self.dissipation
+            else None
         )
         dynamics = LagrangianDynamics(
             field=network,

@@ -8,6 +8,7 @@ name with ``os.replace`` (atomic on POSIX and Windows). The previous checkpoint 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import pickle
@@ -27,6 +28,8 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT_FILE = "checkpoint.pt"  # a training run's checkpoint in its run dir
 PREV_SUFFIX = ".prev"
+DAMAGED_SUFFIX = ".damaged"  # an unreadable checkpoint set aside by a resume
+PROBE_BYTES = 1 << 16  # what `check_writable` writes: more than a full disk takes
 
 # What torch.load raises on a truncated or otherwise damaged file (a zip archive cut near its
 # start gives OSError EINVAL).
@@ -65,16 +68,21 @@ def write_failure(path: Path, err: BaseException) -> RunWriteError:
 
 
 def check_writable(folder: Path) -> None:
-    """Make `folder` (and its parents) if missing and write and remove a file in it; a
-    RunWriteError names the path and the reason when that fails (a folder it made is
-    removed again)."""
+    """Make `folder` (and its parents) if missing and write `PROBE_BYTES` to a file in it and
+    remove it (a full disk fails there, not in the run's first files); a RunWriteError names
+    the path and the reason when that fails (a folder it made is removed again)."""
     made = not folder.exists()
     probe = folder / f".write_check.{os.getpid()}"
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        probe.write_bytes(b"")
+        with open(probe, "wb") as f:
+            f.write(bytes(PROBE_BYTES))
+            f.flush()
+            os.fsync(f.fileno())
         probe.unlink()
     except OSError as err:
+        with contextlib.suppress(OSError):
+            probe.unlink()
         if made and folder.is_dir() and not any(folder.iterdir()):
             folder.rmdir()
         raise write_failure(probe, err) from err
@@ -188,38 +196,58 @@ def load_checkpoint(
     path: str | Path,
     map_location: str | torch.device | None = "cpu",
     weights_only: bool = True,
+    set_aside: bool = False,
 ) -> dict[str, Any]:
     """Load a checkpoint written by ``save_checkpoint``.
 
-    Falls back to ``<path>.prev`` with a warning when ``path`` is unreadable.
+    Falls back to ``<path>.prev`` with a warning when ``path`` is unreadable or missing (a
+    resume that set it aside). With `set_aside` (a resume that will save again) the
+    unreadable ``path`` is renamed to ``<path>.damaged``, named in the warning, so that the
+    next save keeps the good ``.prev`` as the backup instead of the damaged file.
 
     Raises:
-        FileNotFoundError: ``path`` does not exist.
+        FileNotFoundError: neither ``path`` nor its ``.prev`` exists.
         CheckpointError: neither ``path`` nor its ``.prev`` can be read.
     """
     path = Path(path)
+    prev = prev_path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"checkpoint file {path} does not exist")
+        if not prev.is_file():
+            raise FileNotFoundError(f"checkpoint file {path} does not exist")
+        log.warning("checkpoint %s is missing; loading the previous one %s", path, prev)
+        return _load_previous(path, prev, map_location, weights_only, "missing")
     try:
         return _load(path, map_location, weights_only)
     except _UNREADABLE as err:
         main_error, main_why = err, _why(path, err)
-    prev = prev_path(path)
     if not prev.is_file():
         raise CheckpointError(
             f"cannot read checkpoint {path} ({main_why}) and no previous version {prev} exists"
         ) from main_error
+    state = _load_previous(path, prev, map_location, weights_only, main_why)
+    aside = ""
+    if set_aside:
+        damaged = path.with_name(path.name + DAMAGED_SUFFIX)
+        os.replace(path, damaged)
+        aside = f"; the damaged file is kept as {damaged}"
+    log.warning(
+        "checkpoint %s is unreadable (%s); loaded the previous one %s%s",
+        path, main_why, prev, aside,
+    )  # fmt: skip
+    return state
+
+
+def _load_previous(
+    path: Path, prev: Path, map_location: str | torch.device | None, weights_only: bool,
+    main_why: str,
+) -> dict[str, Any]:  # fmt: skip
     try:
-        state = _load(prev, map_location, weights_only)
+        return _load(prev, map_location, weights_only)
     except _UNREADABLE as err:
         raise CheckpointError(
             f"cannot read checkpoint {path} ({main_why}) "
             f"nor its previous version {prev} ({_why(prev, err)})"
         ) from err
-    log.warning(
-        "checkpoint %s is unreadable (%s); loaded the previous one %s", path, main_why, prev
-    )
-    return state
 
 
 def _why(path: Path, err: BaseException) -> str:

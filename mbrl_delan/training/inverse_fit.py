@@ -125,7 +125,7 @@ class InverseFitSettings:
     eval_every: int = 1  # evaluate the splits after every k-th epoch and the last; 0: the last
     stop_on: str | None = None  # split evaluated after every epoch: its lowest error is kept
     patience: int | None = None  # with stop_on: epochs without a lower error that end the fit
-    min_improvement: float = 0.0  # patience restarts only below best x (1 - min_improvement)
+    min_delta: float = 0.0  # patience restarts only below best - min_delta (normalised MSE)
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch_size < 1 or self.eval_batch_size < 1:
@@ -134,8 +134,8 @@ class InverseFitSettings:
             raise ValueError(f"eval_every must be >= 0: {self}")
         if self.patience is not None and self.patience < 1:
             raise ValueError(f"patience must be >= 1 or None: {self}")
-        if not 0.0 <= self.min_improvement < 1.0:
-            raise ValueError(f"min_improvement must be in [0, 1): {self}")
+        if not 0.0 <= self.min_delta < math.inf:
+            raise ValueError(f"min_delta must be finite and >= 0: {self}")
 
     def evaluates(self, epoch: int) -> bool:
         """Whether the splits are evaluated after `epoch` (counted from 1)."""
@@ -306,7 +306,7 @@ def fit_inverse_model(
         if stop_on is None:
             continue
         error = errors[stop_on].mse
-        since_best = 0 if error < (1.0 - settings.min_improvement) * best_error else since_best + 1
+        since_best = 0 if error < best_error - settings.min_delta else since_best + 1
         if error < best_error:
             best, best_error = last_good, error
         if settings.patience is not None and since_best >= settings.patience:
