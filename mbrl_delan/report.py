@@ -7,8 +7,9 @@ other value of ``config.yaml`` that differs between the group's runs, such as tw
 apart from the seed and how a run ran, `RAN_WITH`) and writes into ``--out`` (default: the
 first DIR; ``<DIR>/report`` when DIR is itself a run):
 
-* ``report.md`` and ``report.csv``: per group the seeds, n, mean and 95% confidence interval
-  (Student t over seeds) of the final evaluation return and of the fraction of the oracle, the
+* ``report.md`` and ``report.csv``: per group the seeds, n (the seeds: repeated runs of one
+  seed count once, with their mean, and a warning names them), mean and 95% confidence
+  interval (Student t over seeds) of the final evaluation return and of the fraction of the oracle, the
   oracle return, the env steps to reach 50%, 80% and 90% of the oracle and the wall time;
 * ``returns.png``: one panel per env: the evaluation and on-policy returns vs env steps per
   model x planner, mean with a 95% CI band, the oracle as a dashed line;
@@ -114,12 +115,19 @@ def is_run_dir(path: Path) -> bool:
 def run_dirs(roots: Iterable[Path]) -> list[Path]:
     """Run dirs at or below the roots, sorted; run dirs are not searched for nested runs.
 
-    Hidden folders (``.hydra``, ``.submitit``) and ``wandb`` folders are skipped.
+    Hidden folders (``.hydra``, ``.submitit``) and ``wandb`` folders are skipped; links to
+    folders are followed (each real folder once).
     """
     found: set[Path] = set()
+    seen: set[Path] = set()  # real paths walked: a link back up is not walked twice
     for root in roots:
-        for dirpath, dirnames, _ in os.walk(root):
+        for dirpath, dirnames, _ in os.walk(root, followlinks=True):
             path = Path(dirpath)
+            real = path.resolve()
+            if real in seen:
+                dirnames[:] = []
+                continue
+            seen.add(real)
             if is_run_dir(path):
                 found.add(path)
                 dirnames[:] = []
@@ -255,33 +263,57 @@ def _groups(summaries: list[dict[str, Any]]) -> dict[Group, list[dict[str, Any]]
     return {k: sorted(v, key=lambda s: s["seed"]) for k, v in sorted(groups.items())}
 
 
-def _row(group: Group, runs: list[dict[str, Any]]) -> dict[str, Any]:
-    def col(key: str) -> list[float]:
-        return _finite(r.get(key) for r in runs)
+def _by_seed(group: Group, runs: list[dict[str, Any]]) -> dict[Any, list[dict[str, Any]]]:
+    """The group's runs by seed; repeated runs of one seed are named in a warning (they
+    count once: the seeds, not the runs, are the samples)."""
+    by_seed: dict[Any, list[dict[str, Any]]] = defaultdict(list)
+    for r in runs:
+        by_seed[r["seed"]].append(r)
+    repeated = {seed: len(rs) for seed, rs in by_seed.items() if len(rs) > 1}
+    if repeated:
+        log.warning(
+            "%s: seeds repeat (%s): each seed counts once, with the mean of its runs",
+            group, ", ".join(f"seed {seed} x{k}" for seed, k in repeated.items()),
+        )  # fmt: skip
+    return dict(by_seed)
 
-    records = [read_metrics(Path(r["run_dir"]) / METRICS_FILE) for r in runs]
-    seeds = [r["seed"] for r in runs]
-    if len(set(seeds)) < len(seeds):
-        log.warning("%s: seeds %s repeat: runs of the same config are pooled", group, seeds)
+
+def _seed_means(by_seed: dict[Any, list[dict[str, Any]]], key: str) -> list[float]:
+    """One value per seed: the mean of its runs' finite values of `key` (seeds with none
+    are left out)."""
+    means = [_finite(r.get(key) for r in rs) for rs in by_seed.values()]
+    return [statistics.fmean(v) for v in means if v]
+
+
+def _row(group: Group, runs: list[dict[str, Any]]) -> dict[str, Any]:
+    by_seed = _by_seed(group, runs)
     row: dict[str, Any] = dict(zip(GROUP_KEYS, group, strict=True))
-    row.update(seeds=" ".join(map(str, seeds)), n=len(runs))
+    row.update(seeds=" ".join(map(str, by_seed)), n=len(by_seed))
     for key, name in (
         ("eval_return_mean", "eval_return"),
         ("fraction_of_oracle", "fraction_of_oracle"),
         ("oracle_return_mean", "oracle_return"),
     ):
-        row[f"{name}_mean"], row[f"{name}_ci95"] = mean_ci(col(key))
+        row[f"{name}_mean"], row[f"{name}_ci95"] = mean_ci(_seed_means(by_seed, key))
     for fraction in REACH_FRACTIONS:
-        reach = [
-            steps_to_fraction(recs, r.get("oracle_return_mean"), fraction)
-            for recs, r in zip(records, runs, strict=True)
-        ]
-        reached = [s for s in reach if s is not None]
+        reached = []  # per seed, the mean over its runs that reached the fraction
+        for seed_runs in by_seed.values():
+            steps = [
+                steps_to_fraction(
+                    read_metrics(Path(r["run_dir"]) / METRICS_FILE),
+                    r.get("oracle_return_mean"),
+                    fraction,
+                )
+                for r in seed_runs
+            ]
+            steps = [x for x in steps if x is not None]
+            if steps:
+                reached.append(statistics.fmean(steps))
         name = f"steps_to_{100 * fraction:.0f}"
         row[f"{name}_mean"] = statistics.fmean(reached) if reached else None
         row[f"{name}_reached"] = len(reached)
-    row["env_steps_mean"] = mean_ci(col("env_steps"))[0]
-    row["wall_time_s_mean"] = mean_ci(col("wall_time_s"))[0]
+    row["env_steps_mean"] = mean_ci(_seed_means(by_seed, "env_steps"))[0]
+    row["wall_time_s_mean"] = mean_ci(_seed_means(by_seed, "wall_time_s"))[0]
     return row
 
 
@@ -384,14 +416,24 @@ def curves(summaries: list[dict[str, Any]], key: str) -> dict[Group, dict[int, l
     its own first and last."""
     out: dict[Group, dict[int, list[float]]] = {}
     for group, runs in _groups(summaries).items():
-        series = [_series(Path(r["run_dir"]) / METRICS_FILE, key) for r in runs]
-        series = [(x, y) for x, y in series if x]
-        grid = sorted({step for x, _ in series for step in x})
-        out[group] = {
-            step: [float(np.interp(step, x, y)) for x, y in series if x[0] <= step <= x[-1]]
-            for step in grid
-        }
+        seeds = [
+            [s for s in (_series(Path(r["run_dir"]) / METRICS_FILE, key) for r in rs) if s[0]]
+            for rs in _by_seed(group, runs).values()
+        ]  # per seed, its runs' series
+        grid = sorted({step for series in seeds for x, _ in series for step in x})
+        out[group] = {step: _at(seeds, step) for step in grid}
     return out
+
+
+def _at(seeds: list[list[tuple[list[int], list[float]]]], step: int) -> list[float]:
+    """One value per seed at `step`: the mean of its runs' series interpolated there (each
+    within its own first and last step; seeds with none there are left out)."""
+    values = []
+    for series in seeds:
+        inside = [float(np.interp(step, x, y)) for x, y in series if x[0] <= step <= x[-1]]
+        if inside:
+            values.append(statistics.fmean(inside))
+    return values
 
 
 def _series(metrics: Path, key: str) -> tuple[list[int], list[float]]:

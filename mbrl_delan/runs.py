@@ -63,6 +63,6 @@ def _train_model(run_dir: Path) -> tuple[DictConfig, nn.Module]:
     cfg = OmegaConf.load(run_dir / RUN_CONFIG)
     system = env_parts(cfg).system
     model = build_world_model(cfg, system, torch.device("cpu"), DTYPES[cfg.dtype])
-    state = load_checkpoint(run_dir / CHECKPOINT_FILE, weights_only=False)
+    state = load_checkpoint(run_dir / CHECKPOINT_FILE)  # tensors and plain containers only
     model.load_state_dict(state["loop"]["model"])
     return cfg, model

@@ -14,6 +14,7 @@ from mbrl_delan.report import (
     group_label,
     main,
     mean_ci,
+    run_dirs,
     steps_to_fraction,
     table,
 )
@@ -54,6 +55,31 @@ def test_table_gives_mean_and_ci_over_seeds(tmp_path: Path) -> None:
     assert "35 ± 64" in row
     # fractions 1.0, 0.75: s = 0.1768, half-width 12.706 * 0.1768 / sqrt(2) = 1.59
     assert "0.875 ± 1.6" in row
+
+
+def test_repeated_runs_of_a_seed_count_once(tmp_path: Path, caplog) -> None:
+    """Four identical runs of seed 0 and one of seed 1 are two samples, not five: the row is
+    the two seeds' (n 2, the same interval), and a warning names the repeats."""
+    for name in "abcd":
+        make_run(tmp_path / "repeats", name, summary(0, 40.0, 40.0))
+    make_run(tmp_path / "repeats", "e", summary(1, 30.0, 40.0))
+    make_run(tmp_path / "two", "a", summary(0, 40.0, 40.0))
+    make_run(tmp_path / "two", "b", summary(1, 30.0, 40.0))
+    repeated, _ = find_runs([tmp_path / "repeats"])
+    two, _ = find_runs([tmp_path / "two"])
+    assert len(repeated) == 5
+    assert table(repeated) == table(two)
+    assert "| 0,1 | 2 |" in table(repeated)
+    assert "seed 0 x4" in caplog.text
+
+
+def test_run_dirs_behind_links_are_found_once(tmp_path: Path) -> None:
+    real = make_run(tmp_path / "elsewhere", "a", summary(0, 40.0, 40.0))
+    (tmp_path / "sweep").mkdir()
+    (tmp_path / "sweep" / "linked").symlink_to(real.parent, target_is_directory=True)
+    (tmp_path / "sweep" / "loop").symlink_to(tmp_path / "sweep", target_is_directory=True)
+    found = run_dirs([tmp_path / "sweep"])
+    assert [p.resolve() for p in found] == [real.resolve()]
 
 
 def test_runs_started_from_a_fit_are_their_own_group(tmp_path: Path) -> None:
