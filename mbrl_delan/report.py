@@ -9,8 +9,9 @@ first DIR; ``<DIR>/report`` when DIR is itself a run):
 
 * ``report.md`` and ``report.csv``: per group the seeds, n (the seeds: repeated runs of one
   seed count once, with their mean, and a warning names them), mean and 95% confidence
-  interval (Student t over seeds) of the final evaluation return and of the fraction of the oracle, the
-  oracle return, the env steps to reach 50%, 80% and 90% of the oracle and the wall time;
+  interval (Student t over seeds) of the final evaluation return and of the fraction of the
+  oracle, the oracle return, the env steps to reach 50%, 80% and 90% of the oracle and the
+  wall time;
 * ``returns.png``: one panel per env: the evaluation and on-policy returns vs env steps per
   model x planner, mean with a 95% CI band, the oracle as a dashed line;
 * ``model_error.png``: the one-step and H-step model errors vs env steps, same layout.

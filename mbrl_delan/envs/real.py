@@ -14,18 +14,13 @@ import numpy as np
 import torch
 from torchrl.envs import GymEnv
 
-from mbrl_delan import keys
+from mbrl_delan import gym_id, keys, register_gym_id
 from mbrl_delan.envs.registry import EnvParts, TaskOptions, make_env_parts
 from mbrl_delan.registry import ENVS
 from mbrl_delan.systems.system import State
 from mbrl_delan.training.video import VideoRecorder, root_travels
 
 log = logging.getLogger(__name__)
-
-
-def gym_id(name: str) -> str:
-    """The gymnasium id of a registered env: ``mbrl_delan/<Name>-v0`` (arm_reach: ArmReach)."""
-    return "mbrl_delan/" + "".join(part.capitalize() for part in name.split("_")) + "-v0"
 
 
 class MujocoTaskEnv(gym.Env):
@@ -166,15 +161,10 @@ class MujocoTaskEnv(gym.Env):
 
 
 def register_envs() -> None:
-    """Register the gymnasium id (`gym_id`) of every env in the registry (idempotent)."""
+    """Register the gymnasium id (`gym_id`) of every env in the registry, a plugin's
+    included (idempotent)."""
     for name in ENVS.names():
-        env_id = gym_id(name)
-        if env_id not in gym.registry:
-            gym.register(
-                id=env_id,
-                entry_point="mbrl_delan.envs.real:MujocoTaskEnv",
-                kwargs={"env_name": name},
-            )
+        register_gym_id(name)
 
 
 def make_real_env(
