@@ -109,7 +109,9 @@ from mbrl_delan.training.recorder import (
     METRICS_FILE,
     RUN_CONFIG,
     SUMMARY_FILE,
+    WANDB_MODES,
     Recorder,
+    WandbOptions,
     read_metrics,
 )
 from mbrl_delan.training.schedule import LearningRateStages, run_stages
@@ -309,6 +311,8 @@ def validate_fit_config(cfg: DictConfig) -> None:
     if cfg.get("friction_init") is not None:
         check_number("friction_init", cfg.friction_init, 0.0, open_low=True)
     _choice("logger.backend", cfg.logger.backend, LOGGERS)
+    if cfg.logger.get("mode") is not None:
+        _choice("logger.mode", cfg.logger.mode, WANDB_MODES)
     _validate_model(cfg.model)
     _validate_data(cfg.data)
     if cfg.model.name == "white_box" and cfg.data.name == "arrays" and cfg.data.mjcf is None:
@@ -555,8 +559,9 @@ def fit_splits(
     container = OmegaConf.to_container(cfg, resolve=True)
     logger = cfg.logger
     with Recorder(
-        run_dir, logger.backend, logger.project, logger.group, container, step_key="epoch"
-    ) as recorder:
+        run_dir, logger.backend, logger.project, logger.group, container, step_key="epoch",
+        wandb_options=WandbOptions.of(logger),
+    ) as recorder:  # fmt: skip
         train_start = time.perf_counter()
         if isinstance(model, WhiteBoxInverse):
             results = [_identify(model, splits, recorder, cfg.eval_batch_size)]

@@ -30,7 +30,7 @@ from mbrl_delan.benchmarks import (
 )
 from mbrl_delan.planners.spline import INTERPOLATIONS
 from mbrl_delan.training.fit import FitConfig
-from mbrl_delan.training.recorder import LOGGERS
+from mbrl_delan.training.recorder import LOGGERS, WANDB_MODES
 
 
 def rule(
@@ -273,6 +273,10 @@ class LoggerConfig:
     backend: str = rule(choices=LOGGERS)
     project: str = "mbrl_delan"
     group: str | None = None
+    name: str | None = None  # wandb run name (None: wandb's own)
+    tags: list[str] = field(default_factory=list)
+    entity: str | None = None  # wandb team or user (None: the logged-in user's default)
+    mode: str | None = rule(None, choices=WANDB_MODES)  # None: WANDB_MODE, else offline
 
 
 @dataclass

@@ -78,6 +78,7 @@ from mbrl_delan.training.recorder import (
     RUN_CONFIG,
     SUMMARY_FILE,
     Recorder,
+    WandbOptions,
     read_metrics,
     resume_metrics,
 )
@@ -519,6 +520,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         resume_iteration=loop.counters.iteration if state else None,
         step_key="env_steps",
         last_record=loop.last_round,
+        wandb_options=WandbOptions.of(cfg.logger),
     )
     with recorder:
         _run(cfg, run_dir, loop, oracle, recorder)

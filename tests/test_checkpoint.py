@@ -26,6 +26,7 @@ from mbrl_delan.training import (
 )
 from mbrl_delan.training.checkpoint import prev_path
 from mbrl_delan.training.plots import plot_run
+from mbrl_delan.training.recorder import WandbOptions
 
 # --- checkpoints -------------------------------------------------------------------------
 
@@ -161,6 +162,24 @@ def test_wandb_offline_by_default(tmp_path, monkeypatch):
     Recorder(tmp_path, "wandb", "proj", None, {}, resume_iteration=3).finish()
     assert runs[-1].kwargs["mode"] == "disabled"
     assert runs[-1].kwargs["id"] == "abc123"  # resumed runs continue the same wandb run
+    assert (run.kwargs["name"], run.kwargs["tags"], run.kwargs["entity"]) == (None, None, None)
+
+    options = WandbOptions(name="arm-s0", tags=("panda", "delan"), entity="lab", mode="online")
+    Recorder(tmp_path / "named", "wandb", "proj", None, {}, wandb_options=options).finish()
+    kwargs = runs[-1].kwargs
+    assert (kwargs["name"], kwargs["entity"]) == ("arm-s0", "lab")
+    assert kwargs["tags"] == ["panda", "delan"]
+    assert kwargs["mode"] == "online"  # the config's mode over WANDB_MODE
+
+
+def test_wandb_options_from_a_logger_config() -> None:
+    from omegaconf import OmegaConf
+
+    from mbrl_delan.config import compose_train_config
+
+    cfg = compose_train_config(["logger.name=run1", "logger.tags=[a,b]", "logger.mode=disabled"])
+    assert WandbOptions.of(cfg.logger) == WandbOptions("run1", ("a", "b"), None, "disabled")
+    assert WandbOptions.of(OmegaConf.create({"backend": "csv"})) == WandbOptions()
 
 
 def test_wandb_failure_warns_and_continues(tmp_path, monkeypatch, caplog):

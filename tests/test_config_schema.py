@@ -70,6 +70,7 @@ def integer_keys(node: DictConfig, prefix: str = "") -> list[str]:
         ("model.integrator=rk5", "model.integrator='rk5' is not valid; choose one of: euler, rk4"),
         ("planner.discount=0", "planner.discount=0.0 is not valid; it must be a finite number > 0"),
         ("env.name=cheetah", "env.name='cheetah' is not valid; choose one of: pendulum,"),
+        ("logger.mode=live", "logger.mode='live' is not valid; choose one of: offline, online"),
     ],
 )
 def test_a_bad_value_names_its_key(override: str, expected: str) -> None:

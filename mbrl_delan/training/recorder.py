@@ -14,6 +14,7 @@ import logging
 import math
 import os
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
@@ -95,6 +96,29 @@ def resume_metrics(
         atomic_write(path, lambda f: f.write(lines.encode("utf-8")), keep_prev=False)
 
 
+WANDB_MODES = ("offline", "online", "disabled")  # `logger.mode`
+
+
+@dataclass(frozen=True)
+class WandbOptions:
+    """A wandb run's identity beyond its project and group: `name` (None: wandb's own),
+    `tags`, `entity` (None: the user's default) and `mode` (one of `WANDB_MODES`; None: the
+    ``WANDB_MODE`` variable, else offline)."""
+
+    name: str | None = None
+    tags: tuple[str, ...] = ()
+    entity: str | None = None
+    mode: str | None = None
+
+    @classmethod
+    def of(cls, logger: Mapping[str, Any]) -> WandbOptions:
+        """From a ``logger`` config (its keys ``name``, ``tags``, ``entity``, ``mode``)."""
+        return cls(
+            logger.get("name"), tuple(logger.get("tags") or ()), logger.get("entity"),
+            logger.get("mode"),
+        )  # fmt: skip
+
+
 class Recorder:
     """Writes metric records to ``run_dir/metrics.jsonl`` and to one logger of `LOGGERS`.
 
@@ -110,6 +134,7 @@ class Recorder:
             after it are removed. ``None`` starts a fresh ``metrics.jsonl``.
         last_record: the checkpoint's copy of that iteration's record (`resume_metrics`).
         step_key: the record field the loggers plot against (the iteration when absent).
+        wandb_options: the wandb run's name, tags, entity and mode (`WandbOptions`).
     """
 
     def __init__(
@@ -122,6 +147,7 @@ class Recorder:
         resume_iteration: int | None = None,
         step_key: str = ITERATION,
         last_record: Mapping[str, Any] | None = None,
+        wandb_options: WandbOptions = WandbOptions(),
     ):
         if backend not in LOGGERS:
             raise ValueError(f"logger {backend!r} is not one of {', '.join(LOGGERS)}")
@@ -134,13 +160,18 @@ class Recorder:
         self._scalars: Any = None  # a TorchRL logger (csv, tensorboard)
         if backend == "wandb":
             self._wandb_run = self._init_wandb(
-                project, group, config, resume=resume_iteration is not None
+                project, group, config, wandb_options, resume=resume_iteration is not None
             )
         elif backend != "none":
             self._scalars = _torchrl_logger(backend, self.run_dir, config)
 
     def _init_wandb(
-        self, project: str, group: str | None, config: dict[str, Any], resume: bool
+        self,
+        project: str,
+        group: str | None,
+        config: dict[str, Any],
+        options: WandbOptions,
+        resume: bool,
     ) -> Any:
         """A wandb run, or None (with a warning) when wandb is missing or fails to start."""
         id_file = self.run_dir / WANDB_ID_FILE
@@ -151,9 +182,12 @@ class Recorder:
             run = wandb.init(
                 project=project,
                 group=group,
+                name=options.name,
+                tags=list(options.tags) or None,
+                entity=options.entity,
                 config=_jsonable(config),
                 dir=str(self.run_dir),
-                mode=os.environ.get("WANDB_MODE", "offline"),
+                mode=options.mode or os.environ.get("WANDB_MODE", "offline"),
                 id=run_id,
                 resume="allow" if run_id else None,
             )
