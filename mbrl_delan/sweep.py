@@ -19,7 +19,7 @@ import json
 import logging
 import sys
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
@@ -30,6 +30,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mbrl_delan.config import (
+    COMPOSE_ERRORS,
     ConfigError,
     exit_config_error,
     migrate,
@@ -203,6 +204,10 @@ class StartChecks(Callback):
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         cfg = _task_config(config)
+        try:
+            refuse_schema_choices(config.hydra.runtime.choices)
+        except ConfigError as err:
+            exit_config_error(err)
         if cfg.get("resume") is not None:
             saved = Path(cfg.resume) / RUN_CONFIG
             try:
@@ -213,7 +218,7 @@ class StartChecks(Callback):
                     )
                 run_cfg, _ = resumed_config(config.hydra.overrides.task, cfg, saved)
                 validate_train_config(run_cfg)
-            except ConfigError as err:
+            except (ConfigError, *COMPOSE_ERRORS) as err:
                 exit_config_error(err)
             self.lock = lock_run_dir(saved.parent)
             return
@@ -222,7 +227,7 @@ class StartChecks(Callback):
         try:
             validate_train_config(cfg)
             refuse_used_run_dir(run_dir, RUN_FILES, instead)
-        except ConfigError as err:
+        except (ConfigError, *COMPOSE_ERRORS) as err:
             exit_config_error(err)
         self.lock = lock_run_dir(run_dir)
 
@@ -249,6 +254,17 @@ class WritableRunDir(Callback):
 
     def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
         release(self)
+
+
+def refuse_schema_choices(choices: Mapping[str, Any]) -> None:
+    """A group option named ``base_*`` is a schema (the types and ranges of that group's
+    options, `mbrl_delan/schema.py`), not an option: ConfigError naming it."""
+    for group, option in choices.items():
+        if isinstance(option, str) and option.startswith("base_"):
+            raise ConfigError(
+                f"{group}={option} is the schema of the {group} options (their types and "
+                "ranges), not one of them; choose one by its name"
+            )
 
 
 def lock_run_dir(run_dir: Path) -> RunLock:

@@ -141,3 +141,14 @@ def test_a_key_under_a_null_node_is_one_line_and_writes_nothing(tmp_path: Path, 
     assert "config error: env.task.clip=02_01: a node on its path is null" in text, text
     assert len(text.strip().splitlines()) <= 3, text
     assert not run_dir.exists()
+
+
+@pytest.mark.parametrize("choice", ["env=base_env", "model=base_delan", "planner=base_mppi"])
+def test_a_schema_chosen_as_an_option_is_one_line_and_writes_nothing(
+    choice: str, tmp_path: Path, run_main
+) -> None:
+    run_dir = tmp_path / "run"
+    code, text = run_main(train_module.main, choice, f"hydra.run.dir={run_dir}")
+    assert code == 2 and "Traceback" not in text, text
+    assert f"config error: {choice} is the schema of the" in text, text
+    assert not run_dir.exists()
