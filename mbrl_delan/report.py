@@ -264,18 +264,12 @@ def _groups(summaries: list[dict[str, Any]]) -> dict[Group, list[dict[str, Any]]
     return {k: sorted(v, key=lambda s: s["seed"]) for k, v in sorted(groups.items())}
 
 
-def _by_seed(group: Group, runs: list[dict[str, Any]]) -> dict[Any, list[dict[str, Any]]]:
-    """The group's runs by seed; repeated runs of one seed are named in a warning (they
-    count once: the seeds, not the runs, are the samples)."""
+def _by_seed(runs: list[dict[str, Any]]) -> dict[Any, list[dict[str, Any]]]:
+    """A group's runs by seed (repeated runs of one seed count once: the seeds, not the
+    runs, are the samples)."""
     by_seed: dict[Any, list[dict[str, Any]]] = defaultdict(list)
     for r in runs:
         by_seed[r["seed"]].append(r)
-    repeated = {seed: len(rs) for seed, rs in by_seed.items() if len(rs) > 1}
-    if repeated:
-        log.warning(
-            "%s: seeds repeat (%s): each seed counts once, with the mean of its runs",
-            group, ", ".join(f"seed {seed} x{k}" for seed, k in repeated.items()),
-        )  # fmt: skip
     return dict(by_seed)
 
 
@@ -287,7 +281,13 @@ def _seed_means(by_seed: dict[Any, list[dict[str, Any]]], key: str) -> list[floa
 
 
 def _row(group: Group, runs: list[dict[str, Any]]) -> dict[str, Any]:
-    by_seed = _by_seed(group, runs)
+    by_seed = _by_seed(runs)
+    repeated = {seed: len(rs) for seed, rs in by_seed.items() if len(rs) > 1}
+    if repeated:
+        log.warning(
+            "%s: seeds repeat (%s): each seed counts once, with the mean of its runs",
+            group, ", ".join(f"seed {seed} x{k}" for seed, k in repeated.items()),
+        )  # fmt: skip
     row: dict[str, Any] = dict(zip(GROUP_KEYS, group, strict=True))
     row.update(seeds=" ".join(map(str, by_seed)), n=len(by_seed))
     for key, name in (
@@ -419,7 +419,7 @@ def curves(summaries: list[dict[str, Any]], key: str) -> dict[Group, dict[int, l
     for group, runs in _groups(summaries).items():
         seeds = [
             [s for s in (_series(Path(r["run_dir"]) / METRICS_FILE, key) for r in rs) if s[0]]
-            for rs in _by_seed(group, runs).values()
+            for rs in _by_seed(runs).values()
         ]  # per seed, its runs' series
         grid = sorted({step for series in seeds for x, _ in series for step in x})
         out[group] = {step: _at(seeds, step) for step in grid}

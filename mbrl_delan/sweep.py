@@ -202,6 +202,9 @@ class StartChecks(Callback):
     Each job of a sweep (``-m``) is checked when it starts: a bad job fails with ``crash.json``
     in its folder while the others run."""
 
+    def __init__(self) -> None:
+        self.lock: RunLock | None = None  # the run dir's, from the start to the end of the run
+
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         cfg = _task_config(config)
         try:
@@ -209,18 +212,12 @@ class StartChecks(Callback):
         except ConfigError as err:
             exit_config_error(err)
         if cfg.get("resume") is not None:
-            saved = Path(cfg.resume) / RUN_CONFIG
             try:
-                if not saved.is_file():
-                    raise ConfigError(
-                        f"resume={cfg.resume!r}: no {RUN_CONFIG} in that folder, so it is not "
-                        "a run dir of mbrl_delan.train"
-                    )
-                run_cfg, _ = resumed_config(config.hydra.overrides.task, cfg, saved)
+                run_cfg, _ = resumed_config(config.hydra.overrides.task, cfg)
                 validate_train_config(run_cfg)
             except (ConfigError, *COMPOSE_ERRORS) as err:
                 exit_config_error(err)
-            self.lock = lock_run_dir(saved.parent)
+            self.lock = lock_run_dir(Path(cfg.resume))
             return
         run_dir = Path(config.hydra.run.dir)
         instead = f"continue it with resume={run_dir}, or start a new one in another hydra.run.dir"
@@ -232,7 +229,8 @@ class StartChecks(Callback):
         self.lock = lock_run_dir(run_dir)
 
     def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
-        release(self)
+        if self.lock is not None:
+            self.lock.release()
 
 
 class WritableRunDir(Callback):
@@ -244,6 +242,7 @@ class WritableRunDir(Callback):
 
     def __init__(self, lock: bool = False) -> None:
         self.take_lock = lock
+        self.lock: RunLock | None = None
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         run_dir = Path(config.hydra.run.dir)
@@ -253,7 +252,8 @@ class WritableRunDir(Callback):
             exit_unless_writable(run_dir)
 
     def on_run_end(self, config: DictConfig, **kwargs: Any) -> None:
-        release(self)
+        if self.lock is not None:
+            self.lock.release()
 
 
 def refuse_schema_choices(choices: Mapping[str, Any]) -> None:
@@ -278,13 +278,6 @@ def lock_run_dir(run_dir: Path) -> RunLock:
         log.error("%s", err)
         sys.exit(2)
     return lock
-
-
-def release(callback: Callback) -> None:
-    """Release the run-dir lock a callback took in ``on_run_start`` (if it did)."""
-    lock = getattr(callback, "lock", None)
-    if lock is not None:
-        lock.release()
 
 
 def exit_unless_writable(run_dir: Path) -> None:
@@ -319,12 +312,17 @@ def resume_override_keys(overrides: Sequence[str], cfg: DictConfig, saved: DictC
     return changed
 
 
-def resumed_config(
-    overrides: Sequence[str], cfg: DictConfig, saved: Path
-) -> tuple[DictConfig, list[str]]:
-    """A resumed run's config: its `saved` one (``config.yaml``, migrated) with the keys of
-    the command line's `overrides` that `resume_override_keys` allows set from the composed
-    `cfg`, and those keys. Reads only: the caller writes it once it is checked."""
+def resumed_config(overrides: Sequence[str], cfg: DictConfig) -> tuple[DictConfig, list[str]]:
+    """The config of the run ``cfg.resume`` names: its saved ``config.yaml`` (migrated) with
+    the keys of the command line's `overrides` that `resume_override_keys` allows set from the
+    composed `cfg`, and those keys. Reads only: the caller writes it once it is checked.
+    ConfigError when that folder holds no ``config.yaml``."""
+    saved = Path(cfg.resume) / RUN_CONFIG
+    if not saved.is_file():
+        raise ConfigError(
+            f"resume={cfg.resume!r}: no {RUN_CONFIG} in that folder, so it is not "
+            "a run dir of mbrl_delan.train"
+        )
     run_cfg = migrate(OmegaConf.load(saved))
     keys = resume_override_keys(overrides, cfg, run_cfg)
     for key in keys:

@@ -451,14 +451,8 @@ def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | No
         run_dir = Path(HydraConfig.get().runtime.output_dir)
         return with_sweep_group(cfg), run_dir, None, False
     run_dir = Path(cfg.resume)
-    saved = run_dir / RUN_CONFIG
-    if not saved.is_file():
-        raise ConfigError(
-            f"resume={cfg.resume!r}: no {RUN_CONFIG} in that folder, so it is not "
-            "a run dir of mbrl_delan.train"
-        )
     overrides = HydraConfig.get().overrides.task if HydraConfig.initialized() else []
-    run_cfg, changed = resumed_config(overrides, cfg, saved)
+    run_cfg, changed = resumed_config(overrides, cfg)
     for key in changed:
         log.info("resume: %s=%s", key, OmegaConf.select(run_cfg, key))
     ckpt = run_dir / CHECKPOINT_FILE
