@@ -184,7 +184,7 @@ def run(cfg: DictConfig) -> RecordWriter:
     return writer
 
 
-@hydra.main(version_base="1.3", config_path="../configs", config_name="bench")
+@hydra.main(version_base="1.3", config_path="configs/bench", config_name="config")
 def hydra_main(cfg: DictConfig) -> None:
     try:
         run(cfg)

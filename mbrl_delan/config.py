@@ -87,8 +87,8 @@ def config_error_line(err: BaseException) -> str:
     if isinstance(cause, OmegaConfBaseException):
         return schema_error_message(cause)
     if isinstance(err, MissingConfigException) and err.options is not None:
-        options = [o for o in err.options if not o.startswith("base_")]
-        return f"{str(err).strip().splitlines()[0]}; choose one of: {', '.join(options)}"
+        first = str(err).strip().splitlines()[0]
+        return f"{first}; choose one of: {', '.join(err.options)}"
     return " ".join(str(err).split())
 
 
@@ -194,7 +194,8 @@ def check_device(device: str) -> torch.device:
     return dev
 
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"  # the entry points' YAML files
+CONFIGS = Path(__file__).resolve().parent / "configs"  # the YAML files, one folder per entry point
+CONFIG_DIR = CONFIGS / "train"  # python -m mbrl_delan.train's
 
 
 def compose_config(config_dir: Path, overrides: Sequence[str] = ()) -> DictConfig:

@@ -3,7 +3,7 @@
 Learn ``(q, qd, qdd) -> tau`` from CMU motion capture retargeted onto a humanoid (the paper's
 experiment, ``data=cmu_mocap``) or from your own robot's logged arrays (``data=arrays
 data.path=FILE``, `mbrl_delan.data.arrays`), with DeLaN or a feed-forward network. The config
-tree is ``configs/fit`` (``model=`` names an inverse-dynamics model of
+tree is ``mbrl_delan/configs/fit`` (``model=`` names an inverse-dynamics model of
 `mbrl_delan.models.inverse` here). From Python: `fit_inverse_dynamics`.
 
 Builds the dataset, trains the model on its training part (stages of falling learning rate
@@ -28,7 +28,7 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import hydra
 import mujoco
@@ -41,7 +41,7 @@ from torch import Tensor
 from mbrl_delan import keys
 from mbrl_delan.accelerate.compile import compile_fit
 from mbrl_delan.config import (
-    CONFIG_DIR,
+    CONFIGS,
     DTYPES,
     ConfigError,
     check_device,
@@ -93,7 +93,9 @@ from mbrl_delan.models.inverse import (
 from mbrl_delan.models.rigid_body import WhiteBoxInverse
 from mbrl_delan.models.structure import Structure
 from mbrl_delan.models.tangent_mlp import ACTIVATIONS as DELAN_ACTIVATIONS
+from mbrl_delan.sweep import discard_unstarted_run_dir
 from mbrl_delan.systems.arms import ARMS, arm
+from mbrl_delan.systems.external import MissingPackageError
 from mbrl_delan.systems.system import HINGE, JOINT_TYPES, JointLayout
 from mbrl_delan.training.fit import TrainingDivergedError
 from mbrl_delan.training.inverse_fit import (
@@ -126,7 +128,7 @@ RANDOM_POSES = 1024  # poses over the whole joint space where the summary checks
 MODEL_FILE = "model.pt"
 # what a fit writes into its run dir; a new fit refuses a folder holding any of them
 RUN_FILES = (RUN_CONFIG, PROVENANCE_FILE, MODEL_FILE, METRICS_FILE, SUMMARY_FILE)
-FIT_CONFIG_DIR = CONFIG_DIR / "fit"  # this entry point's YAML files
+FIT_CONFIG_DIR = CONFIGS / "fit"  # this entry point's YAML files
 TAU_DEFINITION = {
     "cmu_mocap": "all nv generalized forces (humanoid_CMU: 62 = 6 root residual [world-frame "
     "force, body-frame torque] + 56 hinge torques), the dataset's tau",
@@ -573,6 +575,7 @@ def fit_splits(
         summary["wall_time_s"] = time.perf_counter() - start
         recorder.write_summary(summary)
         recorder.log_image("loss_curves", _save_model_and_curves(cfg, model, run_dir))
+        recorder.log_artifact(run_dir / MODEL_FILE)
     _log_summary(run_dir, summary)
     return summary, model, splits
 
@@ -809,33 +812,38 @@ def _log_summary(run_dir: Path, s: dict[str, Any]) -> None:
     log.info("wall time %.1f s", s["wall_time_s"])
 
 
-@hydra.main(version_base="1.3", config_path="../configs/fit", config_name="config")
+def _exit_on_input(kind: str, err: Exception, run_dir: Path) -> NoReturn:
+    """A bad input: one line (`kind`: what is wrong, the error), no run folder left, exit 2."""
+    log.error("%s: %s", kind, err)
+    discard_unstarted_run_dir(run_dir, "fit.log")
+    sys.exit(2)
+
+
+@hydra.main(version_base="1.3", config_path="configs/fit", config_name="config")
 def hydra_main(cfg: DictConfig) -> float | None:
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         refuse_used_run_dir(run_dir, RUN_FILES, "start the new fit in another hydra.run.dir")
         summary = run(cfg, run_dir)
     except ConfigError as err:
-        log.error("config error: %s", err)
-        sys.exit(2)
+        _exit_on_input("config error", err, run_dir)
     except (ClipNotFoundError, FileNotFoundError) as err:
-        log.error("data not found: %s", err)
-        sys.exit(2)
+        _exit_on_input("data not found", err, run_dir)
     except ArrayFormatError as err:
-        log.error("bad data file: %s", err)
-        sys.exit(2)
+        _exit_on_input("bad data file", err, run_dir)
     except (NonFiniteDataError, MocapFormatError, ClipTooShortError, TrackingUnstableError) as err:
-        log.error("bad data: %s", err)
-        sys.exit(2)
+        _exit_on_input("bad data", err, run_dir)
+    except MissingPackageError as err:
+        _exit_on_input("missing package", err, run_dir)
     except TrainingDivergedError as err:
         log.error("training diverged: %s", err)
         sys.exit(1)
     return summary.get("val_clip_mse")
 
 
-def main() -> float | None:
+def main() -> None:
     """``python -m mbrl_delan.fit``: a config error, Hydra's included, exits 2 naming it."""
-    return exit_on_config_errors(hydra_main)
+    exit_on_config_errors(hydra_main)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ NEXT_TRUNCATED = (NEXT, TRUNCATED)
 
 EPISODE = "episode"  # index of the episode a transition belongs to, (..., 1) int64
 STEP_COUNT = "step_count"  # TorchRL's StepCounter key
+NEXT_STEP_COUNT = (NEXT, STEP_COUNT)
 IS_INIT = "is_init"  # TorchRL's InitTracker key: True on the first step of an episode
 PARTIAL_STEP = "_step"  # TorchRL's mask of the envs of a batch that a partial step moves
 

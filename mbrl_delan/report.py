@@ -461,8 +461,9 @@ def group_label(group: Group) -> str:
 def _draw_band(
     ax: Any, by_step: dict[int, list[float]], color: str, label: str, style: str = "-"
 ) -> None:
-    """Mean line and 95% CI band over seeds (no band where one seed) for a solid `style`,
-    the mean alone for another; "" for no legend entry."""
+    """Mean line and 95% CI band over seeds (no band where one seed; an error bar for a
+    curve of one point) for a solid `style`, the mean alone for another; "" for no legend
+    entry."""
     steps = sorted(by_step)
     stat = [mean_ci(by_step[t]) for t in steps]
     mean = [m for m, _ in stat]
@@ -471,6 +472,9 @@ def _draw_band(
     marker = "o" if solid else ""
     ax.plot(steps, mean, style, marker=marker, ms=3, color=color, label=label or "_nolegend_")
     if not solid:
+        return
+    if len(steps) == 1:  # a lone point (a final evaluation only): its interval as a bar
+        ax.errorbar(steps, mean, yerr=half, fmt="none", ecolor=color, capsize=4, lw=1.2)
         return
     low = [m - h for m, h in zip(mean, half, strict=True)]
     high = [m + h for m, h in zip(mean, half, strict=True)]
@@ -538,16 +542,28 @@ def _panels(
         ax.set(title=f"{env}, {_seeds(summaries, env)}", xlabel="env steps")
     for _, style, meaning in lines:
         axes[0, 0].plot([], [], style, color="0.4", label=meaning)
-    fig.suptitle(title)
+    fig.suptitle(f"{title} ({spread_note(by_metric[lines[0][0]])})")
     return fig, envs, by_metric
+
+
+def spread_note(curves_by_group: dict[Group, dict[int, list[float]]]) -> str:
+    """What the solid curves show: a mean with its 95% CI band where two or more seeds share
+    an env-step count, else single runs (a title says which, never an interval not drawn)."""
+    counts = [len(values) for by_step in curves_by_group.values() for values in by_step.values()]
+    if counts and min(counts) >= 2:
+        return "solid: mean and 95% CI over seeds"
+    if any(n >= 2 for n in counts):
+        return "solid: mean; 95% CI where two or more seeds share a step"
+    return "one run per point, no interval"
 
 
 def returns_figure(summaries: list[dict[str, Any]], path: Path) -> Path:
     """Returns vs env steps, one panel per env: per model x planner the evaluation return
     (solid) and each round's on-policy episode return (dotted, logged every round), mean and
-    95% CI band over seeds; each planner's oracle (mean over its runs) a dashed grey line and
-    the zero-torque return (mean over the runs that logged it) a dash-dotted one."""
-    fig, envs, _ = _panels(summaries, RETURN_LINES, "Return vs env steps (mean, 95% CI)")
+    95% CI band over seeds (the title says where there is none, `spread_note`); each
+    planner's oracle (mean over its runs) a dashed grey line and the zero-torque return (mean
+    over the runs that logged it) a dash-dotted one."""
+    fig, envs, _ = _panels(summaries, RETURN_LINES, "Return vs env steps")
     for ax, env in zip(fig.axes, envs, strict=True):
         for i, (planner, oracle) in enumerate(_oracles(summaries, env).items()):
             grey = str(0.3 * (i % 3))

@@ -1,15 +1,17 @@
 """Typed schemas of the training config, one dataclass per config group.
 
-The YAML files under ``configs/`` hold the values (with a comment each); these dataclasses hold
-the types and the valid ranges. Each is stored in Hydra's ConfigStore (``base_train``,
-``env/base_env``, ``model/base_delan``, ``planner/base_mppi``, ...) and each YAML file extends
-its schema in its defaults list, so a value of the wrong type (``budget.iterations=1.5``) or a
-key that does not exist fails when Hydra composes the config, naming the key. Ranges and the
-rules that tie keys together are checked by `mbrl_delan.config.validate_train_config`, which
-reads the ``low`` / ``high`` / ``choices`` metadata of these fields (`field_rule`).
+The YAML files under ``mbrl_delan/configs/train`` hold the values (with a comment each); these
+dataclasses hold the types and the valid ranges. Each is stored in Hydra's ConfigStore at the
+top level (``base_train``, ``base_env``, ``base_delan``, ``base_mppi``, ...: not group options,
+so ``--help`` lists only the real choices) and each YAML file extends its schema in its
+defaults list (``- /base_env@_here_``), so a value of the wrong type
+(``budget.iterations=1.5``) or a key that does not exist fails when Hydra composes the config,
+naming the key. Ranges and the rules that tie keys together are checked by
+`mbrl_delan.config.validate_train_config`, which reads the ``low`` / ``high`` / ``choices``
+metadata of these fields (`field_rule`).
 
 A user's model or planner brings its own schema (`mbrl_delan.registry.register_model(name,
-schema=...)`), an env YAML of their own extends ``base_env``.
+schema=...)`), an env YAML of their own extends ``/base_env@_here_``.
 """
 
 from __future__ import annotations
@@ -345,9 +347,9 @@ PLANNER_SCHEMAS = {
 
 @dataclass
 class BenchConfig:
-    """``python -m mbrl_delan.bench`` (``configs/bench.yaml``); a rule on a list holds for each
-    element. Which `models` a suite knows and the oracle's planner per task are checked by
-    `mbrl_delan.bench.build_options`."""
+    """``python -m mbrl_delan.bench`` (``mbrl_delan/configs/bench/config.yaml``); a rule on a
+    list holds for each element. Which `models` a suite knows and the oracle's planner per task
+    are checked by `mbrl_delan.bench.build_options`."""
 
     suite: str = rule(choices=SUITE_NAMES)
     out: str | None = None
@@ -395,11 +397,9 @@ class BenchConfig:
 def store_schemas(store: ConfigStore) -> None:
     """Put the schemas in Hydra's ConfigStore, where the YAML files' defaults lists find them."""
     store.store(name="base_train", node=TrainConfig)
-    store.store(group="env", name="base_env", node=EnvConfig)
-    for name, schema in MODEL_SCHEMAS.items():
-        store.store(group="model", name=f"base_{name}", node=schema)
-    for name, schema in PLANNER_SCHEMAS.items():
-        store.store(group="planner", name=f"base_{name}", node=schema)
+    store.store(name="base_env", node=EnvConfig)
+    for name, schema in [*MODEL_SCHEMAS.items(), *PLANNER_SCHEMAS.items()]:
+        store.store(name=f"base_{name}", node=schema)
 
 
 store_schemas(ConfigStore.instance())

@@ -17,9 +17,10 @@ import datetime
 import functools
 import json
 import logging
+import shutil
 import sys
 import traceback
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
@@ -193,8 +194,8 @@ def _record_crash(cfg: DictConfig, err: BaseException) -> None:
 
 class StartChecks(Callback):
     """Hydra callback of ``python -m mbrl_delan.train`` (``hydra.callbacks`` in
-    configs/config.yaml): before Hydra creates the run dir or writes its ``.hydra/`` record,
-    the composed config is checked (`validate_train_config`) and a new run in a folder that
+    train's config.yaml): before Hydra creates the run dir or writes its ``.hydra/`` record, the
+    composed config is checked (`validate_train_config`) and a new run in a folder that
     holds another run is refused: one line naming the cause, exit code 2, nothing written.
     (Hydra turns a callback's exceptions into warnings, so it exits itself.) A resume is
     checked the same way, its saved config with the command line's overrides (`resumed_config`),
@@ -207,10 +208,6 @@ class StartChecks(Callback):
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         cfg = _task_config(config)
-        try:
-            refuse_schema_choices(config.hydra.runtime.choices)
-        except ConfigError as err:
-            exit_config_error(err)
         if cfg.get("resume") is not None:
             try:
                 run_cfg, _ = resumed_config(config.hydra.overrides.task, cfg)
@@ -235,9 +232,9 @@ class StartChecks(Callback):
 
 class WritableRunDir(Callback):
     """Hydra callback of ``python -m mbrl_delan.fit`` and ``python -m mbrl_delan.bench``
-    (``hydra.callbacks`` in configs/fit/config.yaml, configs/bench.yaml): a run dir that
-    cannot be made or written ends the command with one line naming it and exit 2, before
-    Hydra's log file there fails with a raw error. With `lock` (fit) the run dir's `RunLock`
+    (``hydra.callbacks`` in their config.yaml): a run dir that cannot be made or written ends
+    the command with one line naming it and exit 2, before Hydra's log file there fails with a
+    raw error. With `lock` (fit) the run dir's `RunLock`
     is held until the run ends: a second writer exits 2 naming the holder."""
 
     def __init__(self, lock: bool = False) -> None:
@@ -256,15 +253,13 @@ class WritableRunDir(Callback):
             self.lock.release()
 
 
-def refuse_schema_choices(choices: Mapping[str, Any]) -> None:
-    """A group option named ``base_*`` is a schema (the types and ranges of that group's
-    options, `mbrl_delan/schema.py`), not an option: ConfigError naming it."""
-    for group, option in choices.items():
-        if isinstance(option, str) and option.startswith("base_"):
-            raise ConfigError(
-                f"{group}={option} is the schema of the {group} options (their types and "
-                "ranges), not one of them; choose one by its name"
-            )
+def discard_unstarted_run_dir(run_dir: Path, log_name: str) -> None:
+    """Remove `run_dir` when it holds only what Hydra and the run's lock put there before the
+    run wrote anything (``.hydra/``, the log `log_name`, ``.lock``): a run stopped by its
+    input leaves no folder. A folder with anything else in it is left as it is."""
+    traces = {".hydra", ".lock", log_name}
+    if run_dir.is_dir() and {path.name for path in run_dir.iterdir()} <= traces:
+        shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def lock_run_dir(run_dir: Path) -> RunLock:

@@ -55,6 +55,7 @@ from mbrl_delan.planners.humanoid_residual import HUMANOID_ILQR, humanoid_ilqr_p
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, tracking_ilqr_policy
 from mbrl_delan.sweep import exit_or_raise, marks_crash, resumed_config, with_sweep_group
+from mbrl_delan.systems.external import MissingPackageError
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.humanoid import HumanoidTask
@@ -522,6 +523,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         recorder.write_summary(summary)
         for path in plot_run(run_dir):
             recorder.log_image(path.stem, path)
+        recorder.log_artifact(run_dir / CHECKPOINT_FILE)
     _print_summary(run_dir, summary)
     return summary
 
@@ -659,7 +661,7 @@ def _print_summary(run_dir: Path, s: dict[str, Any]) -> None:
     )
 
 
-@hydra.main(version_base="1.3", config_path="../configs", config_name="config")
+@hydra.main(version_base="1.3", config_path="configs/train", config_name="config")
 def run(cfg: DictConfig) -> float | None:
     """The Hydra task: the config was checked by `StartChecks` before the run dir existed."""
     try:
@@ -681,15 +683,18 @@ def run(cfg: DictConfig) -> float | None:
     except NonFiniteDataError as err:
         log.error("bad data: %s (not added to the buffer; the last checkpoint is kept)", err)
         exit_or_raise(1, err)
+    except MissingPackageError as err:
+        log.error("missing package: %s", err)
+        exit_or_raise(2, err)
     except (CheckpointError, FileNotFoundError) as err:
         log.error("cannot resume: %s", err)
         exit_or_raise(2, err)
     return summary["eval_return_mean"]
 
 
-def main() -> float | None:
+def main() -> None:
     """``python -m mbrl_delan.train``: a config error exits 2 with one line naming it."""
-    return exit_on_config_errors(run)
+    exit_on_config_errors(run)
 
 
 if __name__ == "__main__":

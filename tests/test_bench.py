@@ -47,7 +47,7 @@ from mbrl_delan.benchmarks.records import (
     format_table,
     read_records,
 )
-from mbrl_delan.config import ConfigError
+from mbrl_delan.config import CONFIGS, ConfigError
 
 METRICS = (
     "fwd_dyn_per_s",
@@ -112,9 +112,9 @@ def test_an_out_that_cannot_be_written_fails_before_measuring(tmp_path: Path, wh
     blocker = tmp_path / "records.jsonl"
     blocker.write_text('{"kept": 1}\n')
     out = blocker / "x.jsonl" if where == "under_a_file" else tmp_path
-    configs = str(Path(__file__).resolve().parents[1] / "configs")
+    configs = str(CONFIGS / "bench")
     with initialize_config_dir(config_dir=configs, version_base=None):
-        cfg = compose(config_name="bench", overrides=["suite=planner", "quick=true", f"out={out}"])
+        cfg = compose(config_name="config", overrides=["suite=planner", "quick=true", f"out={out}"])
     with pytest.raises(ConfigError, match="cannot append records there"):
         run(cfg)
     assert blocker.read_text() == '{"kept": 1}\n'

@@ -239,7 +239,8 @@ def test_plots_skip_missing_metrics(tmp_path):
 @pytest.mark.parametrize("backend", ["csv", "tensorboard"])
 def test_torchrl_loggers_get_every_number_against_env_steps(tmp_path, backend):
     """`logger=csv` and `logger=tensorboard` go through TorchRL's loggers: each number of a
-    record at the record's env_steps, the figures as images (TensorBoard)."""
+    record at the record's env_steps, the figures as images (TensorBoard), the summary's
+    numbers as ``summary/<key>`` (CSV: at the last step; TensorBoard: the hparams' metrics)."""
     import matplotlib.pyplot as plt
 
     figure = tmp_path / "returns.png"
@@ -250,10 +251,14 @@ def test_torchrl_loggers_get_every_number_against_env_steps(tmp_path, backend):
     for it, steps in enumerate((15, 30)):
         rec.log({"env_steps": steps, "train_return": 2.0 * it, "planner": "mppi"}, iteration=it)
     rec.log_image("returns", figure)
+    rec.write_summary({"fraction_of_oracle": 0.75, "env": "pendulum", "finished": True})
     rec.finish()
     if backend == "csv":
         rows = (tmp_path / "csv" / "scalars" / "train_return.csv").read_text().splitlines()
         assert rows == ["15,0.0", "30,2.0"]
+        summary = tmp_path / "csv" / "scalars" / "summary" / "fraction_of_oracle.csv"
+        assert summary.read_text().splitlines() == ["30,0.75"]
+        assert not (tmp_path / "csv" / "scalars" / "summary" / "finished.csv").exists()
         return
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -262,6 +267,14 @@ def test_torchrl_loggers_get_every_number_against_env_steps(tmp_path, backend):
     scalars = acc.Scalars("train_return")
     assert [(s.step, s.value) for s in scalars] == [(15, 0.0), (30, 2.0)]
     assert acc.Tags()["images"] == ["returns"]
+    from tensorboard.plugins.hparams import plugin_data_pb2
+
+    content = acc.PluginTagToContent("hparams")
+    experiment = plugin_data_pb2.HParamsPluginData.FromString(content["_hparams_/experiment"])
+    metrics = [m.name.tag for m in experiment.experiment.metric_infos]
+    assert metrics == ["summary/fraction_of_oracle"]
+    assert [h.name for h in experiment.experiment.hparam_infos] == ["seed"]
+    assert acc.Scalars("summary/fraction_of_oracle")[0].value == 0.75
 
 
 def test_unknown_logger_is_named(tmp_path):

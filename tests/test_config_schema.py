@@ -18,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 from mbrl_delan import train as train_module
 from mbrl_delan.config import (
     COMPOSE_ERRORS,
+    CONFIG_DIR,
     ConfigError,
     config_error_line,
     migrate,
@@ -25,7 +26,7 @@ from mbrl_delan.config import (
 )
 from mbrl_delan.schema import MODEL_SCHEMAS, PLANNER_SCHEMAS, TrainConfig
 
-CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
+CONFIGS = str(CONFIG_DIR)
 
 
 def compose_train(*overrides: str) -> DictConfig:
@@ -144,11 +145,13 @@ def test_a_key_under_a_null_node_is_one_line_and_writes_nothing(tmp_path: Path, 
 
 
 @pytest.mark.parametrize("choice", ["env=base_env", "model=base_delan", "planner=base_mppi"])
-def test_a_schema_chosen_as_an_option_is_one_line_and_writes_nothing(
-    choice: str, tmp_path: Path, run_main
-) -> None:
+def test_a_schema_is_not_an_option(choice: str, tmp_path: Path, run_main) -> None:
+    """The schemas live outside the groups: naming one as an option is an unknown option
+    (one line with the real choices, no schema among them) and writes nothing."""
     run_dir = tmp_path / "run"
     code, text = run_main(train_module.main, choice, f"hydra.run.dir={run_dir}")
     assert code == 2 and "Traceback" not in text, text
-    assert f"config error: {choice} is the schema of the" in text, text
+    group, option = choice.split("=")
+    assert f"Could not find '{group}/{option}'; choose one of:" in text, text
+    assert "base_" not in text.split("choose one of:")[1], text
     assert not run_dir.exists()

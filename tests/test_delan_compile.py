@@ -11,6 +11,7 @@ from torch.nn import functional as F
 from mbrl_delan import keys
 from mbrl_delan.accelerate import CompiledLoop, CompiledStep
 from mbrl_delan.accelerate.compile import FitGraph, compile_fit
+from mbrl_delan.config import CONFIG_DIR
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.inverse import DeLaNInverse
@@ -339,7 +340,7 @@ def test_train_config_compile_fit_compiles_the_one_step_loss_as_eager() -> None:
     from mbrl_delan.data.synthetic import dynamics_dataset
     from mbrl_delan.train import build_world_model
 
-    configs = str(Path(__file__).resolve().parents[1] / "configs")
+    configs = str(CONFIG_DIR)
     with initialize_config_dir(config_dir=configs, version_base=None):
         default = compose("config", overrides=["env=pendulum", "model=delan"])
         cfg = compose("config", overrides=["env=pendulum", "model=delan", "model.compile_fit=true"])

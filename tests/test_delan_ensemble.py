@@ -8,7 +8,6 @@ in its loss and in its gradients.
 from __future__ import annotations
 
 import io
-from pathlib import Path
 
 import pytest
 import torch
@@ -17,7 +16,7 @@ from tensordict import TensorDict
 from torch import Tensor
 
 from mbrl_delan import keys
-from mbrl_delan.config import ConfigError, build_model, validate_train_config
+from mbrl_delan.config import CONFIG_DIR, ConfigError, build_model, validate_train_config
 from mbrl_delan.data.synthetic import dynamics_dataset
 from mbrl_delan.envs import make_env_parts
 from mbrl_delan.models.delan import DeLaN
@@ -28,7 +27,7 @@ from mbrl_delan.systems.posarith import differentiate_pos, integrate_pos
 from mbrl_delan.systems.system import FREE, HINGE, SLIDE, JointLayout
 from mbrl_delan.training.fit import FitConfig, fit_model
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+CONFIGS = CONFIG_DIR
 # a slide, an unlimited hinge and a floating body: every feature kind and a quaternion
 MIXED = JointLayout(
     types=(SLIDE, HINGE, FREE), qpos_adr=(0, 1, 2), dof_adr=(0, 1, 2), limited=(False, False, False)

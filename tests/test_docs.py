@@ -4,7 +4,7 @@
   code blocks and inline code) is checked against its entry point: Hydra overrides are
   composed with the entry point's config tree (every value of a `-m` sweep) and passed through
   the entry point's own config validation; argparse arguments are parsed by its parser.
-- Every key of every file under configs/ is listed in docs/configuration.md.
+- Every key of every file under mbrl_delan/configs/ is listed in docs/configuration.md.
 - Every page under docs/ is in the mkdocs nav, and `mkdocs build --strict` succeeds.
 """
 
@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
+import importlib.util
 import io
 import itertools
 import math
@@ -20,6 +21,7 @@ import re
 import shlex
 import subprocess
 import sys
+import tomllib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,7 +49,8 @@ from mbrl_delan.systems.system import System
 REPO = Path(__file__).resolve().parents[1]
 DOCS = REPO / "docs"
 DOC_FILES = [REPO / "README.md", *sorted(DOCS.rglob("*.md"))]
-CONFIGS = REPO / "configs"
+CONFIGS = REPO / "mbrl_delan" / "configs"
+SCRIPTS = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
 
 PACKAGE = "mbrl_delan."
 PLACEHOLDER = "PLACEHOLDER"  # stands in for a `<placeholder>` or an undefined `$VAR`
@@ -93,9 +96,9 @@ class HydraEntryPoint:
 
 
 HYDRA_ENTRY_POINTS = {
-    "mbrl_delan.train": HydraEntryPoint(CONFIGS, "config", check_train_config),
+    "mbrl_delan.train": HydraEntryPoint(CONFIGS / "train", "config", check_train_config),
     "mbrl_delan.fit": HydraEntryPoint(CONFIGS / "fit", "config", check_fit_config),
-    "mbrl_delan.bench": HydraEntryPoint(CONFIGS, "bench", bench.build_options),
+    "mbrl_delan.bench": HydraEntryPoint(CONFIGS / "bench", "config", bench.build_options),
 }
 ARGPARSE_ENTRY_POINTS: dict[str, Callable[[list[str]], Any]] = {
     "mbrl_delan.report": report.main,  # main(argv) builds its parser and parses argv first
@@ -221,6 +224,9 @@ def _commands_in_tokens(
             ):
                 # `...` stands for "more of the same" in the docs: not an argument
                 yield words[i + 2], [a for a in words[i + 3 :] if a != "..."]
+                break
+            if word in SCRIPTS:  # a console script: mbrl-delan-train -> mbrl_delan.train
+                yield SCRIPTS[word].split(":")[0], [a for a in words[i + 1 :] if a != "..."]
                 break
             if f"python -m {PACKAGE}" in word:
                 yield from _commands_in_tokens(_tokens(word), variables)
@@ -526,17 +532,17 @@ def _sections(markdown: str) -> dict[tuple[str, str], str]:
 
 # config files -> (level-2 heading contains, level-3 heading starts with) in configuration.md
 CONFIG_SECTIONS = {
-    "config.yaml": ("mbrl_delan.train", "Top level"),
-    "env/*.yaml": ("mbrl_delan.train", "`env=`"),
-    "model/*.yaml": ("mbrl_delan.train", "`model=`"),
-    "planner/*.yaml": ("mbrl_delan.train", "`planner=`"),
-    "logger/*.yaml": ("mbrl_delan.train", "`logger=`"),
+    "train/config.yaml": ("mbrl_delan.train", "Top level"),
+    "train/env/*.yaml": ("mbrl_delan.train", "`env=`"),
+    "train/model/*.yaml": ("mbrl_delan.train", "`model=`"),
+    "train/planner/*.yaml": ("mbrl_delan.train", "`planner=`"),
+    "train/logger/*.yaml": ("mbrl_delan.train", "`logger=`"),
     "fit/config.yaml": ("mbrl_delan.fit", "Top level"),
     "fit/data/*.yaml": ("mbrl_delan.fit", "`data=`"),
     "fit/model/*.yaml": ("mbrl_delan.fit", "`model=`"),
     "fit/logger/*.yaml": ("mbrl_delan.fit", "`logger=`"),
-    "bench.yaml": ("mbrl_delan.bench", ""),
-    "hydra/launcher/*.yaml": ("Hydra settings", "`hydra/launcher=`"),
+    "bench/config.yaml": ("mbrl_delan.bench", ""),
+    "launchers/hydra/launcher/*.yaml": ("Hydra settings", "`hydra/launcher=`"),
 }
 
 
@@ -549,14 +555,14 @@ def test_every_config_key_is_documented() -> None:
         text = "".join(
             body for (h2, h3), body in sections.items() if h2_part in h2 and h3.startswith(h3_start)
         )
-        assert text, f"configuration.md has no section for configs/{pattern}"
+        assert text, f"configuration.md has no section for mbrl_delan/configs/{pattern}"
         for path in sorted(CONFIGS.glob(pattern)):
             data = yaml.safe_load(path.read_text(encoding="utf-8"))
             data = {k: v for k, v in data.items() if k not in ("defaults", "hydra")}
             for key in _leaf_keys(data):
                 name = key.rsplit(".", 1)[-1]
                 if not re.search(rf"`[^`\n]*\b{re.escape(name)}\b[^`\n]*`", text):
-                    missing.append(f"configs/{path.relative_to(CONFIGS)}: {key}")
+                    missing.append(f"mbrl_delan/configs/{path.relative_to(CONFIGS)}: {key}")
     assert not missing, "keys not in docs/configuration.md:\n" + "\n".join(missing)
 
 
@@ -633,3 +639,26 @@ def test_every_figure_is_shown_beside_the_command_that_makes_it() -> None:
             unused.append(str(item.relative_to(REPO)))
     assert not unused, f"figures no page shows: {unused}"
     assert not without_command, f"figures without their command: {without_command}"
+
+
+def test_check_site_fails_on_wide_tables_and_wrapped_code() -> None:
+    """tools/check_site.py's layout rules on what a browser laid out: a table wider than the
+    column and a code block shown on more lines than it has are problems; fitting ones not."""
+    spec = importlib.util.spec_from_file_location("check_site", REPO / "tools" / "check_site.py")
+    check_site = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(check_site)
+    seen = {
+        "tables": [
+            {"head": "arm\tfriction", "width": 900, "column": 688},
+            {"head": "env\tmodel", "width": 688, "column": 688},
+        ],
+        "blocks": [
+            {"first": "MuJoCo system --> real env", "lines": 4, "shown": 8},
+            {"first": "python -m mbrl_delan.train", "lines": 1, "shown": 1},
+        ],
+    }
+    problems = check_site.layout_problems("architecture", seen)
+    assert problems == [
+        "architecture: table 'arm\tfriction' is 900 px wide, the column 688 px",
+        "architecture: code block 'MuJoCo system --> real env' wraps (4 lines shown as 8)",
+    ]

@@ -324,25 +324,28 @@ def test_malformed_file_names_the_file_and_the_field(arm2_data, tmp_path, case) 
     assert str(err.value).startswith(f"{path}: field ") and expected in str(err.value)
 
 
-def test_malformed_file_exits_2_and_writes_nothing(arm2_data, tmp_path) -> None:
-    """At start, before the run writes anything: only Hydra's own record is in the folder.
-    (A run dir that holds a run is refused before the data are read:
+def test_malformed_file_exits_2_and_leaves_no_run_folder(arm2_data, tmp_path, run_main) -> None:
+    """At start, before the run writes anything: Hydra's record, the log and the lock go with
+    the folder; a folder that held a file of the user's before keeps it. (A run dir that holds
+    a run is refused before the data are read:
     test_fit_mocap.py::test_new_fit_in_a_used_run_dir_is_refused_and_leaves_it_as_it_was.)"""
+    from mbrl_delan.fit import main
+
     fields = _fields(arm2_data)
     _nan_q(fields)
     path = tmp_path / "bad.npz"
     np.savez(path, **fields)
+    args = [f"data.path={path}", "data=arrays", "data.joints=[hinge,hinge]", "logger=none"]
     run_dir = tmp_path / "new"
-    cmd = [sys.executable, "-m", "mbrl_delan.fit", "data=arrays", f"data.path={path}"]
-    cmd += ["data.joints=[hinge,hinge]", "logger=none", f"hydra.run.dir={run_dir}"]
-    env = {**os.environ, "WANDB_MODE": "disabled"}
-    out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
-    text = out.stdout + out.stderr
-    assert out.returncode == 2, text
-    assert f"{path}: field 'q': 1 NaN or inf values (first: row 17)" in text
-    assert "Traceback" not in text
-    written = {p.name for p in run_dir.iterdir()} if run_dir.exists() else set()
-    assert written <= {".hydra", "fit.log", ".lock"}, written
+    code, text = run_main(main, *args, f"hydra.run.dir={run_dir}")
+    assert code == 2 and "Traceback" not in text, text
+    assert f"bad data file: {path}: field 'q': 1 NaN or inf values (first: row 17)" in text
+    assert not run_dir.exists()
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("mine")
+    code, text = run_main(main, *args, f"hydra.run.dir={kept}")
+    assert code == 2 and (kept / "notes.txt").read_text() == "mine", text
 
 
 def test_a_fit_into_a_folder_another_process_writes_exits_2(arm2_data, tmp_path) -> None:

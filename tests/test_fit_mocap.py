@@ -26,7 +26,7 @@ from tensordict import TensorDict
 from torch import nn
 
 from mbrl_delan import keys
-from mbrl_delan.config import ConfigError, build_model
+from mbrl_delan.config import CONFIG_DIR, ConfigError, build_model
 from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.data.mocap import (
     ClipNotFoundError,
@@ -38,7 +38,7 @@ from mbrl_delan.data.mocap import (
 )
 from mbrl_delan.data.mocap.retarget import joint_layout
 from mbrl_delan.envs.registry import make_env_parts
-from mbrl_delan.fit import load_fit_model, run, validate_fit_config
+from mbrl_delan.fit import FIT_CONFIG_DIR, load_fit_model, run, validate_fit_config
 from mbrl_delan.fit_report import main as report_main
 from mbrl_delan.fit_report import seed_table
 from mbrl_delan.models.field import tree_entries
@@ -54,7 +54,7 @@ from mbrl_delan.training.fit import TrainingDivergedError
 from mbrl_delan.training.inverse_fit import evaluate_torques
 
 ROOT = Path(__file__).parents[1]
-CONFIGS = ROOT / "configs" / "fit"
+
 DATA = Path(__file__).parent / "data"
 CLIP, HELD_OUT, TEST = "09_06", "09_99", "09_98"
 TEST_CLIP = {"clip": CLIP, "folders": [str(DATA)], "download": False}  # env=cmu_track
@@ -94,7 +94,7 @@ def small_overrides(folder: Path) -> list[str]:
 
 
 def config(*overrides: str) -> DictConfig:
-    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(FIT_CONFIG_DIR), version_base="1.3"):
         return compose(config_name="config", overrides=list(overrides))
 
 
@@ -598,7 +598,7 @@ def test_divergence_is_named(clip_folder, tmp_path: Path) -> None:
 
 
 def loop_model_config(*overrides: str) -> DictConfig:
-    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
         return compose(config_name="config", overrides=["env=cmu_track", *overrides])
 
 

@@ -31,11 +31,9 @@ from mbrl_delan.benchmarks.humanoid import (
     suite_config,
     tracking_errors,
 )
-from mbrl_delan.config import ConfigError, build_model
+from mbrl_delan.config import CONFIGS, ConfigError, build_model
 from mbrl_delan.envs.registry import make_env_parts
 from tests.test_tracking import RUN_CLIP
-
-CONFIGS = Path(__file__).parents[1] / "configs"
 
 
 @pytest.fixture(scope="module")
@@ -159,10 +157,10 @@ def test_loop_delan_with_the_free_tree_structure(humanoid) -> None:
 
 
 def test_models_and_rollout_steps_options() -> None:
-    with initialize_config_dir(config_dir=str(CONFIGS.resolve()), version_base=None):
-        cfg = compose("bench", overrides=["suite=humanoid", "models=[delan]", "rollout_steps=3"])
-        bad_model = compose("bench", overrides=["suite=humanoid", "models=[pendulum_delan]"])
-        bad_steps = compose("bench", overrides=["suite=humanoid", "rollout_steps=0"])
+    with initialize_config_dir(config_dir=str(CONFIGS / "bench"), version_base=None):
+        cfg = compose("config", overrides=["suite=humanoid", "models=[delan]", "rollout_steps=3"])
+        bad_model = compose("config", overrides=["suite=humanoid", "models=[pendulum_delan]"])
+        bad_steps = compose("config", overrides=["suite=humanoid", "rollout_steps=0"])
     chosen = suite_config(build_options(cfg))
     assert chosen.models == ("delan",) and chosen.rollout_steps == 3
     assert suite_config(build_options(cfg)).sizes == (10_000, 50_000)
@@ -197,8 +195,8 @@ def test_the_suite_builds_the_loops_model_and_oracle_planner() -> None:
 
 def test_oracle_options() -> None:
     def options(*overrides: str, suite: str = "humanoid"):
-        with initialize_config_dir(config_dir=str(CONFIGS.resolve()), version_base=None):
-            return build_options(compose("bench", overrides=[f"suite={suite}", *overrides]))
+        with initialize_config_dir(config_dir=str(CONFIGS / "bench"), version_base=None):
+            return build_options(compose("config", overrides=[f"suite={suite}", *overrides]))
 
     default = suite_config(options())
     assert default.oracle_tasks == ("humanoid_stand", "humanoid_walk", "cmu_track")

@@ -3,8 +3,6 @@ over CEM on a problem with a smooth optimum, the policy and the config."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -13,7 +11,7 @@ from test_model_env import DoubleIntegrator, EndlessQuadraticTask
 from torch import Tensor
 
 from mbrl_delan import keys
-from mbrl_delan.config import build_planner, validate_train_config
+from mbrl_delan.config import CONFIG_DIR, build_planner, validate_train_config
 from mbrl_delan.envs import make_env_parts, make_real_env
 from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.planners import CEMPlanner, ICEMPlanner, PlannerPolicy, colored_noise
@@ -22,7 +20,7 @@ H, NU = 6, 2
 LOW, HIGH = [-1.0, -1.0], [1.0, 1.0]
 TOL = 0.05  # first action within TOL of the optimum in every dimension
 TARGET = torch.linspace(-0.6, 0.6, H * NU).reshape(H, NU)
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+CONFIGS = CONFIG_DIR
 
 
 def quadratic(target: Tensor):

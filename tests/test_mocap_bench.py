@@ -22,9 +22,9 @@ from mbrl_delan.benchmarks.mocap import (
     run_mocap_suite,
 )
 from mbrl_delan.benchmarks.records import read_records
+from mbrl_delan.config import CONFIGS
 from mbrl_delan.data.mocap import humanoid_cmu_xml
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 MODELS = ("delan", "mlp", "ensemble")
 OPTS = SuiteOptions(
     nv=(2,),
@@ -49,8 +49,8 @@ def test_suite_is_registered() -> None:
 
 def test_quick_run_writes_every_metric(humanoid, tmp_path: Path) -> None:
     out = tmp_path / "mocap.jsonl"
-    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
-        cfg = compose("bench", overrides=["suite=mocap", "quick=true", f"out={out}"])
+    with initialize_config_dir(str(CONFIGS / "bench"), version_base="1.3"):
+        cfg = compose("config", overrides=["suite=mocap", "quick=true", f"out={out}"])
     run(cfg)
     records = read_records(out)
     assert {r["metric"] for r in records} == set(METRICS)

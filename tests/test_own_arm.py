@@ -13,15 +13,13 @@ from mbrl_delan.bench import build_options, run
 from mbrl_delan.benchmarks import OWN_ARM_ROBOTS, SUITE_NAMES, get_suite
 from mbrl_delan.benchmarks.own_arm import main, run_own_arm_suite, sample_curves
 from mbrl_delan.benchmarks.records import read_records
-from mbrl_delan.config import ConfigError
+from mbrl_delan.config import CONFIGS, ConfigError
 from mbrl_delan.systems.arms import ARMS
-
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
 def _bench(overrides: list[str]):
-    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
-        return compose("bench", overrides=["suite=own_arm", *overrides])
+    with initialize_config_dir(str(CONFIGS / "bench"), version_base="1.3"):
+        return compose("config", overrides=["suite=own_arm", *overrides])
 
 
 def test_suite_is_registered_with_the_shipped_arms() -> None:

@@ -37,9 +37,8 @@ from mbrl_delan.benchmarks.planner import (
     torchrl_model,
 )
 from mbrl_delan.benchmarks.records import BASE_FIELDS, RecordWriter, read_records
-from mbrl_delan.config import ConfigError
+from mbrl_delan.config import CONFIGS, ConfigError
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 OPTS = SuiteOptions(
     nv=(2,),
     batch=(4,),
@@ -50,8 +49,8 @@ OPTS = SuiteOptions(
 
 
 def bench_config(*overrides: str):
-    with initialize_config_dir(str(CONFIGS), version_base="1.3"):
-        return compose("bench", overrides=list(overrides))
+    with initialize_config_dir(str(CONFIGS / "bench"), version_base="1.3"):
+        return compose("config", overrides=list(overrides))
 
 
 # ---------------------------------------------------------------------------- options

@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from tensordict import TensorDictBase
 from torch import Tensor
 
-from mbrl_delan.config import ConfigError, validate_train_config
+from mbrl_delan.config import CONFIG_DIR, ConfigError, validate_train_config
 from mbrl_delan.models.base import LossOutput, WorldModel
 from mbrl_delan.objectives.base import risk_adjusted_return
 from mbrl_delan.objectives.model import model_objective_factory
@@ -18,7 +16,7 @@ from mbrl_delan.planners import CEMPlanner
 from mbrl_delan.systems.system import State
 from mbrl_delan.tasks.base import Task
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+CONFIGS = CONFIG_DIR
 
 
 class TwoMembers(WorldModel):

@@ -20,11 +20,17 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from mbrl_delan.config import ConfigError, build_model, build_planner, validate_train_config
+from mbrl_delan.config import (
+    CONFIG_DIR,
+    ConfigError,
+    build_model,
+    build_planner,
+    validate_train_config,
+)
 from mbrl_delan.envs import make_env_parts, make_real_env
 from mbrl_delan.registry import ENVS, MODELS, PLANNERS, load_plugins
 
-CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
+CONFIGS = str(CONFIG_DIR)
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "slider"
 PLUGIN = "examples.slider.slider_parts"  # the module, as its `plugins=[...]` entry names it
 PARTS = ["env=slider", "model=linear", "planner=shooting"]

@@ -24,11 +24,9 @@ from mbrl_delan.benchmarks.realtime import (
     case_config,
     model_case,
 )
-from mbrl_delan.config import ConfigError, compose_train_config
+from mbrl_delan.config import CONFIGS, ConfigError, compose_train_config
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.objectives.mujoco import MujocoObjectiveFactory, PlanPhysics
-
-CONFIGS = Path(__file__).parents[1] / "configs"
 
 
 def test_quick_suite_writes_the_contract(tmp_path: Path) -> None:
@@ -71,8 +69,8 @@ def test_the_delan_case_plans_with_the_loops_policy() -> None:
 
 def test_realtime_options() -> None:
     def options(*overrides: str):
-        with initialize_config_dir(config_dir=str(CONFIGS.resolve()), version_base=None):
-            return build_options(compose("bench", overrides=["suite=realtime", *overrides]))
+        with initialize_config_dir(config_dir=str(CONFIGS / "bench"), version_base=None):
+            return build_options(compose("config", overrides=["suite=realtime", *overrides]))
 
     default = RealtimeConfig.from_options(options())
     assert default.tasks == ("humanoid_stand", "humanoid_walk", "pendulum")

@@ -328,3 +328,18 @@ def test_the_figure_legend_lies_outside_every_panel() -> None:
     assert [t.get_text() for t in legend.get_texts()] == ["delan + mppi", "ensemble + mppi"]
     box = legend.get_window_extent()
     assert all(not box.overlaps(ax.get_window_extent()) for ax in axes[:, 0])
+
+
+def test_figure_titles_name_an_interval_only_where_one_is_drawn() -> None:
+    """Two seeds at every step: mean and CI; at some steps: says where; one seed: no interval."""
+    from mbrl_delan.report import spread_note
+
+    group = ("pendulum", "delan", "mppi", "scratch", "")
+    assert (
+        spread_note({group: {15: [1.0, 2.0], 30: [2.0, 3.0]}})
+        == "solid: mean and 95% CI over seeds"
+    )
+    assert "where two or more seeds share a step" in spread_note(
+        {group: {15: [1.0, 2.0], 45: [3.0]}}
+    )
+    assert spread_note({group: {15: [1.0], 30: [2.0]}}) == "one run per point, no interval"

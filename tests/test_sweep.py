@@ -13,10 +13,11 @@ import pytest
 from omegaconf import OmegaConf
 from tiny import TINY_TRAIN
 
+from mbrl_delan.config import CONFIG_DIR
 from mbrl_delan.report import main as report_main
 from mbrl_delan.sweep import CRASH_FILE, marks_crash, sweep_name
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+CONFIGS = CONFIG_DIR
 
 TINY = [*TINY_TRAIN, "budget.iterations=1"]
 

@@ -5,11 +5,14 @@ from __future__ import annotations
 import pytest
 import torch
 from torchrl.collectors import Collector  # torchrl 0.14 name of SyncDataCollector
-from torchrl.envs import InitTracker, SerialEnv, TransformedEnv
+from torchrl.envs import Compose, InitTracker, SerialEnv, TransformedEnv
+from torchrl.modules import WorldModelWrapper
 
 from mbrl_delan import keys
-from mbrl_delan.envs import ModelEnv, make_env_parts, make_real_env
+from mbrl_delan.envs import ModelEnv, ReturnToGo, make_env_parts, make_real_env
+from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.ensemble import GaussianEnsemble
 from mbrl_delan.models.structure import Structure
 from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.objectives.mujoco import mujoco_objective_factory
@@ -127,3 +130,97 @@ def test_model_env_rollout_with_a_planner_policy() -> None:
     # the model env's reward is the task's reward of the reached state
     expected = parts.task.reward(td[keys.NEXT_Q], td[keys.NEXT_QD], td[keys.ACTION])
     torch.testing.assert_close(td[keys.NEXT_REWARD].squeeze(-1), expected.to(td[keys.NEXT_REWARD]))
+
+
+# ------------------------------------------------- the world model as a TorchRL module
+
+
+def _pendulum_models() -> dict[str, WorldModel]:
+    system = make_env_parts("pendulum").system
+    torch.manual_seed(0)
+    delan = DeLaN(system.layout, system.actuation.float(), system.control_dt, Structure(hidden=16))
+    ensemble = GaussianEnsemble(
+        system.layout, system.nu, system.control_dt, ensemble_size=3, hidden=16, propagation="mean"
+    )
+    return {"delan": delan, "ensemble": ensemble}
+
+
+@pytest.mark.parametrize("name", ["delan", "ensemble"])
+def test_the_torchrl_module_steps_as_the_loops_objective(name: str) -> None:
+    """ModelEnv (TorchRL's WorldModelWrapper of the model's TensorDictModule and the task's
+    reward) rolled out with fixed actions gives the returns the loop's planning objective
+    gives the same action sequences, step for step the model's own `step`."""
+    parts = make_env_parts("pendulum", episode_len=10)
+    model = _pendulum_models()[name]
+    n, horizon = 4, 6
+    generator = torch.Generator().manual_seed(1)
+    actions = 2 * torch.rand(n, horizon, 1, generator=generator) - 1  # (N, H, nu) in range
+    env = ModelEnv(model, parts.task, parts.system, batch_size=(n,))
+    start = env.reset()
+    objective = model_objective_factory(model, parts.task)(start[keys.Q][0], start[keys.QD][0])
+    start[keys.Q], start[keys.QD] = (
+        start[keys.Q][:1].expand(n, -1),
+        start[keys.QD][:1].expand(n, -1),
+    )
+    rewards, td = [], start
+    for t in range(horizon):
+        td[keys.ACTION] = actions[:, t]
+        stepped = env.step(td)
+        nxt = model.step(td[keys.Q], td[keys.QD], actions[:, t])
+        torch.testing.assert_close(stepped[keys.NEXT_Q], nxt.q.to(stepped[keys.NEXT_Q]))
+        rewards.append(stepped[keys.NEXT_REWARD].squeeze(-1))
+        td = stepped["next"].exclude(keys.REWARD)
+    torch.testing.assert_close(torch.stack(rewards, -1).sum(-1), objective(actions))
+    wrapper = env.world_model
+    assert isinstance(wrapper, WorldModelWrapper)
+    assert wrapper.get_transition_model_operator().out_keys == [keys.Q, keys.QD]
+
+
+def test_torchrl_mppi_plans_on_a_delan_model_env_from_a_real_state() -> None:
+    """TorchRL's own MPPIPlanner on the DeLaN ModelEnv with a StepCounter, started from the
+    real env's state, which has no step count (TorchRL's StepCounter raised TypeError)."""
+    from torchrl.envs import StepCounter
+    from torchrl.modules.planners import MPPIPlanner as TorchRLMPPIPlanner
+
+    parts = make_env_parts("pendulum", episode_len=10)
+    model = _pendulum_models()["delan"]
+    env = TransformedEnv(ModelEnv(model, parts.task, parts.system), StepCounter(max_steps=10))
+    planner = TorchRLMPPIPlanner(
+        env,
+        ReturnToGo(),
+        temperature=1.0,
+        planning_horizon=5,
+        optim_steps=2,
+        num_candidates=16,
+        top_k=16,
+    )
+    real = make_real_env("pendulum", seed=0, episode_len=10)
+    start = real.reset()
+    assert keys.STEP_COUNT not in start.keys()
+    action = planner(start.clone())[keys.ACTION]
+    assert action.shape == (1,) and torch.isfinite(action).all() and action.abs().max() <= 1.0
+    td = real.rollout(3, policy=planner)
+    assert td.shape == (3,) and torch.isfinite(td[keys.NEXT_REWARD]).all()
+
+
+def test_collector_gathers_imagined_data_with_the_planner_policy() -> None:
+    """A TorchRL Collector over the DeLaN ModelEnv (with a StepCounter for episode ends) and
+    the project's PlannerPolicy on the same model's objective."""
+    from torchrl.envs import StepCounter
+
+    parts = make_env_parts("pendulum", episode_len=6)
+    model = _pendulum_models()["delan"]
+
+    def make_env() -> TransformedEnv:
+        env = ModelEnv(model, parts.task, parts.system)
+        return TransformedEnv(env, Compose(StepCounter(max_steps=6), InitTracker()))
+
+    policy = pendulum_policy(model_objective_factory(model, parts.task))
+    collector = Collector(make_env, policy, frames_per_batch=6, total_frames=12)
+    batches = list(collector)
+    collector.shutdown()
+    assert len(batches) == 2
+    for batch in batches:
+        assert batch[keys.ACTION].shape == (6, 1) and batch[keys.ACTION].abs().max() > 0
+        assert batch[keys.NEXT_TRUNCATED][-1].item()  # the episode ends at its 6th step
+        assert torch.isfinite(batch[keys.NEXT_Q]).all()

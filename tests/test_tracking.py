@@ -13,6 +13,7 @@ from torch import Tensor
 from torchrl.envs import StepCounter, TransformedEnv
 
 from mbrl_delan import keys
+from mbrl_delan.config import CONFIG_DIR
 from mbrl_delan.envs.model_env import ModelEnv
 from mbrl_delan.envs.real import env_parts_of, make_real_env
 from mbrl_delan.envs.registry import make_env_parts
@@ -95,16 +96,22 @@ def test_policy_passes_the_episode_step_to_time_indexed_factories() -> None:
     assert steps[-1] == 0
 
 
-def test_model_env_reads_the_step_from_step_counter() -> None:
+def test_model_env_counts_the_step_a_time_indexed_task_reads() -> None:
+    """The model env counts its steps (step_count), alone or under a StepCounter, and a
+    time-indexed task scores step t against the reference at t; a start state without a step
+    count is refused for such a task, naming the StepCounter to give its env."""
     system = make_env_parts("pendulum").system
     env = ModelEnv(DoubleIntegrator(), FollowRamp(), system)
+    zero = lambda td: td.set(keys.ACTION, torch.zeros(1))  # noqa: E731
+    for rollout_env in (env, TransformedEnv(env, StepCounter())):
+        td = rollout_env.rollout(3, policy=zero)
+        q = td[keys.NEXT_Q][..., 0]  # stays 0 (qd 0, a 0)
+        expected = -(q - 0.1 * (torch.arange(3) + 1)).square()
+        torch.testing.assert_close(td[keys.NEXT_REWARD].squeeze(-1), expected)
+        assert td[keys.NEXT_STEP_COUNT].squeeze(-1).tolist() == [1, 2, 3]
+    start = zero(env.reset().exclude(keys.STEP_COUNT))
     with pytest.raises(ValueError, match="StepCounter"):
-        env.rollout(2)
-    counted = TransformedEnv(env, StepCounter())
-    td = counted.rollout(3, policy=lambda td: td.set(keys.ACTION, torch.zeros(1)))
-    q = td[keys.NEXT_Q][..., 0]  # stays 0 (qd 0, a 0)
-    expected = -(q - 0.1 * (torch.arange(3) + 1)).square()
-    torch.testing.assert_close(td[keys.NEXT_REWARD].squeeze(-1), expected)
+        env.step(start)
 
 
 def test_real_env_and_oracle_score_steps_of_the_reference(track) -> None:
@@ -244,7 +251,7 @@ def test_weights_option_weighs_the_terms(track) -> None:
 def test_env_config_terms_are_the_task_defaults() -> None:
     """configs/env/cmu_track.yaml spells out the default weights and scales (so that one term
     can be overridden from the command line); they must not drift apart."""
-    cfg = OmegaConf.load(Path(__file__).parents[1] / "configs" / "env" / "cmu_track.yaml")
+    cfg = OmegaConf.load(CONFIG_DIR / "env" / "cmu_track.yaml")
     assert TrackingWeights(**cfg.task.weights) == TrackingWeights()
     assert TrackingScales(**cfg.task.scales) == TrackingScales()
 

@@ -18,6 +18,7 @@ from hydra import compose, initialize_config_dir
 from tiny import TINY_TRAIN
 
 from mbrl_delan import keys
+from mbrl_delan.config import CONFIG_DIR
 from mbrl_delan.training.checkpoint import load_checkpoint
 from mbrl_delan.training.loop import Schedule
 
@@ -50,21 +51,31 @@ def finished_run(tmp_path_factory) -> Path:
 
 @pytest.mark.slow
 def test_offline_wandb_run_holds_the_summary_and_figures(tmp_path: Path) -> None:
-    """logger=wandb: the summary (fraction_of_oracle included) reaches the wandb run before
-    it finishes, the charts run against env steps, the returns figure is logged."""
+    """logger=wandb: the run has the name and tags asked for, the summary (fraction_of_oracle
+    included) reaches it before it finishes, the charts run against env steps, the returns
+    figure is logged and the final checkpoint is a model artifact."""
     pytest.importorskip("wandb")
     run_dir = tmp_path / "wandb_run"
-    out = train(run_dir, "logger=wandb", "budget.iterations=1", wandb_mode="offline")
+    tags = ("logger.name=tiny-pendulum", "logger.tags=[smoke,ci]")
+    out = train(run_dir, "logger=wandb", "budget.iterations=1", *tags, wandb_mode="offline")
     assert out.returncode == 0, out.stdout + out.stderr
     (log_file,) = (run_dir / "wandb").glob("offline-run-*/run-*.wandb")
     summary: dict = {}
-    x_axes = set()
+    x_axes, runs, artifacts = set(), [], []
     for record in wandb_records(log_file):
         kind = record.WhichOneof("record_type")
         if kind == "summary":
             summary |= {u.key: json.loads(u.value_json) for u in record.summary.update}
         elif kind == "metric":
             x_axes.add((record.metric.glob_name, record.metric.step_metric))
+        elif kind == "run":
+            runs.append((record.run.display_name, list(record.run.tags), record.run.run_id))
+        elif kind == "artifact":
+            files = [entry.path for entry in record.artifact.manifest.contents]
+            artifacts.append((record.artifact.name, record.artifact.type, files))
+    (name, run_tags, run_id) = runs[0]
+    assert name == "tiny-pendulum" and run_tags == ["smoke", "ci"], runs
+    assert artifacts == [(f"{run_id}-checkpoint", "model", ["checkpoint.pt"])], artifacts
     local = json.loads((run_dir / "summary.json").read_text())
     assert summary["fraction_of_oracle"] == pytest.approx(local["fraction_of_oracle"])
     assert summary["env_steps"] == local["env_steps"]
@@ -197,7 +208,7 @@ def test_ilqr_oracle_option_builds_the_tracking_ilqr() -> None:
     from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, TrackingResidual
     from mbrl_delan.train import build_oracle
 
-    configs = str(Path(__file__).resolve().parents[1] / "configs")
+    configs = str(CONFIG_DIR)
     clip = ["env.task.clip='09_06'", f"env.task.folders=[{DATA}]", "env.task.download=false"]
     with initialize_config_dir(config_dir=configs, version_base=None):
         cfg = compose("config", overrides=["env=cmu_track", *clip, "budget.oracle_planner=ilqr"])

@@ -95,19 +95,26 @@ FREE_BOX = """<mujoco><worldbody><body pos="0 0 1"><freejoint/>
 <geom type="box" size=".2 .1 .3" rgba="1 .2 .2 1"/></body></worldbody></mujoco>"""
 
 
-def test_tracking_camera_follows_the_root(backend: str) -> None:
-    """With track_root the free camera follows a travelling root, so a body moved 3 m looks
-    the same (nothing else is drawn, the light is the camera's); a fixed camera loses it."""
+def test_tracking_camera_follows_the_root_past_fixed_posts(backend: str) -> None:
+    """With track_root the free camera follows a travelling root past a rail of fixed posts:
+    moved by a whole number of post spacings the frame is the same (the body stays in view,
+    the posts line up again), moved by half a spacing the posts shift, so travel is seen; a
+    fixed camera loses the body."""
     box = mujoco.MjModel.from_xml_string(FREE_BOX)
     here = np.array([0, 0, 1, 1, 0, 0, 0], dtype=np.float64)
-    there = here + np.array([3.0, 0, 0, 0, 0, 0, 0])
     still = np.zeros(6)
     with VideoRecorder(box, W, H, fps=20.0, backend=backend, track_root=True) as rec:
-        followed = [rec.frame_from_state(q, still) for q in (here, there)]
+        assert rec.rail is not None
+        shift = np.zeros(7)
+        shift[0] = 12 * rec.rail.spacing
+        whole = [rec.frame_from_state(q, still) for q in (here, here + shift)]
+        half = rec.frame_from_state(here + shift / 24, still)
     with VideoRecorder(box, W, H, fps=20.0, backend=backend) as rec:
-        fixed = [rec.frame_from_state(q, still) for q in (here, there)]
-    assert followed[0].any()
-    np.testing.assert_allclose(followed[1], followed[0], atol=2)
+        assert rec.rail is None
+        fixed = [rec.frame_from_state(q, still) for q in (here, here + shift)]
+    assert whole[0].any()
+    np.testing.assert_allclose(whole[1], whole[0], atol=2)
+    assert (np.abs(half.astype(int) - whole[0]).sum(-1) > 30).any()
     assert np.abs(fixed[1].astype(int) - fixed[0]).mean() > 1.0
 
 
@@ -319,6 +326,54 @@ def test_gym_env_renders_rgb_frames(backend: str, monkeypatch: pytest.MonkeyPatc
     assert np.abs(later.astype(int) - first).mean() > 0.5
     with pytest.raises(ValueError, match="render_mode='depth'"):
         MujocoTaskEnv("pendulum", render_mode="depth")
+
+
+def test_gym_env_render_draws_the_task_markers(backend: str, monkeypatch) -> None:
+    """gymnasium's render() of arm_reach draws its target as the green marker the loop's
+    videos draw (a frame of the pendulum, without markers, has none)."""
+    import gymnasium as gym
+
+    from mbrl_delan.envs.real import gym_id, register_envs
+
+    monkeypatch.setenv("MUJOCO_GL", backend)
+    register_envs()
+
+    def green_pixels(name: str) -> int:
+        env = gym.make(gym_id(name), render_mode="rgb_array", width=160, height=120)
+        env.reset(seed=0)
+        frame = env.render().astype(int)
+        env.close()
+        green = (frame[..., 1] - frame[..., 0] > 80) & (frame[..., 1] - frame[..., 2] > 80)
+        return int(green.sum())
+
+    assert green_pixels("arm_reach") > 5
+    assert green_pixels("pendulum") == 0
+
+
+def test_gymnasium_record_video_writes_the_episode(
+    backend: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """gymnasium's RecordVideo (the `video` extra: moviepy) on a registered env writes one MP4
+    of the episode: a frame per step and the reset's."""
+    import gymnasium as gym
+    import imageio.v3 as iio
+
+    pytest.importorskip("moviepy", reason="the video extra: pip install 'mbrl_delan[video]'")
+    from gymnasium.wrappers import RecordVideo
+
+    from mbrl_delan.envs.real import gym_id, register_envs
+
+    monkeypatch.setenv("MUJOCO_GL", backend)
+    register_envs()
+    env = gym.make(gym_id("cartpole"), render_mode="rgb_array", width=W, height=H)
+    env = RecordVideo(env, str(tmp_path), episode_trigger=lambda episode: True)
+    env.reset(seed=0)
+    for _ in range(6):
+        env.step(env.action_space.high)
+    env.close()
+    (video,) = tmp_path.glob("*.mp4")
+    frames = iio.imread(video)
+    assert frames.shape == (7, H, W, 3)
 
 
 def test_overlay_writes_step_and_reward_in_the_top_left_corner(

@@ -11,6 +11,7 @@ import pytest
 import torch
 from torch import Tensor
 
+from mbrl_delan.config import CONFIG_DIR
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.features import rotation_matrix
 from mbrl_delan.models.integrators import integrate
@@ -171,14 +172,13 @@ def test_needs_a_free_root_first() -> None:
 def test_config_builds_yaw_invariant_humanoid_models_that_step_turned(name) -> None:
     """`model.yaw_invariant=true` reaches every DeLaN (the ensemble's members too), and a
     control step of Humanoid-v5 from a turned state lands on the turned next state."""
-    from pathlib import Path
 
     from hydra import compose, initialize_config_dir
 
     from mbrl_delan.config import build_model
     from mbrl_delan.envs.registry import make_env_parts
 
-    configs = str(Path(__file__).resolve().parents[1] / "configs")
+    configs = str(CONFIG_DIR)
     overrides = ["env=humanoid_stand", f"model={name}", "model.yaw_invariant=true"]
     with initialize_config_dir(config_dir=configs, version_base=None):
         cfg = compose("config", overrides=overrides)

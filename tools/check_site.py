@@ -1,5 +1,6 @@
 """Check the built documentation in a headless browser: every page's figures readable at page
-width, and the home page's headline table.
+width, no table wider than the text column, no code block whose lines wrap, and the home
+page's headline table.
 
     mkdocs build --strict --site-dir site && python tools/check_site.py site
 
@@ -42,12 +43,21 @@ window.addEventListener("load", () => {
   const body = document.querySelector(".md-typeset p") || document.body;
   const images = [...document.querySelectorAll(".md-typeset img")].map((img) => ({
     src: img.currentSrc || img.src, natural: img.naturalWidth, shown: img.clientWidth}));
-  const tables = [...document.querySelectorAll(".md-typeset table")].map(
-    (t) => t.innerText.split("\\n")[0]);
+  const column = document.querySelector(".md-content__inner") || document.body;
+  const tables = [...document.querySelectorAll(".md-typeset table")].map((t) => ({
+    head: t.innerText.split("\\n")[0], width: t.scrollWidth, column: column.clientWidth}));
+  const blocks = [...document.querySelectorAll(".md-typeset pre > code")].map((code) => {
+    const style = getComputedStyle(code);
+    const height = code.clientHeight - parseFloat(style.paddingTop)
+      - parseFloat(style.paddingBottom);
+    return {first: code.innerText.split("\\n")[0],
+      lines: code.innerText.replace(/\\n$/, "").split("\\n").length,
+      shown: Math.round(height / parseFloat(style.lineHeight))};
+  });
   const out = document.createElement("pre");
   out.id = "site-check";
   out.textContent = JSON.stringify({
-    body_px: parseFloat(getComputedStyle(body).fontSize), images, tables});
+    body_px: parseFloat(getComputedStyle(body).fontSize), images, tables, blocks});
   document.body.appendChild(out);
 });
 </script>
@@ -90,6 +100,22 @@ def figure_problems(page: str, seen: dict) -> list[str]:
     return problems
 
 
+def layout_problems(page: str, seen: dict) -> list[str]:
+    """Tables wider than the text column (they scroll sideways), code blocks whose lines
+    wrap (a diagram's columns would be scrambled)."""
+    problems = [
+        f"{page}: table '{t['head'][:40]}' is {t['width']} px wide, the column {t['column']} px"
+        for t in seen["tables"]
+        if t["width"] > t["column"] + 1
+    ]
+    problems += [
+        f"{page}: code block '{b['first'][:40]}' wraps ({b['lines']} lines shown as {b['shown']})"
+        for b in seen["blocks"]
+        if b["shown"] > b["lines"]
+    ]
+    return problems
+
+
 def check(site: Path, chromium: str) -> list[str]:
     """Every page of the built `site`; -> the problems found."""
     problems = []
@@ -101,8 +127,10 @@ def check(site: Path, chromium: str) -> list[str]:
             html = page.read_text(encoding="utf-8")
             page.write_text(html.replace("</body>", MEASURE + "</body>"), encoding="utf-8")
             seen = measure(page, chromium)
-            problems += figure_problems(name, seen)
-            if name == "home" and not any("fraction of oracle" in t for t in seen["tables"]):
+            problems += figure_problems(name, seen) + layout_problems(name, seen)
+            if name == "home" and not any(
+                "fraction of oracle" in t["head"] for t in seen["tables"]
+            ):
                 problems.append("home: no headline table (a table with 'fraction of oracle')")
     return problems
 

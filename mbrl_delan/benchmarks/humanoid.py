@@ -12,7 +12,7 @@ transitions? For each training-set size n in `sizes`:
    planner's on-policy data: collecting 10k-50k planner steps takes hours on a CPU.
 2. Models, built as `python -m mbrl_delan.train env=humanoid_stand model=...` builds them
    (`config.build_model` on the loop's config `env=humanoid_stand model=NAME`, composed from
-   `configs/` by `model_config`): `delan`
+   `mbrl_delan/configs/train` by `model_config`): `delan`
    (DeLaN with the residual generalized force), `delan_ensemble` (5 such members) and
    `ensemble` (5 Gaussian MLPs, the PETS baseline), each fitted on the same n transitions
    with `training.fit.fit_model` (Adam, early stopping on a 10% validation split). Models
@@ -26,13 +26,14 @@ transitions? For each training-set size n in `sizes`:
    state std), averaged over the test episodes weighted by their number of starts.
 
 Before the models, the oracle: for each task in `oracle_tasks` (`humanoid_stand`,
-`humanoid_walk`, `cmu_track`), one episode of the loop's planner (MPPI, `configs/planner/mppi.yaml`
-with the humanoid envs' horizon 15, temperature 0.05 and noise 0.3) on MuJoCo's true dynamics,
-on the real env, from the task's initial state, for at most `oracle_steps` control steps
-(default: the task's own: 1,000 standing or walking, the clip's length for cmu_track). It
-ends early when the task terminates (the humanoid fell, or left the clip's root by 0.5 m).
-With `oracle_method="ilqr"` (cmu_track only) the oracle is receding-horizon iLQR on MuJoCo's
-derivatives with the tracking residuals instead (`planners/tracking_residual.py`).
+`humanoid_walk`, `cmu_track`), one episode of the loop's planner (MPPI, train's
+`planner/mppi.yaml` with the humanoid envs' horizon 15, temperature 0.05 and noise 0.3) on
+MuJoCo's true dynamics, on the real env, from the task's initial state, for at most
+`oracle_steps` control steps (default: the task's own: 1,000 standing or walking, the clip's
+length for cmu_track). It ends early when the task terminates (the humanoid fell, or left
+the clip's root by 0.5 m). With `oracle_method="ilqr"` (cmu_track only) the oracle is
+receding-horizon iLQR on MuJoCo's derivatives with the tracking residuals instead
+(`planners/tracking_residual.py`).
 
 Records: case ``{model}-n{n}``, metric ``rollout_error`` (field ``horizon``), and
 ``fit_s`` (seconds of the fit, both phases), with field ``rollout_steps`` (the K it was fitted
@@ -114,13 +115,13 @@ class HumanoidBenchConfig:
         default_factory=lambda: FitConfig(batch_size=256, max_epochs=200, patience=10)
     )
     rollout_steps: int = 5  # fit.rollout_steps of the models that train on windows (DeLaNs)
-    # the loop's `model=NAME` on `env` (configs/, `model_config`), with these overrides
+    # the loop's `model=NAME` on `env` (train's configs, `model_config`), with these overrides
     model_overrides: dict[str, tuple[str, ...]] = field(default_factory=dict)
     seed: int = 0
     oracle_tasks: tuple[str, ...] = HUMANOID_ORACLE_TASKS
     oracle_steps: int | None = None  # control steps per oracle episode (None: the task's own)
     clips: tuple[str, ...] | None = None  # cmu_track: an oracle episode per clip (None: its own)
-    # the loop's planner `oracle_method` on each oracle task's env (configs/,
+    # the loop's planner `oracle_method` on each oracle task's env (mbrl_delan/configs/train,
     # `oracle_config`), with these overrides
     oracle_overrides: tuple[str, ...] = ()
     # oracle_method: a sampling planner's name (mppi, cem, icem, predictive) or "ilqr": iLQR

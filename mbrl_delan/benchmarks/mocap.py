@@ -1,8 +1,8 @@
 """Suite `mocap`: how fast the mocap pipeline and the inverse-dynamics fits run (issue 5).
 
 Three kinds of figure, on the settings of ``python -m mbrl_delan.fit``: the config Hydra
-composes from `configs/fit` (`mocap_config`), its dataset and models built by the fit's own
-builders:
+composes from the fit's config dir (`mocap_config`), its dataset and models built by the fit's
+own builders:
 
 - `retarget_frames_per_s`: AMC frames retargeted onto humanoid_CMU per second: for every clip
   of the dataset, `read_asf`, `read_amc` and `retarget` (filter, spline resampling to the
@@ -73,7 +73,7 @@ METRICS = ("retarget_frames_per_s", "dataset_build_s", "fit_samples_per_s", "fit
 REPO_ROOT = Path(__file__).resolve().parents[2]
 TEST_DATA = REPO_ROOT / "tests" / "data"
 QUICK_CLIP = "09_06"
-# configs/fit/data/cmu_mocap.yaml's clips (not data.mocap.DEFAULT_CLIPS, an older list)
+# mbrl_delan/configs/fit/data/cmu_mocap.yaml's clips (not data.mocap.DEFAULT_CLIPS, an older list)
 QUICK_OVERRIDES = (  # the small clip of tests/data and tiny networks (seconds in all)
     f"data.clips=['{QUICK_CLIP}']",
     "data.val_clips=[]",
@@ -91,7 +91,7 @@ BUILD_MAX_WARMUP = 1
 @dataclass(frozen=True)
 class MocapBenchConfig:
     """The settings of ``python -m mbrl_delan.fit`` the suite runs with: the fit config Hydra
-    composes from ``configs/fit`` (its data and training keys) and each model's own (its
+    composes from ``mbrl_delan/configs/fit`` (its data and training keys) and each model's own (its
     ``model`` group), with the same overrides (`mocap_config`)."""
 
     fit: DictConfig  # data, training (batch_size, lr, ...), loss, dtype, seed

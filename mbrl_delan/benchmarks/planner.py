@@ -61,7 +61,7 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDict
 from torch import Tensor, nn
 from torchrl.modules.planners import CEMPlanner as TorchRLCEMPlanner
 from torchrl.modules.planners import MPPIPlanner as TorchRLMPPIPlanner
@@ -82,6 +82,7 @@ from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.config import build_model, compose_train_config
 from mbrl_delan.config import build_planner as config_build_planner
 from mbrl_delan.envs.model_env import ModelEnv
+from mbrl_delan.envs.modules import ReturnToGo
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.delan import DeLaN
@@ -286,16 +287,6 @@ def model_steps_per_call(planner: SamplingPlanner, particles: int) -> int:
     else:
         population = planner.num_samples * planner.iterations
     return population * particles * planner.horizon
-
-
-class ReturnToGo(nn.Module):
-    """TorchRL MPPI's advantage module: the undiscounted sum of the rollout's rewards from
-    each step on, written to "advantage" (..., H, 1); MPPI reads its first step."""
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        reward = tensordict.get(keys.NEXT_REWARD)  # (..., H, 1), post-done rewards zeroed
-        tensordict.set("advantage", reward.flip(-2).cumsum(-2).flip(-2))
-        return tensordict
 
 
 def build_torchrl_planner(kind: str, setting: Setting, env: ModelEnv) -> nn.Module:

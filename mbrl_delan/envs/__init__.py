@@ -5,6 +5,7 @@ mbrl_delan/Pendulum-v0); `make_real_env` registers those of envs added later.
 """
 
 from mbrl_delan.envs.model_env import ModelEnv
+from mbrl_delan.envs.modules import ReturnToGo, TaskReward, Transition, world_model_wrapper
 from mbrl_delan.envs.real import (
     MujocoTaskEnv,
     env_parts_of,
@@ -20,9 +21,13 @@ __all__ = [
     "EnvParts",
     "ModelEnv",
     "MujocoTaskEnv",
+    "ReturnToGo",
+    "TaskReward",
+    "Transition",
     "env_parts_of",
     "gym_id",
     "make_env_parts",
     "make_real_env",
     "register_envs",
+    "world_model_wrapper",
 ]

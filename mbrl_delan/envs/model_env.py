@@ -1,5 +1,6 @@
-"""`ModelEnv`: a TorchRL `ModelBasedEnvBase` around a WorldModel and a Task (imagination
-inside a learned world model, for TorchRL's own planners and collectors)."""
+"""`ModelEnv`: a TorchRL `ModelBasedEnvBase` that steps a WorldModel and a Task as TorchRL's
+`WorldModelWrapper` (`envs.modules.world_model_wrapper`): imagination inside a learned world
+model, for TorchRL's own planners and collectors."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.model_based import ModelBasedEnvBase
 
 from mbrl_delan import keys
-from mbrl_delan.models.base import WorldModel, eval_mode, model_placement
+from mbrl_delan.envs.modules import TaskReward, world_model_wrapper
+from mbrl_delan.models.base import WorldModel, model_placement
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
 
@@ -18,11 +20,14 @@ from mbrl_delan.tasks.base import Task
 class ModelEnv(ModelBasedEnvBase):
     """A TorchRL env that steps a WorldModel and scores it with a Task.
 
-    Keys: q, qd (observations), action, reward, done, terminated, truncated. `reset` draws
-    `task.initial_state`; truncation is never set here (add a `StepCounter` transform with
-    `max_steps=task.episode_len` for episode limits). The model runs in eval mode and on its
-    own device; the env's dtype is the model's unless given. A time-indexed task reads the
-    episode step from TorchRL's `step_count` key, so it needs the `StepCounter` transform.
+    Keys: q, qd, step_count (observations), action, reward, done, terminated, truncated.
+    `reset` draws `task.initial_state` at step 0; `step` runs `world_model` (TorchRL's
+    `WorldModelWrapper` of the model's transition and the task's reward, which a time-indexed
+    task reads the step of) and counts the step. Truncation is never set here: a
+    `StepCounter(max_steps=task.episode_len)` transform adds episode limits (it counts in the
+    same key). A rollout may start from a state without a step count (a real env's, for
+    TorchRL's planners): step 0 then, or a ValueError for a time-indexed task. The model runs
+    in eval mode and on its own device; the env's dtype is the model's unless given.
     """
 
     def __init__(
@@ -37,12 +42,15 @@ class ModelEnv(ModelBasedEnvBase):
     ) -> None:
         place = model_placement(model, fallback_device=device or "cpu")
         device = torch.device(device) if device is not None else place.device
-        super().__init__(model, device=device, batch_size=torch.Size(batch_size))
+        generator = torch.Generator(device=device)
+        generator.manual_seed(seed)
+        wrapper = world_model_wrapper(model, task, system, device, dtype or place.dtype, generator)
+        super().__init__(wrapper, device=device, batch_size=torch.Size(batch_size))
+        self.model = model
         self.task = task
         self.system = system
         self.state_dtype = dtype or place.dtype
-        self._generator = torch.Generator(device=self.device)
-        self._generator.manual_seed(seed)
+        self._generator = generator
         self._make_specs()
 
     def _make_specs(self) -> None:
@@ -51,6 +59,7 @@ class ModelEnv(ModelBasedEnvBase):
             {
                 keys.Q: Unbounded((*bs, sys.nq), dtype=dt, device=self.device),
                 keys.QD: Unbounded((*bs, sys.nv), dtype=dt, device=self.device),
+                keys.STEP_COUNT: Unbounded((*bs, 1), dtype=torch.long, device=self.device),
             },
             shape=bs,
             device=self.device,
@@ -91,39 +100,25 @@ class ModelEnv(ModelBasedEnvBase):
         q = state.q.to(self.device, self.state_dtype)
         qd = state.qd.to(self.device, self.state_dtype)
         not_done = torch.zeros(q.shape[:-1], dtype=torch.bool, device=self.device)
+        count = torch.zeros((*batch, 1), dtype=torch.long, device=self.device)
         return TensorDict(
-            {keys.Q: q, keys.QD: qd, **self._flags(not_done)}, batch_size=batch, device=self.device
-        )
-
-    def _step(self, tensordict: TensorDictBase) -> TensorDict:
-        q, qd = tensordict.get(keys.Q), tensordict.get(keys.QD)
-        action = tensordict.get(keys.ACTION)
-        low, high = self.system.ctrl_low, self.system.ctrl_high
-        action = torch.clamp(action, low.to(action), high.to(action))
-        with eval_mode(self.world_model):
-            nxt = self.world_model.step(q, qd, action, generator=self._generator)
-        q1 = nxt.q.to(self.device, self.state_dtype)
-        qd1 = nxt.qd.to(self.device, self.state_dtype)
-        step = self._episode_step(tensordict)  # (*B,) or () for tasks without time
-        reward = self.task.reward_at(q1, qd1, action, step).to(self.state_dtype).unsqueeze(-1)
-        terminated = self.task.terminated_at(q1, qd1, step)
-        return TensorDict(
-            {keys.Q: q1, keys.QD: qd1, keys.REWARD: reward, **self._flags(terminated)},
-            batch_size=tensordict.batch_size,
+            {keys.Q: q, keys.QD: qd, keys.STEP_COUNT: count, **self._flags(not_done)},
+            batch_size=batch,
             device=self.device,
         )
 
-    def _episode_step(self, tensordict: TensorDictBase) -> Tensor:
-        """The episode step of the action, from `step_count` (*B, 1); 0 for tasks without time."""
-        count = tensordict.get(keys.STEP_COUNT, None)
-        if count is not None:
-            return count.squeeze(-1)
-        if self.task.time_indexed:
-            raise ValueError(
-                f"task {self.task.name!r} is time-indexed: ModelEnv needs the episode step in "
-                f"{keys.STEP_COUNT!r}; append torchrl.envs.StepCounter() to the env"
-            )
-        return torch.zeros((), dtype=torch.long, device=self.device)
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        count = tensordict.get(keys.STEP_COUNT, None)  # (*B, 1)
+        if count is None:
+            # a rollout started from a state without a step count (TorchRL's planners from a
+            # real env without a StepCounter): step 0, for a task without time; set on the
+            # input too, where a StepCounter on this env reads it
+            TaskReward(self.task, self.state_dtype).episode_step(tensordict, self.device)
+            count = torch.zeros((*tensordict.batch_size, 1), dtype=torch.long, device=self.device)
+            tensordict.set(keys.STEP_COUNT, count)
+        out = super()._step(tensordict)
+        out.set(keys.STEP_COUNT, count + 1)
+        return out
 
     def _set_seed(self, seed: int | None) -> None:
         if seed is not None:

@@ -150,6 +150,7 @@ class MujocoTaskEnv(gym.Env):
                 height,
                 fps=self.metadata["render_fps"],
                 track_root=root_travels(self.env_parts.system.layout.types),
+                markers=self.env_parts.task.markers(),
             )
         return self._video.frame_from_state(self._data.qpos, self._data.qvel)  # its own MjData
 

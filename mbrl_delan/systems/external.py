@@ -10,10 +10,14 @@ import importlib.util
 from pathlib import Path
 
 
+class MissingPackageError(ModuleNotFoundError):
+    """A package that ships a model file is not installed; the message says how to add it."""
+
+
 def _package_dir(package: str, hint: str) -> Path:
     spec = importlib.util.find_spec(package)
     if spec is None or not spec.submodule_search_locations:
-        raise ModuleNotFoundError(f"{package} is not installed; {hint}")
+        raise MissingPackageError(f"{package} is not installed; {hint}")
     return Path(next(iter(spec.submodule_search_locations)))
 
 
@@ -25,7 +29,7 @@ def _existing(path: Path, package: str) -> Path:
 
 def humanoid_cmu_xml() -> Path:
     """dm_control's `suite/humanoid_CMU.xml` (free root + 56 hinges, nv = 62)."""
-    hint = "it ships humanoid_CMU.xml (pip install dm-control==1.0.50)"
+    hint = "it ships humanoid_CMU.xml: pip install 'mbrl_delan[mocap]'"
     return _existing(_package_dir("dm_control", hint) / "suite" / "humanoid_CMU.xml", "dm_control")
 
 

@@ -158,6 +158,8 @@ class Recorder:
         self._file: IO[str] | None = self.metrics_path.open("a", encoding="utf-8")
         self._wandb_run: Any = None
         self._scalars: Any = None  # a TorchRL logger (csv, tensorboard)
+        self._hparams = flat_config(config)  # TensorBoard's hparams, with the summary's numbers
+        self._last_step = 0  # of the last record, where the CSV logger puts the summary
         if backend == "wandb":
             self._wandb_run = self._init_wandb(
                 project, group, config, wandb_options, resume=resume_iteration is not None
@@ -223,7 +225,7 @@ class Recorder:
         except OSError as err:  # a full disk: name the file, keep the records before it
             raise write_failure(self.metrics_path, err) from err
         numbers = {k: v for k, v in record.items() if isinstance(v, int | float)}
-        step = int(numbers.get(self.step_key, iteration))
+        step = self._last_step = int(numbers.get(self.step_key, iteration))
         if self._wandb_run is not None:
             self._wandb_call("log", lambda: numbers)
         if self._scalars is not None:
@@ -260,16 +262,46 @@ class Recorder:
             self._scalars.experiment.add_image(key, pixels, dataformats="HWC")
 
     def write_summary(self, summary: Mapping[str, Any]) -> Path:
-        """Write ``run_dir/summary.json`` atomically (and the wandb run summary)."""
+        """Write ``run_dir/summary.json`` atomically and give its numbers to the logger: the
+        wandb run's summary; TensorBoard's hparams (the config with these as its metrics,
+        ``summary/<key>``); the CSV logger's ``summary/<key>`` at the last record's step."""
         path = self.run_dir / SUMMARY_FILE
-        text = json.dumps(_jsonable(dict(summary)), indent=2, sort_keys=True) + "\n"
+        values = _jsonable(dict(summary))
+        text = json.dumps(values, indent=2, sort_keys=True) + "\n"
         atomic_write(path, lambda f: f.write(text.encode("utf-8")), keep_prev=False)
         if self._wandb_run is not None:
             try:
-                self._wandb_run.summary.update(_jsonable(dict(summary)))
+                self._wandb_run.summary.update(values)
             except Exception as err:  # noqa: BLE001 - see _init_wandb
                 log.warning("wandb summary update failed (%s)", err)
+        if self._scalars is not None:
+            numbers = {
+                f"summary/{k}": float(v)
+                for k, v in values.items()
+                if isinstance(v, int | float) and not isinstance(v, bool)
+            }
+            writer = self._scalars.experiment
+            if hasattr(writer, "add_hparams"):  # TensorBoard: one hparams row for the run
+                writer.add_hparams(self._hparams, numbers, run_name=".")
+            else:
+                for name, value in numbers.items():
+                    self._scalars.log_scalar(name, value, step=self._last_step)
         return path
+
+    def log_artifact(self, path: str | Path, kind: str = "model") -> None:
+        """The file `path` (a train run's final checkpoint, a fit's model) as a wandb artifact
+        of type `kind`, named ``<run id>-<file stem>``; without wandb a no-op (the file stays
+        in the run dir)."""
+        if self._wandb_run is None:
+            return
+        try:
+            import wandb
+
+            artifact = wandb.Artifact(f"{self._wandb_run.id}-{Path(path).stem}", type=kind)
+            artifact.add_file(str(path))
+            self._wandb_run.log_artifact(artifact)
+        except Exception as err:  # noqa: BLE001 - see _init_wandb
+            log.warning("wandb could not store %s as an artifact (%s)", path, err)
 
     def finish(self) -> None:
         """Close the metrics file and the wandb run. Safe to call twice."""
@@ -305,8 +337,8 @@ def _wandb_media(kind: str, path: str | Path) -> Any:
 
 
 def _torchrl_logger(backend: str, run_dir: Path, config: dict[str, Any]) -> Any:
-    """TorchRL's ``CSVLogger`` or ``TensorboardLogger`` writing under ``run_dir/<backend>``,
-    with the run's config as its hyperparameters."""
+    """TorchRL's ``CSVLogger`` (the run's config as its hyperparameters) or
+    ``TensorboardLogger``, writing under ``run_dir/<backend>``."""
     from torchrl.record.loggers import CSVLogger, TensorboardLogger
 
     if backend == "tensorboard":
@@ -316,9 +348,9 @@ def _torchrl_logger(backend: str, run_dir: Path, config: dict[str, Any]) -> Any:
             raise ImportError(
                 "logger=tensorboard needs the tensorboard package: pip install tensorboard"
             ) from err
-        logger = TensorboardLogger(exp_name=backend, log_dir=str(run_dir))
-    else:
-        logger = CSVLogger(exp_name=backend, log_dir=str(run_dir))
+        # its hparams are written with the summary's numbers as their metrics (write_summary)
+        return TensorboardLogger(exp_name=backend, log_dir=str(run_dir))
+    logger = CSVLogger(exp_name=backend, log_dir=str(run_dir))
     logger.log_hparams(flat_config(config))
     return logger
 

@@ -18,11 +18,13 @@ from __future__ import annotations
 import copy
 import importlib
 import logging
+import math
 import os
 import platform
 import uuid
 import warnings
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -139,6 +141,50 @@ Overlay = tuple[str, str]  # the text of a frame's corner: (titles, values), one
 MARKER_RADIUS = 0.05  # a task marker's sphere, as a fraction of the model's extent
 MARKER_RGBA = np.array([0.1, 0.9, 0.2, 1.0], dtype=np.float32)  # green
 GHOST_RGBA = np.array([0.3, 0.6, 1.0, 0.4], dtype=np.float32)  # a reference pose: translucent blue
+RAIL_RGBA = np.array([0.55, 0.55, 0.55, 1.0], dtype=np.float32)  # the posts behind a tracked root
+RAIL_SPACING = 0.25  # between two posts, as a fraction of the model's extent
+
+
+@dataclass(frozen=True)
+class Rail:
+    """Fixed grey posts along the world x axis behind a tracked root: the camera follows the
+    root, so without something fixed in view (the cart-pole has no floor) its travel would
+    not be seen. Posts every `spacing` m, drawn within `reach` of the root's x."""
+
+    spacing: float
+    reach: float
+    y: float  # behind the bodies, as the side-on camera looks along +y
+    z: float  # the posts' centre height
+    half_height: float
+    half_width: float
+
+    @classmethod
+    def behind(cls, model: mujoco.MjModel, root: int) -> Rail:
+        """Posts from the lowest geom to the root body's height at ``qpos0``."""
+        data = mujoco.MjData(model)
+        mujoco.mj_kinematics(model, data)
+        extent = max(float(model.stat.extent), 1e-3)
+        top = float(data.xpos[root][2])
+        low = float(data.geom_xpos[:, 2].min()) if model.ngeom else top - 0.5 * extent
+        half = max(0.5 * (top - low), 0.1 * extent)
+        return cls(
+            RAIL_SPACING * extent, 3.0 * extent, 0.6 * extent, top - half, half, 0.01 * extent
+        )
+
+    def add_to(self, scene: mujoco.MjvScene, root_x: float) -> None:
+        """Append the posts within `reach` of `root_x` to `scene`."""
+        first = math.ceil((root_x - self.reach) / self.spacing)
+        last = math.floor((root_x + self.reach) / self.spacing)
+        size = np.array([self.half_width, self.half_width, self.half_height])
+        for k in range(first, last + 1):
+            if scene.ngeom >= scene.maxgeom:
+                return
+            pos = np.array([k * self.spacing, self.y, self.z])
+            mujoco.mjv_initGeom(
+                scene.geoms[scene.ngeom], mujoco.mjtGeom.mjGEOM_BOX, size, pos,
+                np.eye(3).reshape(-1), RAIL_RGBA,
+            )  # fmt: skip
+            scene.ngeom += 1
 
 
 class VideoRecorder:
@@ -205,9 +251,11 @@ class VideoRecorder:
         self.data = mujoco.MjData(self.model)
         self._ghost_data = mujoco.MjData(self.model)  # a reference pose drawn translucent
         self.camera = self._camera(camera, azimuth, elevation, lookat, distance)
+        self.rail: Rail | None = None
         if track_root and self.camera.type == mujoco.mjtCamera.mjCAMERA_FREE:
             self.camera.type = mujoco.mjtCamera.mjCAMERA_TRACKING
             self.camera.trackbodyid = 1 if self.model.nbody > 1 else 0
+            self.rail = Rail.behind(self.model, self.camera.trackbodyid)
         self._gl: Any = None
         self._context: mujoco.MjrContext | None = None
         # Backends report the cause of a failure as warnings (glfw: "DISPLAY ... missing")
@@ -302,6 +350,8 @@ class VideoRecorder:
         if ghost is not None:
             self._add_ghost(ghost)
         self._add_markers()
+        if self.rail is not None:
+            self.rail.add_to(self._scene, float(data.xpos[self.camera.trackbodyid][0]))
         mujoco.mjr_render(self._viewport, self._scene, self._context)
         if overlay is not None:
             font, corner = mujoco.mjtFont.mjFONT_SHADOW, mujoco.mjtGridPos.mjGRID_TOPLEFT

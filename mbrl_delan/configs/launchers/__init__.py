@@ -1,0 +1,1 @@
+"""hydra/launcher options shared by the entry points (their configs' hydra.searchpath)."""
