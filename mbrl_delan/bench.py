@@ -38,6 +38,7 @@ from mbrl_delan.config import (
     exit_on_config_errors,
     schema_error_message,
 )
+from mbrl_delan.registry import PLANNERS, PluginError, load_plugins
 from mbrl_delan.schema import BenchConfig
 
 log = logging.getLogger("mbrl_delan.bench")
@@ -115,8 +116,19 @@ def typed_bench_config(cfg: DictConfig) -> DictConfig:
 
 
 def build_options(cfg: DictConfig) -> SuiteOptions:
-    """Check the config and turn it into the suite's plain options (quick sizes applied)."""
+    """Check the config and turn it into the suite's plain options (quick sizes applied),
+    once its ``plugins`` are loaded (their planners count among `planners`' choices)."""
     typed = typed_bench_config(cfg)
+    try:
+        load_plugins(typed.plugins)
+    except PluginError as err:
+        raise ConfigError(str(err)) from err
+    for name in typed.planners or ():
+        if name not in PLANNERS:
+            raise ConfigError(
+                f"planners: {name!r} is not a registered planner; choose among: "
+                f"{', '.join(PLANNERS.names())} (a plugin's needs its module in plugins=[...])"
+            )
     v = {**OmegaConf.to_container(typed, resolve=True), **(QUICK if typed.quick else {})}
     tuples = lambda name: None if v[name] is None else tuple(v[name])  # noqa: E731
     return SuiteOptions(

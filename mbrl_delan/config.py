@@ -370,7 +370,6 @@ def _check_rules(cfg: DictConfig) -> None:
     """The rules between keys (single values are checked by `check_ranges`)."""
     if cfg.model.get("cuda_graph", False) and not str(cfg.device).startswith("cuda"):
         raise ConfigError(f"model.cuda_graph=true needs device=cuda, got device={cfg.device}")
-    _check_rollout_steps(cfg)
     _check_buffer(cfg)
     if cfg.planner.replan_every > cfg.planner.horizon:
         raise ConfigError(
@@ -404,19 +403,14 @@ def _check_buffer(cfg: DictConfig) -> None:
             )
 
 
-def _check_rollout_steps(cfg: DictConfig) -> None:
-    """fit.rollout_steps > 1 needs a DeLaN (or DeLaN ensemble) with a forward loss term."""
-    if cfg.fit.rollout_steps == 1:
-        return
-    if cfg.model.name not in ("delan", "delan_ensemble"):
+def check_rollout_steps(cfg: DictConfig, model: WorldModel) -> None:
+    """fit.rollout_steps > 1 needs a model that trains on windows of transitions (its
+    `trains_on_windows`: a DeLaN with a forward loss term, any model that says so)."""
+    if cfg.fit.rollout_steps > 1 and not model.trains_on_windows:
         raise ConfigError(
             f"fit.rollout_steps={cfg.fit.rollout_steps} is not valid with model={cfg.model.name}: "
-            "only delan and delan_ensemble train on K-step rollouts (use 1)"
-        )
-    if cfg.model.loss == "inverse":
-        raise ConfigError(
-            f"fit.rollout_steps={cfg.fit.rollout_steps} is not valid with model.loss=inverse: "
-            "a rollout loss needs the forward term (model.loss=forward or both)"
+            f"its {type(model).__name__} does not train on windows of transitions "
+            "(WorldModel.trains_on_windows; a DeLaN does with model.loss=forward or both); use 1"
         )
 
 

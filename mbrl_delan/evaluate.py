@@ -100,10 +100,10 @@ def _dynamics(model: nn.Module) -> LagrangianDynamics | None:
 def run_system(run: Run) -> FitSystem:
     """The joints the run's model was built on."""
     if run.kind == "fit":
-        from mbrl_delan.fit import read_provenance
+        from mbrl_delan.conf.fitting import read_provenance
 
         return system_of(read_provenance(run.run_dir))
-    from mbrl_delan.train import env_parts
+    from mbrl_delan.conf.loop import env_parts
 
     return FitSystem.of_mjcf(Path(env_parts(run.config).system.xml_path))
 
@@ -192,7 +192,7 @@ def evaluate_data(
     threshold: float = THRESHOLD,
 ) -> dict[str, Any]:
     """Every non-empty split's errors (module docstring)."""
-    from mbrl_delan.fit import group_errors, split_summary
+    from mbrl_delan.conf.fitting import group_errors, split_summary
 
     model.eval()
     dtype = next(model.parameters()).dtype
@@ -228,7 +228,7 @@ def evaluate_run(
     if data is None:
         if run.kind != "fit":
             raise ValueError(f"{run.run_dir} is a train run: give data=FILE")
-        from mbrl_delan.fit import make_inverse_data
+        from mbrl_delan.conf.fitting import make_inverse_data
 
         inverse_data = make_inverse_data(run.config.data)
     else:

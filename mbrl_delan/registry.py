@@ -161,5 +161,9 @@ def register_env(
 ENVS: Registry[Any] = Registry("env", ["mbrl_delan.envs.registry"])
 MODELS: Registry[Any] = Registry("model", ["mbrl_delan.config"])
 PLANNERS: Registry[Any] = Registry("planner", ["mbrl_delan.config"])
+# fit's inverse-dynamics models (python -m mbrl_delan.fit model=NAME)
+INVERSE_MODELS: Registry[Any] = Registry("model", ["mbrl_delan.conf.inverse"])
 register_model = MODELS.register  # builder: (model config group, System) -> WorldModel
 register_planner = PLANNERS.register  # builder: (planner config group, System, dtype) -> planner
+# builder: (fit's model config group, fit.InverseContext) -> InverseDynamicsModel
+register_inverse_model = INVERSE_MODELS.register

@@ -16,6 +16,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
+from mbrl_delan.registry import load_plugins
 from mbrl_delan.training.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from mbrl_delan.training.recorder import RUN_CONFIG, SUMMARY_FILE
 
@@ -35,7 +36,8 @@ class Run:
 
 
 def load_run(run_dir: str | Path) -> Run:
-    """The config and trained model (on the CPU, in the run's dtype) of a fit or train run.
+    """The config and trained model (on the CPU, in the run's dtype) of a fit or train run;
+    the modules of the run's ``plugins`` are imported first (its own env, model).
 
     Raises FileNotFoundError when `run_dir` holds neither a fit's ``model.pt`` nor a train
     run's ``config.yaml`` and ``checkpoint.pt``."""
@@ -43,7 +45,7 @@ def load_run(run_dir: str | Path) -> Run:
     summary_path = run_dir / SUMMARY_FILE
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else None
     if (run_dir / FIT_MODEL_FILE).is_file():
-        from mbrl_delan.fit import load_fit_model
+        from mbrl_delan.conf.fitting import load_fit_model
 
         cfg, model = load_fit_model(run_dir)
         return Run("fit", run_dir, cfg, model, summary)
@@ -57,10 +59,11 @@ def load_run(run_dir: str | Path) -> Run:
 
 def _train_model(run_dir: Path) -> tuple[DictConfig, nn.Module]:
     """A train run's config and its world model with the checkpoint's weights."""
+    from mbrl_delan.conf.loop import build_world_model, env_parts
     from mbrl_delan.config import DTYPES
-    from mbrl_delan.train import build_world_model, env_parts
 
     cfg = OmegaConf.load(run_dir / RUN_CONFIG)
+    load_plugins(cfg.get("plugins") or [])  # a plugin's env or model, as the run had it
     system = env_parts(cfg).system
     model = build_world_model(cfg, system, torch.device("cpu"), DTYPES[cfg.dtype])
     state = load_checkpoint(run_dir / CHECKPOINT_FILE)  # tensors and plain containers only

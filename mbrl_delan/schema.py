@@ -23,7 +23,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, ListConfig
 
-from mbrl_delan.benchmarks import (
+from mbrl_delan.conf.bench_names import (
     HUMANOID_ORACLE_TASKS,
     ORACLE_PLANNERS,
     OWN_ARM_ROBOTS,
@@ -368,7 +368,8 @@ class BenchConfig:
     compile_batch: list[int] = rule(low=1)
     n_samples: int | None = rule(None, low=1)
     max_epochs: int | None = rule(None, low=1)
-    planners: list[str] | None = rule(None, choices=tuple(PLANNER_SCHEMAS))
+    planners: list[str] | None = None  # registered ones (plugins too): checked by build_options
+    plugins: list[str] = field(default_factory=list)
     models: list[str] | None = None
     num_samples: list[int] | None = rule(None, low=1)
     horizons: list[int] | None = rule(None, low=1)

@@ -337,8 +337,8 @@ def test_train_config_compile_fit_compiles_the_one_step_loss_as_eager() -> None:
     loss and its gradient from the compiled graph equal eager autograd's."""
     from hydra import compose, initialize_config_dir
 
+    from mbrl_delan.conf.loop import build_world_model
     from mbrl_delan.data.synthetic import dynamics_dataset
-    from mbrl_delan.train import build_world_model
 
     configs = str(CONFIG_DIR)
     with initialize_config_dir(config_dir=configs, version_base=None):
@@ -386,8 +386,8 @@ def test_model_error_compiles_nothing_in_a_compiled_loop(tmp_path: Path) -> None
     """With model.compile=true the planning rollouts compile; `model_error` steps the model
     itself, eagerly, over episodes of any length (it once compiled a graph per length, each
     over 100 s on a humanoid)."""
+    from mbrl_delan.conf.loop import build_loop
     from mbrl_delan.config import compose_train_config
-    from mbrl_delan.train import build_loop
     from mbrl_delan.training.loop import model_error, run_episode
 
     cfg = compose_train_config(["model.compile=true", "model.hidden=8", "env.episode_len=12"])

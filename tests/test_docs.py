@@ -39,10 +39,11 @@ from omegaconf import DictConfig
 
 from mbrl_delan import bench, evaluate, fit_report, report
 from mbrl_delan.benchmarks import figures, own_arm
+from mbrl_delan.conf.fitting import validate_fit_config
+from mbrl_delan.conf.inverse import InverseContext, build_inverse_model
 from mbrl_delan.config import DTYPES, build_model, build_planner, validate_train_config
 from mbrl_delan.data.mocap.retarget import joint_layout
 from mbrl_delan.envs.registry import make_env_parts
-from mbrl_delan.fit import build_inverse_model, validate_fit_config
 from mbrl_delan.systems.external import humanoid_cmu_xml
 from mbrl_delan.systems.system import System
 
@@ -85,7 +86,8 @@ def check_fit_config(cfg: DictConfig) -> None:
     """`fit`'s own checks, then its model built on humanoid_CMU (the data are not loaded)."""
     validate_fit_config(cfg)
     model = _humanoid_cmu()
-    build_inverse_model(cfg.model, joint_layout(model), cfg.loss.std_floor, mj_model=model)
+    context = InverseContext(joint_layout(model), cfg.loss.std_floor, mj_model=model)
+    build_inverse_model(cfg.model, context)
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from mbrl_delan import keys
+from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, _run
 from mbrl_delan.config import ConfigError, compose_config
 from mbrl_delan.data.arrays import read_arrays, save_arrays
 from mbrl_delan.data.excitation import (
@@ -22,7 +23,6 @@ from mbrl_delan.data.excitation import (
     mass_matrix_error,
 )
 from mbrl_delan.evaluate import evaluate_run
-from mbrl_delan.fit import FIT_CONFIG_DIR, _run
 from mbrl_delan.systems.arms import ARMS, FRICTION, arm, arm_model, torque_limits
 
 # published totals of the link masses (kg), base and hand included

@@ -17,6 +17,7 @@ import torch
 from tensordict import TensorDict
 
 from mbrl_delan import keys
+from mbrl_delan.conf.fitting import fit_inverse_dynamics
 from mbrl_delan.data.arrays import (
     ArrayFormatError,
     DerivativeSettings,
@@ -28,7 +29,6 @@ from mbrl_delan.data.inverse_data import FitSystem, array_inverse_data
 from mbrl_delan.data.synthetic import reference_terms, trajectory_dataset
 from mbrl_delan.evaluate import evaluate_run
 from mbrl_delan.evaluate import main as evaluate_main
-from mbrl_delan.fit import fit_inverse_dynamics
 from mbrl_delan.models.inverse import MLPInverse
 from mbrl_delan.runs import load_run
 from mbrl_delan.systems.system import layout_from_names, load_system

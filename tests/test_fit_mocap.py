@@ -26,6 +26,8 @@ from tensordict import TensorDict
 from torch import nn
 
 from mbrl_delan import keys
+from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, load_fit_model, run, validate_fit_config
+from mbrl_delan.conf.loop import start_mechanics, with_fit_structure
 from mbrl_delan.config import CONFIG_DIR, ConfigError, build_model
 from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.data.mocap import (
@@ -38,7 +40,6 @@ from mbrl_delan.data.mocap import (
 )
 from mbrl_delan.data.mocap.retarget import joint_layout
 from mbrl_delan.envs.registry import make_env_parts
-from mbrl_delan.fit import FIT_CONFIG_DIR, load_fit_model, run, validate_fit_config
 from mbrl_delan.fit_report import main as report_main
 from mbrl_delan.fit_report import seed_table
 from mbrl_delan.models.field import tree_entries
@@ -49,7 +50,6 @@ from mbrl_delan.models.inverse import (
     MLPInverse,
 )
 from mbrl_delan.systems.system import FREE, HINGE, JointLayout
-from mbrl_delan.train import _start_mechanics, with_fit_structure
 from mbrl_delan.training.fit import TrainingDivergedError
 from mbrl_delan.training.inverse_fit import evaluate_torques
 
@@ -538,7 +538,7 @@ def test_test_clips_form_a_split_of_their_own(clip_folder, tmp_path: Path) -> No
 
 
 def test_a_chain_gets_the_dense_factor_and_a_tree_the_sparse_one() -> None:
-    from mbrl_delan.fit import branches
+    from mbrl_delan.conf.inverse import branches
 
     humanoid = mujoco.MjModel.from_xml_path(str(humanoid_cmu_xml())).dof_parentid.tolist()
     assert branches(humanoid) and branches([-1, -1])  # a tree; a forest
@@ -640,7 +640,7 @@ def test_loop_delan_starts_from_the_mocap_fit_and_keeps_it(fitted) -> None:
     assert (cfg.model.hidden, cfg.model.armature, cfg.model.tree_sparse) == (16, True, True)
     system = make_env_parts("cmu_track", task_options=TEST_CLIP).system
     model = build_model(cfg.model, system).double()
-    _start_mechanics(cfg.model, model, system)
+    start_mechanics(cfg.model, model, system)
     q, qd, qdd = random_batch(layout, 16)
     expected, got = inverse.delan.double().terms(q, qd), model.terms(q, qd)
     for name in ("mass_matrix", "coriolis", "gravity", "dissipation"):
@@ -678,4 +678,4 @@ def test_init_from_names_what_does_not_fit(fitted, tmp_path: Path) -> None:
     system = make_env_parts("cmu_track", task_options=TEST_CLIP).system
     cfg = loop_model_config(f"model.init_from={fitted['delan']}")
     with pytest.raises(ConfigError, match=re.escape("add model.hidden=16 model.coulomb=false")):
-        _start_mechanics(cfg.model, build_model(cfg.model, system), system)
+        start_mechanics(cfg.model, build_model(cfg.model, system), system)

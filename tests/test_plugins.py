@@ -117,3 +117,99 @@ def test_train_runs_a_loop_with_the_users_env_model_and_planner(
     )  # fmt: skip
     assert summary["iterations"] == 1 and summary["env_steps"] == 2 * 12
     assert 0.0 <= summary["eval_return_mean"] <= 12.0  # rewards lie in [0, 1]
+    loaded = _load_run_in_a_fresh_interpreter(user_project, run_dir)
+    assert "train LinearModel" in loaded and "plugin loaded by load_run: True" in loaded
+
+
+# ------------------------------------------------- the fit, evaluate and load_run
+
+
+def _fit_conf(root: Path) -> str:
+    return f"hydra.searchpath=[file://{root / 'examples' / 'slider' / 'fit_conf'}]"
+
+
+def _run_module(root: Path, *args: str) -> subprocess.CompletedProcess:
+    """`python <args>` from the user's project folder (its modules importable from there)."""
+    env = {**os.environ, "WANDB_MODE": "disabled"}
+    return subprocess.run(
+        [sys.executable, *args], capture_output=True, text=True, env=env, timeout=300, cwd=root
+    )
+
+
+def _load_run_in_a_fresh_interpreter(root: Path, run_dir: Path) -> str:
+    """`load_run` where nothing imported the plugin: it must come from the run's config."""
+    code = (
+        "import sys; from mbrl_delan.runs import load_run; "
+        f"r = load_run({str(run_dir)!r}); print(r.kind, type(r.model).__name__); "
+        "print('plugin loaded by load_run:', 'examples.slider.slider_parts' in sys.modules)"
+    )
+    out = _run_module(root, "-c", code)
+    assert out.returncode == 0, out.stdout + out.stderr
+    return out.stdout
+
+
+def test_a_plugin_registers_an_inverse_model_typed_by_its_schema(user_project: Path) -> None:
+    from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, validate_fit_config
+    from mbrl_delan.registry import INVERSE_MODELS
+
+    base = [f"plugins=[{PLUGIN}]", _fit_conf(user_project), "model=linear_inverse"]
+    base += ["data=arrays", "data.path=x.npz", "data.joints=[slide]"]
+    with initialize_config_dir(config_dir=str(FIT_CONFIG_DIR), version_base=None):
+        cfg = compose("config", overrides=base)
+        bad = compose("config", overrides=[*base, "+model.hidden=3"])
+    validate_fit_config(cfg)
+    assert "linear_inverse" in INVERSE_MODELS
+    with pytest.raises(ConfigError, match="model.hidden is not a config key"):
+        validate_fit_config(bad)
+
+
+@pytest.mark.slow
+def test_fit_evaluate_and_load_run_with_the_users_inverse_model(
+    user_project: Path, tmp_path: Path
+) -> None:
+    """The user's inverse-dynamics model through `fit` (exact on a slide with viscous
+    friction and a constant force), then `evaluate` and `load_run` in fresh interpreters,
+    which import the plugin from the run's saved config."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    q, qd, qdd = (rng.uniform(-1, 1, (600, 1)) for _ in range(3))
+    data = tmp_path / "slide.npz"
+    trajectory = np.repeat(np.arange(6), 100)
+    np.savez(data, q=q, qd=qd, qdd=qdd, tau=2 * qdd + 0.5 * qd + 1, dt=0.01, trajectory=trajectory)
+    run_dir = tmp_path / "fit"
+    out = _run_module(
+        user_project, "-m", "mbrl_delan.fit", f"plugins=[{PLUGIN}]", _fit_conf(user_project),
+        "model=linear_inverse", "data=arrays", f"data.path={data}", "data.joints=[slide]",
+        "epochs=300", "lr=0.1", "logger=none", f"hydra.run.dir={run_dir}",
+    )  # fmt: skip
+    assert out.returncode == 0, out.stdout + out.stderr
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["model"] == "linear_inverse" and summary["test_r2"] > 0.999
+    out = _run_module(user_project, "-m", "mbrl_delan.evaluate", str(run_dir))
+    assert out.returncode == 0, out.stdout + out.stderr
+    loaded = _load_run_in_a_fresh_interpreter(user_project, run_dir)
+    assert "fit LinearInverse" in loaded and "plugin loaded by load_run: True" in loaded
+
+
+@pytest.mark.slow
+def test_bench_times_the_users_planner(user_project: Path, tmp_path: Path) -> None:
+    """`bench suite=planner` with the plugin's planner (no YAML among the loop's: its
+    schema's defaults), on the suite's quick DeLaN case; an unregistered name is refused."""
+    out_file = tmp_path / "planner.jsonl"
+    out = _run_module(
+        user_project, "-m", "mbrl_delan.bench", "suite=planner", "quick=true",
+        f"plugins=[{PLUGIN}]", "planners=[shooting]", "torchrl=false", f"out={out_file}",
+        f"hydra.run.dir={tmp_path / 'bench'}",
+    )  # fmt: skip
+    assert out.returncode == 0, out.stdout + out.stderr
+    records = [json.loads(line) for line in out_file.read_text().splitlines()]
+    latency = [r for r in records if r["metric"] == "plan_latency_ms"]
+    assert latency and all(r["planner"] == "shooting" for r in latency)
+    assert all(r["value"] is None or r["value"] > 0 for r in latency)
+    out = _run_module(
+        user_project, "-m", "mbrl_delan.bench", "suite=planner", "quick=true",
+        "planners=[shooting]", f"hydra.run.dir={tmp_path / 'bench2'}",
+    )  # fmt: skip
+    text = out.stdout + out.stderr
+    assert out.returncode == 2 and "'shooting' is not a registered planner" in text, text

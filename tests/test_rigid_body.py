@@ -13,6 +13,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, _run, load_fit_model
 from mbrl_delan.config import ConfigError, compose_config
 from mbrl_delan.data.excitation import (
     ExcitationSettings,
@@ -20,7 +21,6 @@ from mbrl_delan.data.excitation import (
     inverse_dynamics,
     mass_matrix_error,
 )
-from mbrl_delan.fit import FIT_CONFIG_DIR, _run, load_fit_model
 from mbrl_delan.models.rigid_body import (
     WhiteBoxInverse,
     cholesky_of_pi,

@@ -1,10 +1,14 @@
 """A worked example of a user's own parts, registered from outside the package.
 
-A slider (one slide joint with a motor) whose task is to reach x = 1, a linear world model and
-random shooting. Run them through the loop from the repository's root:
+A slider (one slide joint with a motor) whose task is to reach x = 1, a linear world model,
+random shooting and a linear inverse-dynamics model. Run them through the loop, and the
+inverse model through the fit, from the repository's root:
 
     python -m mbrl_delan.train plugins=[examples.slider.slider_parts] \\
         'hydra.searchpath=[file://examples/slider/conf]' env=slider model=linear planner=shooting
+    python -m mbrl_delan.fit plugins=[examples.slider.slider_parts] \\
+        'hydra.searchpath=[file://examples/slider/fit_conf]' model=linear_inverse \\
+        data=arrays data.path=FILE data.joints=[slide]
 
 See docs/architecture.md, "How to add an env / a task / a model / a planner".
 """
@@ -16,8 +20,14 @@ import torch
 from torch import nn
 
 from mbrl_delan.models.base import LossOutput, WorldModel
+from mbrl_delan.models.inverse import InverseDynamicsModel
 from mbrl_delan.planners.base import SamplingDistribution, SamplingPlanner
-from mbrl_delan.registry import register_env, register_model, register_planner
+from mbrl_delan.registry import (
+    register_env,
+    register_inverse_model,
+    register_model,
+    register_planner,
+)
 from mbrl_delan.schema import ModelConfig, PlannerConfig, rule
 from mbrl_delan.systems.system import State
 from mbrl_delan.tasks.base import Task
@@ -61,7 +71,7 @@ class LinearModel(WorldModel):
         err = (pred.q - batch["next", "q"]).pow(2).mean() + (pred.qd - batch["next", "qd"]).pow(
             2
         ).mean()
-        return LossOutput(err, {"mse": float(err)})
+        return LossOutput(err, {"mse": float(err.detach())})
 
 
 @dataclass
@@ -100,3 +110,24 @@ def build_shooting(cfg, system, dtype):
         init_std=cfg.init_std,
         dtype=dtype,
     )
+
+
+class LinearInverse(InverseDynamicsModel):
+    """tau = W [q, qd, qdd] + b: exact for slides with viscous friction and a constant force."""
+
+    def __init__(self, nq, nv, std_floor):
+        super().__init__(nv, std_floor)
+        self.torque = nn.Linear(nq + 2 * nv, nv)
+
+    def predict_torque(self, q, qd, qdd):
+        return self.torque(torch.cat([q, qd, qdd], -1))
+
+
+@dataclass
+class LinearInverseConfig:
+    name: str = "linear_inverse"
+
+
+@register_inverse_model("linear_inverse", schema=LinearInverseConfig)
+def build_linear_inverse(cfg, context):  # context: mbrl_delan.fit.InverseContext
+    return LinearInverse(context.layout.nq, context.layout.nv, context.std_floor)

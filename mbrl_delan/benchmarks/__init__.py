@@ -18,68 +18,25 @@ from typing import Any
 import torch
 
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.bench_names import (  # noqa: F401 - the suites' names, re-exported
+    COMPILED_SUFFIX,
+    FIDELITY_CASES,
+    GRAPH_SUFFIX,
+    HUMANOID_MODEL_VARIANTS,
+    HUMANOID_MODELS,
+    HUMANOID_ORACLE_TASKS,
+    ILQR_TASKS,
+    ORACLE_PLANNERS,
+    OWN_ARM_MODELS,
+    OWN_ARM_ROBOTS,
+    PLANNER_MODELS,
+    REALTIME_DYNAMICS,
+    REALTIME_TASKS,
+    SUITE_NAMES,
+    SUITES,
+)
 
 Suite = Callable[["SuiteOptions"], Iterator[BenchRecord]]
-
-# name -> "module:function"
-_SUITES = {
-    "delan": "mbrl_delan.benchmarks.delan:run_delan_suite",
-    "identify": "mbrl_delan.benchmarks.identify:run_identify_suite",
-    "mocap": "mbrl_delan.benchmarks.mocap:run_mocap_suite",
-    "identify_humanoid": "mbrl_delan.benchmarks.humanoid_identify:run_identify_humanoid_suite",
-    "planner": "mbrl_delan.benchmarks.planner:run_planner_suite",
-    "humanoid": "mbrl_delan.benchmarks.humanoid:run_humanoid_suite",
-    "realtime": "mbrl_delan.benchmarks.realtime:run_realtime_suite",
-    "fit_arrays": "mbrl_delan.benchmarks.fit_arrays:run_fit_arrays_suite",
-    "soak": "mbrl_delan.benchmarks.soak:run_soak_suite",
-    "fidelity": "mbrl_delan.benchmarks.fidelity:run_fidelity_suite",
-    "own_arm": "mbrl_delan.benchmarks.own_arm:run_own_arm_suite",
-}
-SUITE_NAMES = tuple(_SUITES)
-# world-model cases of suite planner (here so the entry point can check names without
-# importing the suite): DeLaN on the pendulum and on Humanoid-v5's layout, the MLP ensemble on
-# the pendulum, and MuJoCo's true pendulum dynamics (the oracle); the two DeLaN cases again
-# with every control step `torch.compile`d (`model.compile=true`), and on CUDA with each
-# rollout replayed from a CUDA graph, eager or compiled (`model.cuda_graph=true`)
-PLANNER_MODELS = (
-    "pendulum_delan",
-    "humanoid_delan",
-    "pendulum_ensemble",
-    "pendulum_oracle",
-    "pendulum_delan_compiled",
-    "humanoid_delan_compiled",
-    "pendulum_delan_graph",
-    "humanoid_delan_graph",
-    "pendulum_delan_compiled_graph",
-    "humanoid_delan_compiled_graph",
-)
-COMPILED_SUFFIX = "_compiled"
-GRAPH_SUFFIX = "_graph"
-# world models of suite humanoid: DeLaN + residual, DeLaN + residual + the structured contact
-# model, the DeLaN ensemble, the MLP ensemble
-HUMANOID_MODELS = ("delan", "delan_contact", "delan_ensemble", "ensemble")
-# and, on demand only (`models=[...]`): DeLaN without the residual, with or without contacts
-HUMANOID_MODEL_VARIANTS = ("delan_plain", "delan_contact_only")
-# tasks on which suite humanoid runs the oracle planner for one episode
-HUMANOID_ORACLE_TASKS = ("humanoid_stand", "humanoid_walk", "cmu_track")
-ORACLE_PLANNERS = ("mppi", "cem", "icem", "predictive", "ilqr")  # suite humanoid's oracles
-ILQR_TASKS = ("cmu_track",)  # suite humanoid: tasks of its tracking iLQR oracle
-# suite realtime: its tasks and the dynamics each is planned on
-REALTIME_TASKS = ("humanoid_stand", "humanoid_walk", "pendulum")
-REALTIME_DYNAMICS = ("mujoco", "delan", "ensemble")
-# suite fidelity's reference cases: MuJoCo at the oracle's physics, perturbed copies of it, the
-# white-box model's documented wrong start, and MuJoCo's rigid body with the contact model
-# (`benchmarks/fidelity.py`)
-FIDELITY_CASES = (
-    "mujoco", "mass_x0.5", "mass_x0.8", "mass_x1.25", "mass_x1.5", "mass_x2", "mass_random",
-    "com_2cm", "gear_x0.8", "gear_x0.65", "gear_x0.5", "damping_x2",
-    "friction_0.2", "contact_3x_softer", "contact_10x_softer", "foot_x0.7", "contacts_off",
-    "whitebox_start", "rigid_contact_start",
-)  # fmt: skip
-
-# suite own_arm: the shipped arms (`mbrl_delan.systems.arms.ARMS`) and the fits' models
-OWN_ARM_ROBOTS = ("panda", "iiwa14", "ur5e")
-OWN_ARM_MODELS = ("delan", "mlp", "white_box")
 
 
 class UnknownSuiteError(KeyError):
@@ -90,11 +47,11 @@ class UnknownSuiteError(KeyError):
 
 
 def get_suite(name: str) -> Suite:
-    if name not in _SUITES:
+    if name not in SUITES:
         raise UnknownSuiteError(
             f"unknown benchmark suite {name!r}; valid suites: {', '.join(SUITE_NAMES)}"
         )
-    module, function = _SUITES[name].split(":")
+    module, function = SUITES[name].split(":")
     return getattr(importlib.import_module(module), function)
 
 

@@ -174,7 +174,7 @@ def reference_episode(
     cfg: DictConfig, parts: EnvParts, steps: int, seed: int, nthread: int
 ) -> FidelityReference:
     """The oracle's episode from the start of `seed` with its candidates recorded."""
-    from mbrl_delan.train import build_oracle  # the entry point's parts: imported when used
+    from mbrl_delan.conf.loop import build_oracle
 
     oracle = build_oracle(cfg, parts.system, parts.task)
     recorder = CandidateRecorder(oracle.objective_factory)
@@ -195,7 +195,7 @@ def steps_survived(
 ) -> int:
     """Control steps the loop's planner keeps the humanoid up, planning in `model` and acting
     in the env from the start of `seed` (at most `steps`)."""
-    from mbrl_delan.train import build_policy
+    from mbrl_delan.conf.loop import build_policy
 
     generator = torch.Generator().manual_seed(seed)
     policy = build_policy(cfg, parts.system, parts.task, model, generator)
@@ -247,7 +247,7 @@ def _case(
     cfg: DictConfig, parts: EnvParts, model: WorldModel, name: str, data: str,
     reference: FidelityReference, steps: int, seed: int, fields: dict[str, Any],
 ) -> Iterator[BenchRecord]:  # fmt: skip
-    from mbrl_delan.train import build_policy
+    from mbrl_delan.conf.loop import build_policy
 
     policy = build_policy(cfg, parts.system, parts.task, model, torch.Generator().manual_seed(0))
     try:

@@ -47,6 +47,8 @@ from mbrl_delan.benchmarks import (
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, make_dataset, validate_fit_config
+from mbrl_delan.conf.inverse import InverseContext, build_inverse_model
 from mbrl_delan.config import DTYPES, compose_config
 from mbrl_delan.data.mocap import (
     ClipFiles,
@@ -61,7 +63,6 @@ from mbrl_delan.data.mocap import (
     split_dataset,
 )
 from mbrl_delan.data.mocap.retarget import joint_layout
-from mbrl_delan.fit import FIT_CONFIG_DIR, build_inverse_model, make_dataset, validate_fit_config
 from mbrl_delan.models.inverse import MODEL_NAMES, InverseDynamicsModel
 from mbrl_delan.systems.system import JointLayout
 from mbrl_delan.training.inverse_fit import InverseFitSettings, train_epoch
@@ -206,10 +207,10 @@ def make_inverse_model(
     (``dof_parents``, ``armature``: the MuJoCo model's ``dof_parentid`` and ``dof_armature``,
     for DeLaN's tree sparsity and known armature)."""
     fit = cfg.fit
-    return build_inverse_model(
-        cfg.models[name], layout, fit.loss.std_floor, fit.translation_invariant, dof_parents,
-        armature,
-    )  # fmt: skip
+    context = InverseContext(
+        layout, fit.loss.std_floor, fit.translation_invariant, dof_parents, armature
+    )
+    return build_inverse_model(cfg.models[name], context)
 
 
 def epoch_call(

@@ -60,7 +60,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 from torch import Tensor, nn
 from torchrl.modules.planners import CEMPlanner as TorchRLCEMPlanner
@@ -79,7 +79,7 @@ from mbrl_delan.benchmarks import (
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
-from mbrl_delan.config import build_model, compose_train_config
+from mbrl_delan.config import CONFIG_DIR, ConfigError, build_model, compose_train_config
 from mbrl_delan.config import build_planner as config_build_planner
 from mbrl_delan.envs.model_env import ModelEnv
 from mbrl_delan.envs.modules import ReturnToGo
@@ -93,6 +93,7 @@ from mbrl_delan.objectives.mujoco import MujocoObjectiveFactory, mujoco_objectiv
 from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.registry import PLANNERS as REGISTERED_PLANNERS
 from mbrl_delan.systems.external import humanoid_v5_xml
 from mbrl_delan.systems.system import State, System, load_system
 from mbrl_delan.tasks.base import Task
@@ -263,14 +264,30 @@ def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
 
 
 def planner_config(kind: str, setting: Setting) -> DictConfig:
-    """The loop's `planner=kind` with the setting's N, H and iterations (num_elites <= N)."""
+    """The loop's `planner=kind` with the setting's N, H and iterations (num_elites <= N); a
+    plugin's planner without a YAML file among the loop's: its schema's defaults."""
     n, h, i = setting.num_samples, setting.horizon, setting.iterations
+    if not (CONFIG_DIR / "planner" / f"{kind}.yaml").is_file():
+        return _schema_planner_config(kind, setting)
     overrides = [f"planner={kind}", f"planner.num_samples={n}", f"planner.horizon={h}"]
     overrides.append(f"planner.iterations={i}")
     elites = loop_config(f"planner={kind}").planner.get("num_elites")
     if elites is not None:
         overrides.append(f"planner.num_elites={min(elites, n)}")
     return loop_config(*overrides).planner
+
+
+def _schema_planner_config(kind: str, setting: Setting) -> DictConfig:
+    """A registered planner's config from its schema's defaults and the setting."""
+    schema = REGISTERED_PLANNERS[kind].schema
+    if schema is None:
+        raise ConfigError(
+            f"planners: {kind!r} has neither a YAML file nor a schema with defaults to time it at"
+        )
+    cfg = OmegaConf.structured(schema)
+    cfg.name, cfg.num_samples = kind, setting.num_samples
+    cfg.horizon, cfg.iterations = setting.horizon, setting.iterations
+    return cfg
 
 
 def build_planner(

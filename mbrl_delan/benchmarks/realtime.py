@@ -127,7 +127,7 @@ def _fields(cfg: DictConfig, task: str, dynamics: str, control_dt: float) -> dic
 
 def mujoco_case(cfg: DictConfig, task: str, steps: int | None, seed: int) -> tuple[float, dict]:
     """The oracle's planning ms per control step over one episode, and `steps_survived`."""
-    from mbrl_delan.train import build_oracle  # the entry point's parts: imported when used
+    from mbrl_delan.conf.loop import build_oracle
 
     parts = make_env_parts(task, None, steps)
     policy = TimedPolicy(build_oracle(cfg, parts.system, parts.task))
@@ -161,7 +161,7 @@ def model_case(cfg: DictConfig, task: str, opts: SuiteOptions, seed: int) -> tup
     """The loop's policy over an untrained model: ms per control step, timed over whole
     replanning cycles (`planner.replan_every` calls of `act`, the first of them a
     warm-started plan) and divided by their length."""
-    from mbrl_delan.train import build_policy, build_world_model
+    from mbrl_delan.conf.loop import build_policy, build_world_model
 
     parts = make_env_parts(task, None, None)
     model = build_world_model(cfg, parts.system, opts.device, torch.float32)

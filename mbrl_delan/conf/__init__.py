@@ -1,0 +1,1 @@
+"""How runs are assembled from their configs (the fit's inverse-dynamics models: `inverse`)."""
