@@ -24,6 +24,7 @@ from mbrl_delan.benchmarks import (
     ILQR_TASKS,
     OWN_ARM_MODELS,
     PLANNER_MODELS,
+    PLUGIN_CASE_PREFIX,
     REALTIME_DYNAMICS,
     SuiteOptions,
     TimingConfig,
@@ -38,8 +39,8 @@ from mbrl_delan.config import (
     exit_on_config_errors,
     schema_error_message,
 )
-from mbrl_delan.registry import PLANNERS, PluginError, load_plugins
-from mbrl_delan.schema import BenchConfig
+from mbrl_delan.registry import MODELS, PLANNERS, PluginError, load_plugins
+from mbrl_delan.schema import MODEL_SCHEMAS, BenchConfig
 
 log = logging.getLogger("mbrl_delan.bench")
 
@@ -54,6 +55,11 @@ QUICK = {
 }
 
 
+def _plugin_cases() -> tuple[str, ...]:
+    """Suite planner's cases of the plugins' models: ``pendulum_<model>``."""
+    return tuple(PLUGIN_CASE_PREFIX + m for m in MODELS.names() if m not in MODEL_SCHEMAS)
+
+
 def _models(values: list[str] | None, suite: str) -> tuple[str, ...] | None:
     """None (the suite's default) or the suite's own model cases (suites humanoid and
     fidelity: or none; suite realtime: the dynamics planned on)."""
@@ -65,7 +71,7 @@ def _models(values: list[str] | None, suite: str) -> tuple[str, ...] | None:
         "realtime": REALTIME_DYNAMICS,
         "fidelity": FIDELITY_CASES,
         "own_arm": OWN_ARM_MODELS,
-    }.get(suite, PLANNER_MODELS)
+    }.get(suite, PLANNER_MODELS + _plugin_cases())
     if (not values and not humanoid) or any(v not in known for v in values):
         empty = " (or [] for none)" if humanoid else ""
         raise ConfigError(

@@ -16,8 +16,6 @@ from dataclasses import fields, is_dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
-import mujoco
-import numpy as np
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
@@ -26,26 +24,12 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
 from mbrl_delan.models.base import WorldModel
-from mbrl_delan.models.contact import ContactModel, JointLimits
-from mbrl_delan.models.delan import DeLaN
-from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
-from mbrl_delan.models.ensemble import GaussianEnsemble
-from mbrl_delan.models.structure import Structure
-from mbrl_delan.models.whitebox import IdentifyConfig, WhiteBoxModel
-from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus
-from mbrl_delan.planners.base import SamplingPlanner
-from mbrl_delan.planners.cem import CEMPlanner
-from mbrl_delan.planners.icem import ICEMPlanner
-from mbrl_delan.planners.mppi import MPPIPlanner
-from mbrl_delan.planners.predictive import PredictiveSampling
 from mbrl_delan.registry import ENVS, MODELS, PLANNERS, PluginError, load_plugins
 from mbrl_delan.schema import (
-    MODEL_SCHEMAS,
-    PLANNER_SCHEMAS,
+    ACCEL_KEYS,
     TrainConfig,
     field_rule,
 )
-from mbrl_delan.systems.system import FREE, System
 from mbrl_delan.training.checkpoint import RunWriteError
 from mbrl_delan.training.fit import FitConfig
 
@@ -236,9 +220,6 @@ MIGRATIONS: dict[str, Any] = {
     "planner.knots": None,
     "planner.interpolation": "linear",
     "model.init_from": None,
-    "model.cuda_graph": False,
-    "model.rollout_threads": None,
-    "model.compile_fit": False,
     "model.yaw_invariant": False,
     "model.contacts": False,
     "model.contact_solve": "explicit",  # one law for every point, stepped as a force
@@ -252,11 +233,20 @@ MIGRATIONS: dict[str, Any] = {
 }
 
 
+# keys that moved: where a run saved before the move had them -> where they are now
+MOVED = {f"model.{key}": f"accel.{key}" for key in ACCEL_KEYS}
+
+
 def migrate(cfg: DictConfig) -> DictConfig:
     """A run's saved config with the keys added since it was saved (`MIGRATIONS`), where its
-    model or planner has them (its schema lists them), filled with the values it ran with."""
+    model or planner has them (its schema lists them), filled with the values it ran with,
+    and the keys that moved (`MOVED`) in their new place."""
     out = cfg.copy()
     with open_dict(out):
+        for old, new in MOVED.items():
+            group, _, leaf = old.rpartition(".")
+            if leaf in (out.get(group) or {}):
+                OmegaConf.update(out, new, out[group].pop(leaf), force_add=True)
         for key, value in MIGRATIONS.items():
             group, _, leaf = key.rpartition(".")
             node = out if not group else out.get(group)
@@ -368,8 +358,8 @@ def _nearest(key: str, known: Sequence[str]) -> str:
 
 def _check_rules(cfg: DictConfig) -> None:
     """The rules between keys (single values are checked by `check_ranges`)."""
-    if cfg.model.get("cuda_graph", False) and not str(cfg.device).startswith("cuda"):
-        raise ConfigError(f"model.cuda_graph=true needs device=cuda, got device={cfg.device}")
+    if cfg.accel.cuda_graph and not str(cfg.device).startswith("cuda"):
+        raise ConfigError(f"accel.cuda_graph=true needs device=cuda, got device={cfg.device}")
     _check_buffer(cfg)
     if cfg.planner.replan_every > cfg.planner.horizon:
         raise ConfigError(
@@ -412,178 +402,3 @@ def check_rollout_steps(cfg: DictConfig, model: WorldModel) -> None:
             f"its {type(model).__name__} does not train on windows of transitions "
             "(WorldModel.trains_on_windows; a DeLaN does with model.loss=forward or both); use 1"
         )
-
-
-def delan_structure(cfg: DictConfig, system: System, **fixed: Any) -> Structure:
-    """The `Structure` a DeLaN model config (train's or fit's) describes on `system`.
-
-    ``tree_sparse`` and ``armature`` take the system's ``dof_parentid`` and ``dof_armature``;
-    `fixed` gives fields the config does not hold (the fit's ``translation_invariant``)."""
-    values: dict[str, Any] = {
-        name: cfg[name]
-        for name in ("hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb",
-                     "still_first_order", "translation_invariant", "yaw_invariant",
-                     "inertia_scaling", "residual")
-        if name in cfg
-    }  # fmt: skip
-    values["diagonal_init"] = values.get("inertia_scaling", False)
-    if cfg.get("tree_sparse", False):
-        values["dof_parents"] = system.mj_model().dof_parentid.tolist()
-    if cfg.get("armature", False):
-        values["armature"] = system.mj_model().dof_armature.tolist()
-    if cfg.get("known_root", False):
-        values["root_inertia"], values["root_weight"] = known_root(system)
-    return Structure(**(values | fixed))
-
-
-def known_root(system: System) -> tuple[tuple[float, ...], float]:
-    """A free root's six diagonal inertias at qpos0 (MuJoCo's M) and the body's weight m |g|
-    from the system's MJCF; a ConfigError without a free root."""
-    if not system.layout.types or system.layout.types[0] != FREE:
-        raise ConfigError(f"model.known_root=true needs a free root; {system.name} has none")
-    model = system.mj_model()
-    data = mujoco.MjData(model)
-    mujoco.mj_forward(model, data)
-    full = np.zeros((model.nv, model.nv))
-    mujoco.mj_fullM(model, data, full)
-    weight = float(model.body_mass.sum() * np.linalg.norm(model.opt.gravity))
-    return tuple(float(v) for v in np.diag(full)[:6]), weight
-
-
-def structure_overrides(structure: Structure, names: Sequence[str]) -> list[str]:
-    """The model-config overrides that give `structure`'s fields `names`."""
-    flags = {"dof_parents": "tree_sparse", "armature": "armature"}
-    overrides = []
-    for name in names:
-        value = getattr(structure, name)
-        if name in flags:
-            name, value = flags[name], value is not None
-        overrides.append(f"model.{name}={str(value).lower() if isinstance(value, bool) else value}")
-    return overrides
-
-
-def _delan_arguments(cfg: DictConfig, system: System) -> dict[str, Any]:
-    """The constructor arguments a DeLaN and every member of a DeLaN ensemble share."""
-    return dict(
-        layout=system.layout,
-        actuation=system.actuation.float(),
-        control_dt=system.control_dt,
-        structure=delan_structure(cfg, system),
-        integrator=cfg.integrator,
-        substeps=cfg.substeps,
-        loss=cfg.loss,
-        velocity_margin=cfg.velocity_margin,
-    )
-
-
-def build_model(cfg: DictConfig, system: System) -> WorldModel:
-    """The world model named by ``cfg.name`` (the model group), built by its registry entry."""
-    return MODELS[cfg.name].build(cfg, system)
-
-
-def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPlanner:
-    """The planner named by ``cfg.name`` (the planner group), built by its registry entry."""
-    return PLANNERS[cfg.name].build(cfg, system, dtype)
-
-
-@MODELS.register("delan", schema=MODEL_SCHEMAS["delan"])
-def _delan(cfg: DictConfig, system: System) -> DeLaN:
-    contact = None
-    if cfg.contacts:
-        implicit = cfg.contact_solve == "implicit"
-        contact = ContactModel.from_mujoco(system.mj_model(), implicit=implicit)
-    limits = JointLimits.from_mujoco(system.mj_model()) if cfg.joint_limits else None
-    return DeLaN(**_delan_arguments(cfg, system), contact=contact, limits=limits)
-
-
-@MODELS.register("delan_ensemble", schema=MODEL_SCHEMAS["delan_ensemble"])
-def _delan_ensemble(cfg: DictConfig, system: System) -> DeLaNEnsemble:
-    return DeLaNEnsemble(
-        **_delan_arguments(cfg, system),
-        ensemble_size=cfg.ensemble_size,
-        propagation=cfg.propagation,
-        bootstrap=cfg.bootstrap,
-    )
-
-
-@MODELS.register("ensemble", schema=MODEL_SCHEMAS["ensemble"])
-def _ensemble(cfg: DictConfig, system: System) -> GaussianEnsemble:
-    return GaussianEnsemble(
-        layout=system.layout,
-        nu=system.nu,
-        control_dt=system.control_dt,
-        ensemble_size=cfg.ensemble_size,
-        hidden=cfg.hidden,
-        layers=cfg.layers,
-        activation=cfg.activation,
-        propagation=cfg.propagation,
-    )
-
-
-@MODELS.register("whitebox", schema=MODEL_SCHEMAS["whitebox"])
-def _whitebox(cfg: DictConfig, system: System) -> WhiteBoxModel:
-    model = WhiteBoxModel(
-        system,
-        physics=PlanPhysics(cfg.substeps, cfg.integrator),
-        identify=IdentifyConfig(cfg.window, cfg.windows, cfg.iterations, cfg.fd_step),
-        nthread=min(available_cpus(), 8),
-    )
-    if cfg.start == "documented":
-        model.set_multipliers(model.white.documented_start())
-    return model
-
-
-def _planner_arguments(cfg: DictConfig, system: System, dtype: torch.dtype) -> dict[str, Any]:
-    """The constructor arguments every sampling planner takes."""
-    return dict(
-        horizon=cfg.horizon,
-        action_low=system.ctrl_low,
-        action_high=system.ctrl_high,
-        num_samples=cfg.num_samples,
-        iterations=cfg.iterations,
-        dtype=dtype,
-        knots=cfg.knots,
-        interpolation=cfg.interpolation,
-    )
-
-
-@PLANNERS.register("cem", schema=PLANNER_SCHEMAS["cem"])
-def _cem(cfg: DictConfig, system: System, dtype: torch.dtype) -> CEMPlanner:
-    return CEMPlanner(
-        num_elites=cfg.num_elites,
-        init_std=cfg.init_std,
-        min_std=cfg.min_std,
-        momentum=cfg.momentum,
-        **_planner_arguments(cfg, system, dtype),
-    )
-
-
-@PLANNERS.register("icem", schema=PLANNER_SCHEMAS["icem"])
-def _icem(cfg: DictConfig, system: System, dtype: torch.dtype) -> ICEMPlanner:
-    return ICEMPlanner(
-        num_elites=cfg.num_elites,
-        beta=cfg.beta,
-        decay=cfg.decay,
-        min_samples=cfg.min_samples,
-        keep_elites=cfg.keep_elites,
-        init_std=cfg.init_std,
-        min_std=cfg.min_std,
-        momentum=cfg.momentum,
-        return_best=cfg.return_best,
-        **_planner_arguments(cfg, system, dtype),
-    )
-
-
-@PLANNERS.register("predictive", schema=PLANNER_SCHEMAS["predictive"])
-def _predictive(cfg: DictConfig, system: System, dtype: torch.dtype) -> PredictiveSampling:
-    return PredictiveSampling(noise_std=cfg.noise_std, **_planner_arguments(cfg, system, dtype))
-
-
-@PLANNERS.register("mppi", schema=PLANNER_SCHEMAS["mppi"])
-def _mppi(cfg: DictConfig, system: System, dtype: torch.dtype) -> MPPIPlanner:
-    return MPPIPlanner(
-        temperature=cfg.temperature,
-        noise_std=cfg.noise_std,
-        smoothing=cfg.smoothing,
-        **_planner_arguments(cfg, system, dtype),
-    )

@@ -159,8 +159,8 @@ def register_env(
 
 # the package's own builders register themselves in these modules (read on first use)
 ENVS: Registry[Any] = Registry("env", ["mbrl_delan.envs.registry"])
-MODELS: Registry[Any] = Registry("model", ["mbrl_delan.config"])
-PLANNERS: Registry[Any] = Registry("planner", ["mbrl_delan.config"])
+MODELS: Registry[Any] = Registry("model", ["mbrl_delan.conf.builders"])
+PLANNERS: Registry[Any] = Registry("planner", ["mbrl_delan.conf.builders"])
 # fit's inverse-dynamics models (python -m mbrl_delan.fit model=NAME)
 INVERSE_MODELS: Registry[Any] = Registry("model", ["mbrl_delan.conf.inverse"])
 register_model = MODELS.register  # builder: (model config group, System) -> WorldModel

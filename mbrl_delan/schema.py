@@ -17,7 +17,7 @@ schema=...)`), an env YAML of their own extends ``/base_env@_here_``.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
@@ -174,10 +174,6 @@ class DeLaNConfig(_LagrangianConfig):
     contact_solve: str = rule("implicit", choices=("implicit", "explicit"))
     joint_limits: bool = False  # the MJCF's joint ranges as implicit one-sided springs
     init_from: str | None = None
-    compile: bool = MISSING
-    cuda_graph: bool = MISSING
-    rollout_threads: int | None = rule(None, low=1)
-    compile_fit: bool = MISSING
 
 
 @dataclass
@@ -307,6 +303,20 @@ class BufferConfig:
 
 
 @dataclass
+class AccelConfig:
+    """``accel``: how the loop's planning rollouts and refits run fast, for any world model
+    (`mbrl_delan.accelerate` through `objectives.model.model_objective_factory`)."""
+
+    compile: bool = False
+    cuda_graph: bool = False
+    rollout_threads: int | None = rule(None, low=1)
+    compile_fit: bool = False
+
+
+ACCEL_KEYS = tuple(f.name for f in fields(AccelConfig))
+
+
+@dataclass
 class TrainConfig:
     """The whole config of ``python -m mbrl_delan.train``."""
 
@@ -317,6 +327,7 @@ class TrainConfig:
     budget: BudgetConfig = MISSING
     buffer: BufferConfig = MISSING
     fit: FitConfig = MISSING
+    accel: AccelConfig = field(default_factory=AccelConfig)
     seed: int = rule(0, low=0)
     device: str = "cpu"
     dtype: str = rule("float32", choices=("float32", "float64"))

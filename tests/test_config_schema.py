@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mbrl_delan import train as train_module
 from mbrl_delan.config import (
@@ -108,16 +108,34 @@ def test_the_defaults_and_every_group_option_are_valid() -> None:
             assert config_error(f"model={model}", f"planner={planner}") is None
 
 
+def test_migrate_moves_the_acceleration_keys_an_old_delan_config_held() -> None:
+    """Runs saved before ``accel`` held its keys in the DeLaN's group: they move over, and a
+    saved config of a model that never had them gets the defaults."""
+    saved = OmegaConf.create(OmegaConf.to_container(compose_train("model=delan"), resolve=True))
+    with open_dict(saved):
+        del saved["accel"]
+        saved.model.update(compile=True, cuda_graph=False, rollout_threads=2, compile_fit=True)
+    typed = validate_train_config(migrate(saved))
+    assert OmegaConf.to_container(typed.accel) == {
+        "compile": True, "cuda_graph": False, "rollout_threads": 2, "compile_fit": True,
+    }  # fmt: skip
+    assert "compile" not in typed.model
+    other = OmegaConf.create(OmegaConf.to_container(compose_train("model=ensemble"), resolve=True))
+    with open_dict(other):
+        del other["accel"]
+    assert validate_train_config(migrate(other)).accel.compile is False
+
+
 def test_migrate_fills_keys_an_old_run_config_lacks() -> None:
     """A run saved before the keys existed resumes with the values it ran with."""
     cfg = compose_train("planner=mppi")
     saved = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
     for key in ("smoothing", "risk"):
         del saved.planner[key]
-    del saved.model["rollout_threads"], saved["plugins"], saved.buffer["device"]
+    del saved["plugins"], saved.buffer["device"]
     typed = validate_train_config(migrate(saved))
     assert typed.planner.smoothing == 0.0 and typed.planner.risk == 0.0
-    assert typed.model.rollout_threads is None and typed.buffer.device == "auto"
+    assert typed.buffer.device == "auto"
     assert list(typed.plugins) == []
     assert OmegaConf.get_type(typed) is TrainConfig
 

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from mbrl_delan.config import build_model, compose_train_config
+from mbrl_delan.conf.builders import build_model
+from mbrl_delan.config import compose_train_config
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.contact import (
     GRAVITY,

@@ -1,4 +1,4 @@
-"""Rollouts replayed from CUDA graphs (`model.cuda_graph`) score actions as eager calls do.
+"""Rollouts replayed from CUDA graphs (`accel.cuda_graph`) score actions as eager calls do.
 
 The CUDA tests run where a GPU is (they are skipped on CI's CPU machine); the CPU tests
 check that the option is refused or inert without one.
@@ -52,7 +52,7 @@ def test_cuda_graph_is_inert_on_cpu_tensors() -> None:
 
 def test_config_refuses_cuda_graph_without_cuda() -> None:
     with initialize_config_dir(config_dir=str(CONFIGS), version_base=None):
-        bad = compose(config_name="config", overrides=["model.cuda_graph=true", "device=cpu"])
+        bad = compose(config_name="config", overrides=["accel.cuda_graph=true", "device=cpu"])
     with pytest.raises(ConfigError, match="cuda_graph=true needs device=cuda"):
         validate_train_config(bad)
 

@@ -333,7 +333,7 @@ def test_compiled_inverse_fit_loss_and_gradients_equal_eager() -> None:
 
 @pytest.mark.slow
 def test_train_config_compile_fit_compiles_the_one_step_loss_as_eager() -> None:
-    """`model.compile_fit=true` reaches the loop's DeLaN, and the loop's one-step (forward)
+    """`accel.compile_fit=true` reaches the loop's DeLaN, and the loop's one-step (forward)
     loss and its gradient from the compiled graph equal eager autograd's."""
     from hydra import compose, initialize_config_dir
 
@@ -343,7 +343,7 @@ def test_train_config_compile_fit_compiles_the_one_step_loss_as_eager() -> None:
     configs = str(CONFIG_DIR)
     with initialize_config_dir(config_dir=configs, version_base=None):
         default = compose("config", overrides=["env=pendulum", "model=delan"])
-        cfg = compose("config", overrides=["env=pendulum", "model=delan", "model.compile_fit=true"])
+        cfg = compose("config", overrides=["env=pendulum", "model=delan", "accel.compile_fit=true"])
     system = make_env_parts("pendulum").system
     models = []
     for config in (default, cfg):
@@ -383,14 +383,14 @@ def test_small_input_layers_keep_column_major_weights_with_the_same_values() -> 
 
 
 def test_model_error_compiles_nothing_in_a_compiled_loop(tmp_path: Path) -> None:
-    """With model.compile=true the planning rollouts compile; `model_error` steps the model
+    """With accel.compile=true the planning rollouts compile; `model_error` steps the model
     itself, eagerly, over episodes of any length (it once compiled a graph per length, each
     over 100 s on a humanoid)."""
     from mbrl_delan.conf.loop import build_loop
     from mbrl_delan.config import compose_train_config
     from mbrl_delan.training.loop import model_error, run_episode
 
-    cfg = compose_train_config(["model.compile=true", "model.hidden=8", "env.episode_len=12"])
+    cfg = compose_train_config(["accel.compile=true", "model.hidden=8", "env.episode_len=12"])
     loop, _ = build_loop(cfg, tmp_path)
     assert loop.policy.objective_factory.compile
     loop.collect_random(1)

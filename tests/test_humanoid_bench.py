@@ -31,7 +31,8 @@ from mbrl_delan.benchmarks.humanoid import (
     suite_config,
     tracking_errors,
 )
-from mbrl_delan.config import CONFIGS, ConfigError, build_model
+from mbrl_delan.conf.builders import build_model
+from mbrl_delan.config import CONFIGS, ConfigError
 from mbrl_delan.envs.registry import make_env_parts
 from tests.test_tracking import RUN_CLIP
 

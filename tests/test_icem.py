@@ -11,7 +11,8 @@ from test_model_env import DoubleIntegrator, EndlessQuadraticTask
 from torch import Tensor
 
 from mbrl_delan import keys
-from mbrl_delan.config import CONFIG_DIR, build_planner, validate_train_config
+from mbrl_delan.conf.builders import build_planner
+from mbrl_delan.config import CONFIG_DIR, validate_train_config
 from mbrl_delan.envs import make_env_parts, make_real_env
 from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.planners import CEMPlanner, ICEMPlanner, PlannerPolicy, colored_noise

@@ -20,13 +20,8 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from mbrl_delan.config import (
-    CONFIG_DIR,
-    ConfigError,
-    build_model,
-    build_planner,
-    validate_train_config,
-)
+from mbrl_delan.conf.builders import build_model, build_planner
+from mbrl_delan.config import CONFIG_DIR, ConfigError, validate_train_config
 from mbrl_delan.envs import make_env_parts, make_real_env
 from mbrl_delan.registry import ENVS, MODELS, PLANNERS, load_plugins
 
@@ -81,6 +76,21 @@ def test_a_plugin_schema_types_its_group(user_project: Path) -> None:
     ):
         with pytest.raises(ConfigError, match=expected):
             validate_train_config(_compose(user_project, *base, override))
+
+
+def test_a_plugin_model_gets_compiled_planning_from_accel(user_project: Path) -> None:
+    """``accel.*`` reaches any world model's planning objective: a plugin's schema need not
+    name compile, cuda_graph or rollout_threads."""
+    from mbrl_delan.conf.loop import build_policy
+
+    overrides = [f"plugins=[{PLUGIN}]", *PARTS, "accel.compile=true", "accel.rollout_threads=1"]
+    cfg = validate_train_config(_compose(user_project, *overrides))
+    assert "compile" not in cfg.model
+    parts = make_env_parts("slider")
+    model = build_model(cfg.model, parts.system)
+    policy = build_policy(cfg, parts.system, parts.task, model, torch.Generator())
+    assert policy.objective_factory.compile is True
+    assert policy.objective_factory.rollout_threads == 1
 
 
 def test_a_plugin_name_already_taken_is_refused(user_project: Path) -> None:
@@ -194,18 +204,20 @@ def test_fit_evaluate_and_load_run_with_the_users_inverse_model(
 
 @pytest.mark.slow
 def test_bench_times_the_users_planner(user_project: Path, tmp_path: Path) -> None:
-    """`bench suite=planner` with the plugin's planner (no YAML among the loop's: its
-    schema's defaults), on the suite's quick DeLaN case; an unregistered name is refused."""
+    """`bench suite=planner` with the plugin's planner and its model as a case
+    (``pendulum_linear``; no YAML among the loop's: their schemas' defaults) beside the
+    suite's DeLaN case; an unregistered name is refused."""
     out_file = tmp_path / "planner.jsonl"
     out = _run_module(
         user_project, "-m", "mbrl_delan.bench", "suite=planner", "quick=true",
-        f"plugins=[{PLUGIN}]", "planners=[shooting]", "torchrl=false", f"out={out_file}",
-        f"hydra.run.dir={tmp_path / 'bench'}",
+        f"plugins=[{PLUGIN}]", "planners=[shooting]", "models=[pendulum_delan,pendulum_linear]",
+        "torchrl=false", f"out={out_file}", f"hydra.run.dir={tmp_path / 'bench'}",
     )  # fmt: skip
     assert out.returncode == 0, out.stdout + out.stderr
     records = [json.loads(line) for line in out_file.read_text().splitlines()]
     latency = [r for r in records if r["metric"] == "plan_latency_ms"]
-    assert latency and all(r["planner"] == "shooting" for r in latency)
+    assert {r["model"] for r in latency} == {"pendulum_delan", "pendulum_linear"}
+    assert all(r["planner"] == "shooting" for r in latency)
     assert all(r["value"] is None or r["value"] > 0 for r in latency)
     out = _run_module(
         user_project, "-m", "mbrl_delan.bench", "suite=planner", "quick=true",

@@ -58,9 +58,9 @@ def test_an_ilqr_oracle_case_is_recorded_as_ilqr() -> None:
 
 def test_the_delan_case_plans_with_the_loops_policy() -> None:
     """The DeLaN case (eager here: compiling takes 5-40 s) times the loop's own policy."""
-    cfg = case_config("pendulum", "delan", ("model.compile=false", "planner.num_samples=16"))
+    cfg = case_config("pendulum", "delan", ("accel.compile=false", "planner.num_samples=16"))
     assert cfg.model.name == "delan" and cfg.planner.num_samples == 16
-    assert case_config("pendulum", "delan", ()).model.compile  # the suite's default: compiled
+    assert case_config("pendulum", "delan", ()).accel.compile  # the suite's default: compiled
     opts = SuiteOptions(nv=(2,), batch=(1,), device=torch.device("cpu"),
                         timing=TimingConfig(repeats=1, min_time_s=0.01, warmup=1))  # fmt: skip
     ms, timing = model_case(cfg, "pendulum", opts, seed=0)

@@ -275,7 +275,7 @@ def test_humanoid_walk_oracle_is_ilqr_on_the_cheaper_physics() -> None:
         ("seed=abc", "seed: Value 'abc' of type 'str' could not be converted to Integer"),
         ("seed=-3", "seed=-3 is not valid; it must be a whole number >= 0"),
         ("threads=0", "threads=0 is not valid; it must be a whole number >= 1"),
-        ("model.rollout_threads=0", "model.rollout_threads=0 is not valid; it must be a whole"),
+        ("accel.rollout_threads=0", "accel.rollout_threads=0 is not valid; it must be a whole"),
         ("model.lr=nan", "model.lr=nan is not valid; it must be a finite number > 0"),
         ("model.lr=0", "model.lr=0.0 is not valid"),
         ("model.weight_decay=-1", "model.weight_decay=-1.0 is not valid"),

@@ -175,7 +175,7 @@ def test_config_builds_yaw_invariant_humanoid_models_that_step_turned(name) -> N
 
     from hydra import compose, initialize_config_dir
 
-    from mbrl_delan.config import build_model
+    from mbrl_delan.conf.builders import build_model
     from mbrl_delan.envs.registry import make_env_parts
 
     configs = str(CONFIG_DIR)

@@ -1,4 +1,4 @@
-"""Whole rollouts replayed from CUDA graphs (`model.cuda_graph=true`).
+"""Whole rollouts replayed from CUDA graphs (`accel.cuda_graph=true`).
 
 On a GPU, one planning call of a small world model is thousands of short kernels: at batch
 1024 each runs for a few microseconds, so launching them from Python (eager) or from a

@@ -33,9 +33,9 @@ float32, built as ``python -m mbrl_delan.train env=pendulum model=delan`` (or
 - `pendulum_ensemble`: the MLP ensemble on the pendulum, 5 particles per sequence (TSinf).
 - `pendulum_oracle`: MuJoCo's true pendulum dynamics (`objectives/mujoco.py`, `mujoco.rollout` on
   torch's thread count), planners in float64 on the CPU as `train.py` builds the oracle.
-- `_compiled`: the case with `model.compile=true`; on CPU, where the rollout compiles as one
+- `_compiled`: the case with `accel.compile=true`; on CPU, where the rollout compiles as one
   loop, its samples are rolled out in `rollout_threads` shares on worker threads (None:
-  torch's thread count, as `model.rollout_threads: null`; records carry `rollout_threads`).
+  torch's thread count, as `accel.rollout_threads: null`; records carry `rollout_threads`).
 
 Planners are the loop's (``planner=KIND`` on ``env=pendulum``, `planner_config`) with N, H
 and the iterations of the setting, num_elites capped at N.
@@ -72,6 +72,7 @@ from mbrl_delan.benchmarks import (
     COMPILED_SUFFIX,
     GRAPH_SUFFIX,
     PLANNER_MODELS,
+    PLUGIN_CASE_PREFIX,
     SuiteOptions,
     Timing,
     host_fields,
@@ -79,8 +80,9 @@ from mbrl_delan.benchmarks import (
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
-from mbrl_delan.config import CONFIG_DIR, ConfigError, build_model, compose_train_config
-from mbrl_delan.config import build_planner as config_build_planner
+from mbrl_delan.conf.builders import build_model
+from mbrl_delan.conf.builders import build_planner as config_build_planner
+from mbrl_delan.config import CONFIG_DIR, ConfigError, compose_train_config
 from mbrl_delan.envs.model_env import ModelEnv
 from mbrl_delan.envs.modules import ReturnToGo
 from mbrl_delan.envs.registry import make_env_parts
@@ -93,6 +95,7 @@ from mbrl_delan.objectives.mujoco import MujocoObjectiveFactory, mujoco_objectiv
 from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.registry import MODELS as REGISTERED_MODELS
 from mbrl_delan.registry import PLANNERS as REGISTERED_PLANNERS
 from mbrl_delan.systems.external import humanoid_v5_xml
 from mbrl_delan.systems.system import State, System, load_system
@@ -231,8 +234,22 @@ def build_ensemble(system: System) -> GaussianEnsemble:
     return build_model(loop_config(MODEL_CONFIGS["ensemble"]).model, system)
 
 
+def model_config(kind: str) -> DictConfig:
+    """The loop's `model=kind` on the pendulum; a plugin's model without a YAML file among the
+    loop's: its schema's defaults (or none but its name, for a model without a schema)."""
+    if (CONFIG_DIR / "model" / f"{kind}.yaml").is_file():
+        return loop_config(f"model={kind}").model
+    schema = REGISTERED_MODELS[kind].schema
+    cfg = OmegaConf.structured(schema) if schema is not None else OmegaConf.create({})
+    cfg.name = kind
+    if "particles" not in cfg:
+        cfg.particles = 1
+    return cfg
+
+
 def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
-    """The world-model case `name` (one of `PLANNER_MODELS`), its model on `device`."""
+    """The world-model case `name` (one of `PLANNER_MODELS`, or ``pendulum_<model>`` for a
+    plugin's registered model), its model on `device`."""
     torch.manual_seed(seed)
     graph = name.endswith(GRAPH_SUFFIX)
     compiled = name.removesuffix(GRAPH_SUFFIX).endswith(COMPILED_SUFFIX)
@@ -251,6 +268,9 @@ def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
     elif name == "pendulum_ensemble":
         model = build_ensemble(system)
         particles = loop_config(MODEL_CONFIGS["ensemble"]).model.particles
+    elif name not in PLANNER_MODELS:  # pendulum_<a plugin's model>
+        cfg = model_config(name.removeprefix(PLUGIN_CASE_PREFIX))
+        model, particles = build_model(cfg, system), cfg.particles
     else:
         model = build_delan(system)
     if model is not None:

@@ -13,7 +13,7 @@ For each task in `tasks` (`humanoid_stand`, `humanoid_walk`, `pendulum`) and eac
   control step (the policy's calls only, not the env's steps); `steps_survived` is the
   number of control steps before the task terminated (the humanoid fell), or all of them.
 - `delan`, `ensemble`: an untrained model (timing does not depend on the weights) in
-  float32 on `device`, the DeLaN through the compiled path (`model.compile=true`).
+  float32 on `device`, the DeLaN through the compiled path (`accel.compile=true`).
   `plan_ms_per_control_step` is the time of `replan_every` calls of `act` from the task's
   start state (one warm-started plan, then the stored plan's next actions) divided by
   `replan_every`, timed as `TimingConfig` says (the median over `repeats` measurements).
@@ -59,7 +59,7 @@ log = logging.getLogger(__name__)
 SUITE = "realtime"
 METRIC = "plan_ms_per_control_step"
 # the learned models' planning path: the DeLaN compiled, as the loop runs it with compile on
-MODEL_OVERRIDES = {"delan": ("model=delan", "model.compile=true"), "ensemble": ("model=ensemble",)}
+MODEL_OVERRIDES = {"delan": ("model=delan", "accel.compile=true"), "ensemble": ("model=ensemble",)}
 QUICK_STEPS = 5  # control steps of a mujoco episode under `quick`
 PLANNER_FIELDS = ("num_samples", "iterations", "knots", "interpolation", "horizon", "replan_every")
 

@@ -20,8 +20,8 @@ SUITE_NAMES = tuple(SUITES)
 # world-model cases of suite planner (here so the entry point can check names without
 # importing the suite): DeLaN on the pendulum and on Humanoid-v5's layout, the MLP ensemble on
 # the pendulum, and MuJoCo's true pendulum dynamics (the oracle); the two DeLaN cases again
-# with every control step `torch.compile`d (`model.compile=true`), and on CUDA with each
-# rollout replayed from a CUDA graph, eager or compiled (`model.cuda_graph=true`)
+# with every control step `torch.compile`d (`accel.compile=true`), and on CUDA with each
+# rollout replayed from a CUDA graph, eager or compiled (`accel.cuda_graph=true`)
 PLANNER_MODELS = (
     "pendulum_delan",
     "humanoid_delan",
@@ -34,6 +34,7 @@ PLANNER_MODELS = (
     "pendulum_delan_compiled_graph",
     "humanoid_delan_compiled_graph",
 )
+PLUGIN_CASE_PREFIX = "pendulum_"  # suite planner: pendulum_<model>, a plugin's model
 COMPILED_SUFFIX = "_compiled"
 GRAPH_SUFFIX = "_graph"
 # world models of suite humanoid: DeLaN + residual, DeLaN + residual + the structured contact

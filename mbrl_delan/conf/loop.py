@@ -18,16 +18,18 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase, SerialEnv
 
 from mbrl_delan.accelerate.compile import compile_fit
+from mbrl_delan.conf.builders import (
+    build_model,
+    build_planner,
+    delan_structure,
+    structure_overrides,
+)
 from mbrl_delan.config import (
     DTYPES,
     ConfigError,
     build_fit_config,
-    build_model,
-    build_planner,
     check_device,
     check_rollout_steps,
-    delan_structure,
-    structure_overrides,
 )
 from mbrl_delan.data.buffer import (
     free_device_bytes,
@@ -135,7 +137,7 @@ def build_policy(
     cfg: DictConfig, system: System, task: Task, model: WorldModel, generator: torch.Generator
 ) -> PlannerPolicy:
     """The loop's policy: its planner over `model`'s imagined returns of `task` (compiled,
-    replayed from CUDA graphs or on rollout threads as ``model.*`` says), in the model's
+    replayed from CUDA graphs or on rollout threads as ``accel.*`` says), in the model's
     device and dtype; `generator` draws the model's noise."""
     place = model_placement(model)
     factory = model.objective_factory(task, cfg.planner.discount) or model_objective_factory(
@@ -145,9 +147,9 @@ def build_policy(
         discount=cfg.planner.discount,
         generator=generator,
         risk=cfg.planner.risk,
-        compile=cfg.model.get("compile", False),  # models without the key: never compiled
-        cuda_graph=cfg.model.get("cuda_graph", False),
-        rollout_threads=cfg.model.get("rollout_threads"),
+        compile=cfg.accel.compile,
+        cuda_graph=cfg.accel.cuda_graph,
+        rollout_threads=cfg.accel.rollout_threads,
     )
     planner = _planner(cfg, system, place.dtype)
     return _policy(cfg.planner, planner, factory, cfg.seed, place.device)
@@ -157,13 +159,13 @@ def build_world_model(
     cfg: DictConfig, system: System, device: torch.device, dtype: torch.dtype
 ) -> WorldModel:
     """The loop's world model on its device and dtype, its refits compiled with
-    ``model.compile_fit``."""
+    ``accel.compile_fit``."""
     try:
         model = build_model(cfg.model, system).to(device=device, dtype=dtype)
     except ValueError as err:  # a structure the env's system cannot have (yaw_invariant)
         raise ConfigError(f"model={cfg.model.name} on env={cfg.env.name}: {err}") from err
     check_rollout_steps(cfg, model)
-    if cfg.model.get("compile_fit", False):
+    if cfg.accel.compile_fit:
         compile_fit(model)
     return model
 

@@ -1,0 +1,210 @@
+"""The package's world models and planners built from their config groups: the registry's
+built-ins (`MODELS`: delan, delan_ensemble, ensemble, whitebox; `PLANNERS`: cem, icem,
+predictive, mppi), `build_model` and `build_planner` for any registered one, and the DeLaN
+`Structure` a config describes (`delan_structure`)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import mujoco
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from mbrl_delan.config import ConfigError  # noqa: E402
+from mbrl_delan.models.base import WorldModel
+from mbrl_delan.models.contact import ContactModel, JointLimits
+from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
+from mbrl_delan.models.ensemble import GaussianEnsemble
+from mbrl_delan.models.structure import Structure
+from mbrl_delan.models.whitebox import IdentifyConfig, WhiteBoxModel
+from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus
+from mbrl_delan.planners.base import SamplingPlanner
+from mbrl_delan.planners.cem import CEMPlanner
+from mbrl_delan.planners.icem import ICEMPlanner
+from mbrl_delan.planners.mppi import MPPIPlanner
+from mbrl_delan.planners.predictive import PredictiveSampling
+from mbrl_delan.registry import MODELS, PLANNERS
+from mbrl_delan.schema import (
+    MODEL_SCHEMAS,
+    PLANNER_SCHEMAS,
+)
+from mbrl_delan.systems.system import FREE, System
+
+
+def delan_structure(cfg: DictConfig, system: System, **fixed: Any) -> Structure:
+    """The `Structure` a DeLaN model config (train's or fit's) describes on `system`.
+
+    ``tree_sparse`` and ``armature`` take the system's ``dof_parentid`` and ``dof_armature``;
+    `fixed` gives fields the config does not hold (the fit's ``translation_invariant``)."""
+    values: dict[str, Any] = {
+        name: cfg[name]
+        for name in ("hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb",
+                     "still_first_order", "translation_invariant", "yaw_invariant",
+                     "inertia_scaling", "residual")
+        if name in cfg
+    }  # fmt: skip
+    values["diagonal_init"] = values.get("inertia_scaling", False)
+    if cfg.get("tree_sparse", False):
+        values["dof_parents"] = system.mj_model().dof_parentid.tolist()
+    if cfg.get("armature", False):
+        values["armature"] = system.mj_model().dof_armature.tolist()
+    if cfg.get("known_root", False):
+        values["root_inertia"], values["root_weight"] = known_root(system)
+    return Structure(**(values | fixed))
+
+
+def known_root(system: System) -> tuple[tuple[float, ...], float]:
+    """A free root's six diagonal inertias at qpos0 (MuJoCo's M) and the body's weight m |g|
+    from the system's MJCF; a ConfigError without a free root."""
+    if not system.layout.types or system.layout.types[0] != FREE:
+        raise ConfigError(f"model.known_root=true needs a free root; {system.name} has none")
+    model = system.mj_model()
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    full = np.zeros((model.nv, model.nv))
+    mujoco.mj_fullM(model, data, full)
+    weight = float(model.body_mass.sum() * np.linalg.norm(model.opt.gravity))
+    return tuple(float(v) for v in np.diag(full)[:6]), weight
+
+
+def structure_overrides(structure: Structure, names: Sequence[str]) -> list[str]:
+    """The model-config overrides that give `structure`'s fields `names`."""
+    flags = {"dof_parents": "tree_sparse", "armature": "armature"}
+    overrides = []
+    for name in names:
+        value = getattr(structure, name)
+        if name in flags:
+            name, value = flags[name], value is not None
+        overrides.append(f"model.{name}={str(value).lower() if isinstance(value, bool) else value}")
+    return overrides
+
+
+def _delan_arguments(cfg: DictConfig, system: System) -> dict[str, Any]:
+    """The constructor arguments a DeLaN and every member of a DeLaN ensemble share."""
+    return dict(
+        layout=system.layout,
+        actuation=system.actuation.float(),
+        control_dt=system.control_dt,
+        structure=delan_structure(cfg, system),
+        integrator=cfg.integrator,
+        substeps=cfg.substeps,
+        loss=cfg.loss,
+        velocity_margin=cfg.velocity_margin,
+    )
+
+
+def build_model(cfg: DictConfig, system: System) -> WorldModel:
+    """The world model named by ``cfg.name`` (the model group), built by its registry entry."""
+    return MODELS[cfg.name].build(cfg, system)
+
+
+def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPlanner:
+    """The planner named by ``cfg.name`` (the planner group), built by its registry entry."""
+    return PLANNERS[cfg.name].build(cfg, system, dtype)
+
+
+@MODELS.register("delan", schema=MODEL_SCHEMAS["delan"])
+def _delan(cfg: DictConfig, system: System) -> DeLaN:
+    contact = None
+    if cfg.contacts:
+        implicit = cfg.contact_solve == "implicit"
+        contact = ContactModel.from_mujoco(system.mj_model(), implicit=implicit)
+    limits = JointLimits.from_mujoco(system.mj_model()) if cfg.joint_limits else None
+    return DeLaN(**_delan_arguments(cfg, system), contact=contact, limits=limits)
+
+
+@MODELS.register("delan_ensemble", schema=MODEL_SCHEMAS["delan_ensemble"])
+def _delan_ensemble(cfg: DictConfig, system: System) -> DeLaNEnsemble:
+    return DeLaNEnsemble(
+        **_delan_arguments(cfg, system),
+        ensemble_size=cfg.ensemble_size,
+        propagation=cfg.propagation,
+        bootstrap=cfg.bootstrap,
+    )
+
+
+@MODELS.register("ensemble", schema=MODEL_SCHEMAS["ensemble"])
+def _ensemble(cfg: DictConfig, system: System) -> GaussianEnsemble:
+    return GaussianEnsemble(
+        layout=system.layout,
+        nu=system.nu,
+        control_dt=system.control_dt,
+        ensemble_size=cfg.ensemble_size,
+        hidden=cfg.hidden,
+        layers=cfg.layers,
+        activation=cfg.activation,
+        propagation=cfg.propagation,
+    )
+
+
+@MODELS.register("whitebox", schema=MODEL_SCHEMAS["whitebox"])
+def _whitebox(cfg: DictConfig, system: System) -> WhiteBoxModel:
+    model = WhiteBoxModel(
+        system,
+        physics=PlanPhysics(cfg.substeps, cfg.integrator),
+        identify=IdentifyConfig(cfg.window, cfg.windows, cfg.iterations, cfg.fd_step),
+        nthread=min(available_cpus(), 8),
+    )
+    if cfg.start == "documented":
+        model.set_multipliers(model.white.documented_start())
+    return model
+
+
+def _planner_arguments(cfg: DictConfig, system: System, dtype: torch.dtype) -> dict[str, Any]:
+    """The constructor arguments every sampling planner takes."""
+    return dict(
+        horizon=cfg.horizon,
+        action_low=system.ctrl_low,
+        action_high=system.ctrl_high,
+        num_samples=cfg.num_samples,
+        iterations=cfg.iterations,
+        dtype=dtype,
+        knots=cfg.knots,
+        interpolation=cfg.interpolation,
+    )
+
+
+@PLANNERS.register("cem", schema=PLANNER_SCHEMAS["cem"])
+def _cem(cfg: DictConfig, system: System, dtype: torch.dtype) -> CEMPlanner:
+    return CEMPlanner(
+        num_elites=cfg.num_elites,
+        init_std=cfg.init_std,
+        min_std=cfg.min_std,
+        momentum=cfg.momentum,
+        **_planner_arguments(cfg, system, dtype),
+    )
+
+
+@PLANNERS.register("icem", schema=PLANNER_SCHEMAS["icem"])
+def _icem(cfg: DictConfig, system: System, dtype: torch.dtype) -> ICEMPlanner:
+    return ICEMPlanner(
+        num_elites=cfg.num_elites,
+        beta=cfg.beta,
+        decay=cfg.decay,
+        min_samples=cfg.min_samples,
+        keep_elites=cfg.keep_elites,
+        init_std=cfg.init_std,
+        min_std=cfg.min_std,
+        momentum=cfg.momentum,
+        return_best=cfg.return_best,
+        **_planner_arguments(cfg, system, dtype),
+    )
+
+
+@PLANNERS.register("predictive", schema=PLANNER_SCHEMAS["predictive"])
+def _predictive(cfg: DictConfig, system: System, dtype: torch.dtype) -> PredictiveSampling:
+    return PredictiveSampling(noise_std=cfg.noise_std, **_planner_arguments(cfg, system, dtype))
+
+
+@PLANNERS.register("mppi", schema=PLANNER_SCHEMAS["mppi"])
+def _mppi(cfg: DictConfig, system: System, dtype: torch.dtype) -> MPPIPlanner:
+    return MPPIPlanner(
+        temperature=cfg.temperature,
+        noise_std=cfg.noise_std,
+        smoothing=cfg.smoothing,
+        **_planner_arguments(cfg, system, dtype),
+    )
