@@ -32,15 +32,15 @@ from mbrl_delan.benchmarks import (
     get_suite,
 )
 from mbrl_delan.benchmarks.records import RecordWriter, format_table
-from mbrl_delan.config import (
+from mbrl_delan.conf.checks import (
     ConfigError,
     check_device,
     check_ranges,
     exit_on_config_errors,
     schema_error_message,
 )
-from mbrl_delan.registry import MODELS, PLANNERS, PluginError, load_plugins
-from mbrl_delan.schema import MODEL_SCHEMAS, BenchConfig
+from mbrl_delan.conf.registry import MODELS, PLANNERS, PluginError, load_plugins
+from mbrl_delan.conf.schema import MODEL_SCHEMAS, BenchConfig
 
 log = logging.getLogger("mbrl_delan.bench")
 

@@ -29,17 +29,17 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from mbrl_delan.conf.checks import (
+    ConfigError,
+    exit_on_config_errors,
+    refuse_used_run_dir,
+)
 from mbrl_delan.conf.fitting import (  # the fit's engine; its Python API re-exported here
     RUN_FILES,
     FitResult,
     fit_inverse_dynamics,
     load_fit_model,
     run,
-)
-from mbrl_delan.config import (
-    ConfigError,
-    exit_on_config_errors,
-    refuse_used_run_dir,
 )
 from mbrl_delan.data.arrays import ArrayFormatError
 from mbrl_delan.data.buffer import NonFiniteDataError

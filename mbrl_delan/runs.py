@@ -16,7 +16,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
-from mbrl_delan.registry import load_plugins
+from mbrl_delan.conf.registry import load_plugins
 from mbrl_delan.training.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from mbrl_delan.training.recorder import RUN_CONFIG, SUMMARY_FILE
 
@@ -59,8 +59,8 @@ def load_run(run_dir: str | Path) -> Run:
 
 def _train_model(run_dir: Path) -> tuple[DictConfig, nn.Module]:
     """A train run's config and its world model with the checkpoint's weights."""
+    from mbrl_delan.conf.checks import DTYPES
     from mbrl_delan.conf.loop import build_world_model, env_parts
-    from mbrl_delan.config import DTYPES
 
     cfg = OmegaConf.load(run_dir / RUN_CONFIG)
     load_plugins(cfg.get("plugins") or [])  # a plugin's env or model, as the run had it

@@ -30,7 +30,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from mbrl_delan.config import (
+from mbrl_delan.conf.checks import (
     COMPOSE_ERRORS,
     ConfigError,
     exit_config_error,

@@ -18,6 +18,11 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from mbrl_delan.conf.checks import (
+    ConfigError,
+    exit_on_config_errors,
+    validate_train_config,
+)
 from mbrl_delan.conf.loop import (
     build_loop,
     schedule_of,
@@ -25,11 +30,6 @@ from mbrl_delan.conf.loop import (
     with_fit_structure,
 )
 from mbrl_delan.conf.videos import check_video, write_videos
-from mbrl_delan.config import (
-    ConfigError,
-    exit_on_config_errors,
-    validate_train_config,
-)
 from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.sweep import exit_or_raise, marks_crash, resumed_config, with_sweep_group

@@ -47,7 +47,7 @@ from mbrl_delan.benchmarks.records import (
     format_table,
     read_records,
 )
-from mbrl_delan.config import CONFIGS, ConfigError
+from mbrl_delan.conf.checks import CONFIGS, ConfigError
 
 METRICS = (
     "fwd_dyn_per_s",

@@ -175,7 +175,7 @@ def test_wandb_offline_by_default(tmp_path, monkeypatch):
 def test_wandb_options_from_a_logger_config() -> None:
     from omegaconf import OmegaConf
 
-    from mbrl_delan.config import compose_train_config
+    from mbrl_delan.conf.checks import compose_train_config
 
     cfg = compose_train_config(["logger.name=run1", "logger.tags=[a,b]", "logger.mode=disabled"])
     assert WandbOptions.of(cfg.logger) == WandbOptions("run1", ("a", "b"), None, "disabled")

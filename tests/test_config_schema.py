@@ -16,7 +16,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mbrl_delan import train as train_module
-from mbrl_delan.config import (
+from mbrl_delan.conf.checks import (
     COMPOSE_ERRORS,
     CONFIG_DIR,
     ConfigError,
@@ -24,7 +24,7 @@ from mbrl_delan.config import (
     migrate,
     validate_train_config,
 )
-from mbrl_delan.schema import MODEL_SCHEMAS, PLANNER_SCHEMAS, TrainConfig
+from mbrl_delan.conf.schema import MODEL_SCHEMAS, PLANNER_SCHEMAS, TrainConfig
 
 CONFIGS = str(CONFIG_DIR)
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from mbrl_delan.conf.builders import build_model
-from mbrl_delan.config import compose_train_config
+from mbrl_delan.conf.checks import compose_train_config
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.contact import (
     GRAVITY,

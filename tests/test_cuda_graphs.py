@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 
 from mbrl_delan.accelerate import GraphedCalls
 from mbrl_delan.benchmarks.planner import build_delan
-from mbrl_delan.config import CONFIG_DIR, ConfigError, validate_train_config
+from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError, validate_train_config
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.objectives.model import model_objective_factory
 

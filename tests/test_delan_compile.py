@@ -11,7 +11,7 @@ from torch.nn import functional as F
 from mbrl_delan import keys
 from mbrl_delan.accelerate import CompiledLoop, CompiledStep
 from mbrl_delan.accelerate.compile import FitGraph, compile_fit
-from mbrl_delan.config import CONFIG_DIR
+from mbrl_delan.conf.checks import CONFIG_DIR
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.inverse import DeLaNInverse
@@ -386,8 +386,8 @@ def test_model_error_compiles_nothing_in_a_compiled_loop(tmp_path: Path) -> None
     """With accel.compile=true the planning rollouts compile; `model_error` steps the model
     itself, eagerly, over episodes of any length (it once compiled a graph per length, each
     over 100 s on a humanoid)."""
+    from mbrl_delan.conf.checks import compose_train_config
     from mbrl_delan.conf.loop import build_loop
-    from mbrl_delan.config import compose_train_config
     from mbrl_delan.training.loop import model_error, run_episode
 
     cfg = compose_train_config(["accel.compile=true", "model.hidden=8", "env.episode_len=12"])

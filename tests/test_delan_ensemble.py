@@ -17,7 +17,7 @@ from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.conf.builders import build_model
-from mbrl_delan.config import CONFIG_DIR, ConfigError, validate_train_config
+from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError, validate_train_config
 from mbrl_delan.data.synthetic import dynamics_dataset
 from mbrl_delan.envs import make_env_parts
 from mbrl_delan.models.delan import DeLaN

@@ -40,9 +40,9 @@ from omegaconf import DictConfig
 from mbrl_delan import bench, evaluate, fit_report, report
 from mbrl_delan.benchmarks import figures, own_arm
 from mbrl_delan.conf.builders import build_model, build_planner
+from mbrl_delan.conf.checks import DTYPES, validate_train_config
 from mbrl_delan.conf.fitting import validate_fit_config
 from mbrl_delan.conf.inverse import InverseContext, build_inverse_model
-from mbrl_delan.config import DTYPES, validate_train_config
 from mbrl_delan.data.mocap.retarget import joint_layout
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.systems.external import humanoid_cmu_xml

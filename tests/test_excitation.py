@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from mbrl_delan import keys
+from mbrl_delan.conf.checks import ConfigError, compose_config
 from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, _run
-from mbrl_delan.config import ConfigError, compose_config
 from mbrl_delan.data.arrays import read_arrays, save_arrays
 from mbrl_delan.data.excitation import (
     ExcitationSettings,

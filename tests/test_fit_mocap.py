@@ -27,9 +27,9 @@ from torch import nn
 
 from mbrl_delan import keys
 from mbrl_delan.conf.builders import build_model
+from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError
 from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, load_fit_model, run, validate_fit_config
 from mbrl_delan.conf.loop import start_mechanics, with_fit_structure
-from mbrl_delan.config import CONFIG_DIR, ConfigError
 from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.data.mocap import (
     ClipNotFoundError,

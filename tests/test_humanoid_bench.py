@@ -32,7 +32,7 @@ from mbrl_delan.benchmarks.humanoid import (
     tracking_errors,
 )
 from mbrl_delan.conf.builders import build_model
-from mbrl_delan.config import CONFIGS, ConfigError
+from mbrl_delan.conf.checks import CONFIGS, ConfigError
 from mbrl_delan.envs.registry import make_env_parts
 from tests.test_tracking import RUN_CLIP
 

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.conf.builders import build_planner
-from mbrl_delan.config import CONFIG_DIR, validate_train_config
+from mbrl_delan.conf.checks import CONFIG_DIR, validate_train_config
 from mbrl_delan.envs import make_env_parts, make_real_env
 from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.planners import CEMPlanner, ICEMPlanner, PlannerPolicy, colored_noise

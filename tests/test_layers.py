@@ -44,7 +44,7 @@ def test_nothing_below_the_entry_points_imports_them() -> None:
 
 
 def test_the_schemas_do_not_import_the_benchmarks() -> None:
-    imported = _imports(MODULES["mbrl_delan.schema"], top_level_only=False)
+    imported = _imports(MODULES["mbrl_delan.conf.schema"], top_level_only=False)
     assert not [name for name in imported if name.startswith("mbrl_delan.benchmarks")]
 
 

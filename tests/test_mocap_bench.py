@@ -22,7 +22,7 @@ from mbrl_delan.benchmarks.mocap import (
     run_mocap_suite,
 )
 from mbrl_delan.benchmarks.records import read_records
-from mbrl_delan.config import CONFIGS
+from mbrl_delan.conf.checks import CONFIGS
 from mbrl_delan.data.mocap import humanoid_cmu_xml
 
 MODELS = ("delan", "mlp", "ensemble")

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import Tensor
 
-from mbrl_delan.config import compose_train_config
+from mbrl_delan.conf.checks import compose_train_config
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.integrators import integrate
 

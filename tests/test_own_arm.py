@@ -13,7 +13,7 @@ from mbrl_delan.bench import build_options, run
 from mbrl_delan.benchmarks import OWN_ARM_ROBOTS, SUITE_NAMES, get_suite
 from mbrl_delan.benchmarks.own_arm import main, run_own_arm_suite, sample_curves
 from mbrl_delan.benchmarks.records import read_records
-from mbrl_delan.config import CONFIGS, ConfigError
+from mbrl_delan.conf.checks import CONFIGS, ConfigError
 from mbrl_delan.systems.arms import ARMS
 
 

@@ -37,7 +37,7 @@ from mbrl_delan.benchmarks.planner import (
     torchrl_model,
 )
 from mbrl_delan.benchmarks.records import BASE_FIELDS, RecordWriter, read_records
-from mbrl_delan.config import CONFIGS, ConfigError
+from mbrl_delan.conf.checks import CONFIGS, ConfigError
 
 OPTS = SuiteOptions(
     nv=(2,),

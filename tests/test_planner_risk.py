@@ -8,7 +8,7 @@ from hydra import compose, initialize_config_dir
 from tensordict import TensorDictBase
 from torch import Tensor
 
-from mbrl_delan.config import CONFIG_DIR, ConfigError, validate_train_config
+from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError, validate_train_config
 from mbrl_delan.models.base import LossOutput, WorldModel
 from mbrl_delan.objectives.base import risk_adjusted_return
 from mbrl_delan.objectives.model import model_objective_factory

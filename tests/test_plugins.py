@@ -21,9 +21,9 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from mbrl_delan.conf.builders import build_model, build_planner
-from mbrl_delan.config import CONFIG_DIR, ConfigError, validate_train_config
+from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError, validate_train_config
+from mbrl_delan.conf.registry import ENVS, MODELS, PLANNERS, load_plugins
 from mbrl_delan.envs import make_env_parts, make_real_env
-from mbrl_delan.registry import ENVS, MODELS, PLANNERS, load_plugins
 
 CONFIGS = str(CONFIG_DIR)
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "slider"
@@ -160,7 +160,7 @@ def _load_run_in_a_fresh_interpreter(root: Path, run_dir: Path) -> str:
 
 def test_a_plugin_registers_an_inverse_model_typed_by_its_schema(user_project: Path) -> None:
     from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, validate_fit_config
-    from mbrl_delan.registry import INVERSE_MODELS
+    from mbrl_delan.conf.registry import INVERSE_MODELS
 
     base = [f"plugins=[{PLUGIN}]", _fit_conf(user_project), "model=linear_inverse"]
     base += ["data=arrays", "data.path=x.npz", "data.joints=[slide]"]

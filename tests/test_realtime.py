@@ -24,7 +24,7 @@ from mbrl_delan.benchmarks.realtime import (
     case_config,
     model_case,
 )
-from mbrl_delan.config import CONFIGS, ConfigError, compose_train_config
+from mbrl_delan.conf.checks import CONFIGS, ConfigError, compose_train_config
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.objectives.mujoco import MujocoObjectiveFactory, PlanPhysics
 

@@ -13,8 +13,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from mbrl_delan.conf.checks import ConfigError, compose_config
 from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, _run, load_fit_model
-from mbrl_delan.config import ConfigError, compose_config
 from mbrl_delan.data.excitation import (
     ExcitationSettings,
     excitation_arrays,

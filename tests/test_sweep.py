@@ -13,7 +13,7 @@ import pytest
 from omegaconf import OmegaConf
 from tiny import TINY_TRAIN
 
-from mbrl_delan.config import CONFIG_DIR
+from mbrl_delan.conf.checks import CONFIG_DIR
 from mbrl_delan.report import main as report_main
 from mbrl_delan.sweep import CRASH_FILE, marks_crash, sweep_name
 

@@ -13,7 +13,7 @@ from torch import Tensor
 from torchrl.envs import StepCounter, TransformedEnv
 
 from mbrl_delan import keys
-from mbrl_delan.config import CONFIG_DIR
+from mbrl_delan.conf.checks import CONFIG_DIR
 from mbrl_delan.envs.model_env import ModelEnv
 from mbrl_delan.envs.real import env_parts_of, make_real_env
 from mbrl_delan.envs.registry import make_env_parts

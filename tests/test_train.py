@@ -18,7 +18,7 @@ from hydra import compose, initialize_config_dir
 from tiny import TINY_TRAIN
 
 from mbrl_delan import keys
-from mbrl_delan.config import CONFIG_DIR
+from mbrl_delan.conf.checks import CONFIG_DIR
 from mbrl_delan.training.checkpoint import load_checkpoint
 from mbrl_delan.training.loop import Schedule
 
@@ -230,8 +230,8 @@ def test_humanoid_walk_oracle_is_ilqr_on_the_cheaper_physics() -> None:
     horizon, on the env's planning physics (2 x 7.5 ms, Euler)."""
     import mujoco
 
+    from mbrl_delan.conf.checks import compose_train_config
     from mbrl_delan.conf.loop import build_oracle
-    from mbrl_delan.config import compose_train_config
     from mbrl_delan.envs.registry import make_env_parts
     from mbrl_delan.planners.humanoid_residual import HumanoidResidual
     from mbrl_delan.planners.ilqr import ILQRPlanner

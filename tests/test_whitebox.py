@@ -219,7 +219,7 @@ def test_fidelity_cases_scale_what_they_name(humanoid, case: str, factor: float)
     """The suite's scaled cases: every body's mass and inertia, or every actuator's gear, times
     the factor, and nothing else."""
     from mbrl_delan.benchmarks.fidelity import TASK, perturbed_model
-    from mbrl_delan.config import compose_train_config
+    from mbrl_delan.conf.checks import compose_train_config
 
     cfg = compose_train_config([f"env={TASK}"])
     true = humanoid.system.mj_model()

@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch import Tensor
 
-from mbrl_delan.config import CONFIG_DIR
+from mbrl_delan.conf.checks import CONFIG_DIR
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.features import rotation_matrix
 from mbrl_delan.models.integrators import integrate

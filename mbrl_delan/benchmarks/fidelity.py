@@ -35,7 +35,7 @@ from omegaconf import DictConfig
 
 from mbrl_delan.benchmarks import FIDELITY_CASES, SuiteOptions, host_fields
 from mbrl_delan.benchmarks.records import BenchRecord
-from mbrl_delan.config import compose_train_config
+from mbrl_delan.conf.checks import compose_train_config
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import EnvParts, make_env_parts
 from mbrl_delan.models.base import WorldModel

@@ -67,7 +67,7 @@ from mbrl_delan.benchmarks import (
 )
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.conf.builders import build_model, build_planner
-from mbrl_delan.config import ConfigError, compose_train_config
+from mbrl_delan.conf.checks import ConfigError, compose_train_config
 from mbrl_delan.envs.real import env_parts_of, make_real_env
 from mbrl_delan.envs.registry import TaskOptions, make_env_parts
 from mbrl_delan.models.base import WorldModel

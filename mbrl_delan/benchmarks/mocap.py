@@ -47,9 +47,9 @@ from mbrl_delan.benchmarks import (
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.checks import DTYPES, compose_config
 from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, make_dataset, validate_fit_config
 from mbrl_delan.conf.inverse import InverseContext, build_inverse_model
-from mbrl_delan.config import DTYPES, compose_config
 from mbrl_delan.data.mocap import (
     ClipFiles,
     ClipNotFoundError,

@@ -42,8 +42,8 @@ from mbrl_delan import keys
 from mbrl_delan.benchmarks import OWN_ARM_MODELS, OWN_ARM_ROBOTS, SuiteOptions, host_fields
 from mbrl_delan.benchmarks.figures import describe_curves, plot_error_curves, read_record_files
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.checks import compose_config
 from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, fit_splits
-from mbrl_delan.config import compose_config
 from mbrl_delan.models.inverse import DeLaNInverse, InverseDynamicsModel
 from mbrl_delan.models.rigid_body import WhiteBoxInverse
 

@@ -46,7 +46,7 @@ from mbrl_delan.benchmarks import (
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
-from mbrl_delan.config import compose_train_config
+from mbrl_delan.conf.checks import compose_train_config
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.planners.humanoid_residual import HUMANOID_ILQR

@@ -56,8 +56,8 @@ def rss_mb() -> float:
 def soak_rounds(rounds: int, device: str, extra: tuple[str, ...] = ()) -> list[dict[str, Any]]:
     """Run the loop for `rounds` rounds (`OVERRIDES`, then `extra`); per round its number,
     env steps, seconds and RSS."""
+    from mbrl_delan.conf.checks import CONFIG_DIR, compose_config, validate_train_config
     from mbrl_delan.conf.loop import build_loop, schedule_of
-    from mbrl_delan.config import CONFIG_DIR, compose_config, validate_train_config
     from mbrl_delan.training.loop import LoopHooks
 
     overrides = [*OVERRIDES, *extra, f"budget.iterations={rounds}", f"device={device}"]

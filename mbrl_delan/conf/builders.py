@@ -13,7 +13,12 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from mbrl_delan.config import ConfigError  # noqa: E402
+from mbrl_delan.conf.checks import ConfigError  # noqa: E402
+from mbrl_delan.conf.registry import MODELS, PLANNERS
+from mbrl_delan.conf.schema import (
+    MODEL_SCHEMAS,
+    PLANNER_SCHEMAS,
+)
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.contact import ContactModel, JointLimits
 from mbrl_delan.models.delan import DeLaN
@@ -27,11 +32,6 @@ from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.predictive import PredictiveSampling
-from mbrl_delan.registry import MODELS, PLANNERS
-from mbrl_delan.schema import (
-    MODEL_SCHEMAS,
-    PLANNER_SCHEMAS,
-)
 from mbrl_delan.systems.system import FREE, System
 
 

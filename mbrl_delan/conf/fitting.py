@@ -23,8 +23,7 @@ from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.accelerate.compile import compile_fit
-from mbrl_delan.conf.inverse import InverseContext, build_inverse_model
-from mbrl_delan.config import (
+from mbrl_delan.conf.checks import (
     CONFIGS,
     DTYPES,
     ConfigError,
@@ -35,6 +34,12 @@ from mbrl_delan.config import (
     compose_config,
     refuse_used_run_dir,
     schema_error_message,
+)
+from mbrl_delan.conf.inverse import InverseContext, build_inverse_model
+from mbrl_delan.conf.registry import (
+    INVERSE_MODELS,
+    PluginError,
+    load_plugins,
 )
 from mbrl_delan.data.arrays import SPLITS as ARRAY_SPLITS
 from mbrl_delan.data.arrays import VAL_BY, DerivativeSettings, save_arrays
@@ -71,11 +76,6 @@ from mbrl_delan.models.inverse import (
 )
 from mbrl_delan.models.rigid_body import WhiteBoxInverse
 from mbrl_delan.models.tangent_mlp import ACTIVATIONS as DELAN_ACTIVATIONS
-from mbrl_delan.registry import (
-    INVERSE_MODELS,
-    PluginError,
-    load_plugins,
-)
 from mbrl_delan.systems.arms import ARMS, arm
 from mbrl_delan.systems.system import HINGE, JOINT_TYPES
 from mbrl_delan.training.inverse_fit import (

@@ -1,6 +1,6 @@
 """Fit's inverse-dynamics models from their config group: the registry's built-ins (delan,
 mlp, ensemble, white_box) and `build_inverse_model`, which builds any registered one (a
-plugin's: `mbrl_delan.registry.register_inverse_model`) on an `InverseContext`."""
+plugin's: `mbrl_delan.conf.registry.register_inverse_model`) on an `InverseContext`."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ from dataclasses import dataclass
 import mujoco
 from omegaconf import DictConfig
 
-from mbrl_delan.config import ConfigError
+from mbrl_delan.conf.checks import ConfigError
+from mbrl_delan.conf.registry import INVERSE_MODELS, register_inverse_model
 from mbrl_delan.models.inverse import (
     DeLaNInverse,
     InverseDynamicsModel,
@@ -19,7 +20,6 @@ from mbrl_delan.models.inverse import (
 )
 from mbrl_delan.models.rigid_body import WhiteBoxInverse
 from mbrl_delan.models.structure import Structure
-from mbrl_delan.registry import INVERSE_MODELS, register_inverse_model
 from mbrl_delan.systems.system import JointLayout
 
 

@@ -24,7 +24,7 @@ from mbrl_delan.conf.builders import (
     delan_structure,
     structure_overrides,
 )
-from mbrl_delan.config import (
+from mbrl_delan.conf.checks import (
     DTYPES,
     ConfigError,
     build_fit_config,

@@ -9,8 +9,8 @@ from pathlib import Path
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
+from mbrl_delan.conf.checks import ConfigError
 from mbrl_delan.conf.loop import env_parts, schedule_of
-from mbrl_delan.config import ConfigError
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.tracking import MotionTracking
 from mbrl_delan.training.loop import MBRLLoop

@@ -47,7 +47,7 @@ class FitConfig:
             (a multi-step loss against compounding error; models with `trains_on_windows`).
     """
 
-    # metadata: the valid range, as the config checks read it (`mbrl_delan.schema.rule`)
+    # metadata: the valid range, as the config checks read it (`mbrl_delan.conf.schema.rule`)
     batch_size: int = field(default=256, metadata={"low": 1})
     max_epochs: int = field(default=100, metadata={"low": 1})
     val_fraction: float = field(default=0.1, metadata={"low": 0, "high": 1, "below": True})

@@ -7,10 +7,10 @@ so ``--help`` lists only the real choices) and each YAML file extends its schema
 defaults list (``- /base_env@_here_``), so a value of the wrong type
 (``budget.iterations=1.5``) or a key that does not exist fails when Hydra composes the config,
 naming the key. Ranges and the rules that tie keys together are checked by
-`mbrl_delan.config.validate_train_config`, which reads the ``low`` / ``high`` / ``choices``
+`mbrl_delan.conf.checks.validate_train_config`, which reads the ``low`` / ``high`` / ``choices``
 metadata of these fields (`field_rule`).
 
-A user's model or planner brings its own schema (`mbrl_delan.registry.register_model(name,
+A user's model or planner brings its own schema (`mbrl_delan.conf.registry.register_model(name,
 schema=...)`), an env YAML of their own extends ``/base_env@_here_``.
 """
 

@@ -3,7 +3,7 @@
 Each family maps a name (the config's ``env.name``, ``model.name``, ``planner.name``) to an
 entry, filled by a decorator where the part is defined::
 
-    from mbrl_delan.registry import register_model
+    from mbrl_delan.conf.registry import register_model
 
     @register_model("linear", schema=LinearConfig)
     def build_linear(cfg, system):  # cfg: the model group, system: the env's System

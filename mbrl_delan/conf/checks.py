@@ -23,13 +23,13 @@ from hydra.errors import HydraException, MissingConfigException
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
-from mbrl_delan.models.base import WorldModel
-from mbrl_delan.registry import ENVS, MODELS, PLANNERS, PluginError, load_plugins
-from mbrl_delan.schema import (
+from mbrl_delan.conf.registry import ENVS, MODELS, PLANNERS, PluginError, load_plugins
+from mbrl_delan.conf.schema import (
     ACCEL_KEYS,
     TrainConfig,
     field_rule,
 )
+from mbrl_delan.models.base import WorldModel
 from mbrl_delan.training.checkpoint import RunWriteError
 from mbrl_delan.training.fit import FitConfig
 
@@ -178,7 +178,7 @@ def check_device(device: str) -> torch.device:
     return dev
 
 
-CONFIGS = Path(__file__).resolve().parent / "configs"  # the YAML files, one folder per entry point
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # the YAML files, one folder per entry point
 CONFIG_DIR = CONFIGS / "train"  # python -m mbrl_delan.train's
 
 
@@ -271,7 +271,7 @@ def validate_train_config(cfg: DictConfig) -> DictConfig:
     written; a `ConfigError` names the first bad key. Returns the typed config.
 
     Loads the config's ``plugins`` first (their envs, models and planners), then: every group
-    merged into its schema (`mbrl_delan.schema`: types and unknown keys), every field's range
+    merged into its schema (`mbrl_delan.conf.schema`: types and unknown keys), every field's range
     (`check_ranges`: also NaN or inf in any float), the names against the registries, and the
     rules between keys (`_check_rules`).
     """
@@ -324,7 +324,7 @@ def schema_error_message(err: OmegaConfBaseException) -> str:
 
 
 def check_ranges(cfg: DictConfig, prefix: str = "") -> None:
-    """Every field of a typed node within its `rule` (`mbrl_delan.schema`), every float finite,
+    """Every field of a typed node within its `rule` (`mbrl_delan.conf.schema`), every float finite,
     recursively; the first that is not is a `ConfigError` naming its full key."""
     schema = OmegaConf.get_type(cfg)
     rules = {f.name: field_rule(f.metadata) for f in fields(schema)} if is_dataclass(schema) else {}
