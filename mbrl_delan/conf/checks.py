@@ -178,7 +178,7 @@ def check_device(device: str) -> torch.device:
     return dev
 
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # the YAML files, one folder per entry point
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # the YAML files, one dir per entry point
 CONFIG_DIR = CONFIGS / "train"  # python -m mbrl_delan.train's
 
 
