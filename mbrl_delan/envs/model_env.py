@@ -11,7 +11,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs.model_based import ModelBasedEnvBase
 
 from mbrl_delan import keys
-from mbrl_delan.envs.modules import TaskReward, world_model_wrapper
+from mbrl_delan.envs.modules import world_model_wrapper
 from mbrl_delan.models.base import WorldModel, model_placement
 from mbrl_delan.systems.system import System
 from mbrl_delan.tasks.base import Task
@@ -113,7 +113,7 @@ class ModelEnv(ModelBasedEnvBase):
             # a rollout started from a state without a step count (TorchRL's planners from a
             # real env without a StepCounter): step 0, for a task without time; set on the
             # input too, where a StepCounter on this env reads it
-            TaskReward(self.task, self.state_dtype).episode_step(tensordict, self.device)
+            self.world_model.get_reward_operator().episode_step(tensordict, self.device)
             count = torch.zeros((*tensordict.batch_size, 1), dtype=torch.long, device=self.device)
             tensordict.set(keys.STEP_COUNT, count)
         out = super()._step(tensordict)

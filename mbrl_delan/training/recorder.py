@@ -275,18 +275,23 @@ class Recorder:
             except Exception as err:  # noqa: BLE001 - see _init_wandb
                 log.warning("wandb summary update failed (%s)", err)
         if self._scalars is not None:
-            numbers = {
-                f"summary/{k}": float(v)
-                for k, v in values.items()
-                if isinstance(v, int | float) and not isinstance(v, bool)
-            }
-            writer = self._scalars.experiment
-            if hasattr(writer, "add_hparams"):  # TensorBoard: one hparams row for the run
-                writer.add_hparams(self._hparams, numbers, run_name=".")
-            else:
-                for name, value in numbers.items():
-                    self._scalars.log_scalar(name, value, step=self._last_step)
+            self._scalar_summary(values)
         return path
+
+    def _scalar_summary(self, values: Mapping[str, Any]) -> None:
+        """The summary's numbers as ``summary/<key>``: TensorBoard's hparams metrics (one
+        row for the run), the CSV logger's scalars at the last record's step."""
+        numbers = {
+            f"summary/{k}": float(v)
+            for k, v in values.items()
+            if isinstance(v, int | float) and not isinstance(v, bool)
+        }
+        writer = self._scalars.experiment
+        if hasattr(writer, "add_hparams"):
+            writer.add_hparams(self._hparams, numbers, run_name=".")
+            return
+        for name, value in numbers.items():
+            self._scalars.log_scalar(name, value, step=self._last_step)
 
     def log_artifact(self, path: str | Path, kind: str = "model") -> None:
         """The file `path` (a train run's final checkpoint, a fit's model) as a wandb artifact
