@@ -17,6 +17,7 @@ def python_blocks(text: str) -> list[str]:
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_the_torchrl_page_runs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
     monkeypatch.chdir(tmp_path)
     blocks = python_blocks(PAGE.read_text(encoding="utf-8"))

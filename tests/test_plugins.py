@@ -175,13 +175,16 @@ def test_a_plugin_registers_an_inverse_model_typed_by_its_schema(user_project: P
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_fit_evaluate_and_load_run_with_the_users_inverse_model(
-    user_project: Path, tmp_path: Path
+    user_project: Path, tmp_path: Path, run_main
 ) -> None:
     """The user's inverse-dynamics model through `fit` (exact on a slide with viscous
-    friction and a constant force), then `evaluate` and `load_run` in fresh interpreters,
-    which import the plugin from the run's saved config."""
+    friction and a constant force), then `evaluate` in a fresh interpreter, which imports the
+    plugin from the run's saved config (through `load_run`), and `load_run` there."""
     import numpy as np
+
+    from mbrl_delan.fit import main as fit_main
 
     rng = np.random.default_rng(0)
     q, qd, qdd = (rng.uniform(-1, 1, (600, 1)) for _ in range(3))
@@ -189,21 +192,28 @@ def test_fit_evaluate_and_load_run_with_the_users_inverse_model(
     trajectory = np.repeat(np.arange(6), 100)
     np.savez(data, q=q, qd=qd, qdd=qdd, tau=2 * qdd + 0.5 * qd + 1, dt=0.01, trajectory=trajectory)
     run_dir = tmp_path / "fit"
-    out = _run_module(
-        user_project, "-m", "mbrl_delan.fit", f"plugins=[{PLUGIN}]", _fit_conf(user_project),
-        "model=linear_inverse", "data=arrays", f"data.path={data}", "data.joints=[slide]",
-        "epochs=300", "lr=0.1", "logger=none", f"hydra.run.dir={run_dir}",
+    code, text = run_main(
+        fit_main, f"plugins=[{PLUGIN}]", _fit_conf(user_project), "model=linear_inverse",
+        "data=arrays", f"data.path={data}", "data.joints=[slide]", "epochs=300", "lr=0.1",
+        "logger=none", f"hydra.run.dir={run_dir}",
     )  # fmt: skip
-    assert out.returncode == 0, out.stdout + out.stderr
+    assert code == 0, text
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["model"] == "linear_inverse" and summary["test_r2"] > 0.999
-    out = _run_module(user_project, "-m", "mbrl_delan.evaluate", str(run_dir))
+    code = (
+        "import sys; from mbrl_delan.evaluate import main; from mbrl_delan.runs import load_run; "
+        f"print('evaluate exit', main([{str(run_dir)!r}])); "
+        "print('plugin loaded:', 'examples.slider.slider_parts' in sys.modules); "
+        f"print(type(load_run({str(run_dir)!r}).model).__name__)"
+    )
+    out = _run_module(user_project, "-c", code)
     assert out.returncode == 0, out.stdout + out.stderr
-    loaded = _load_run_in_a_fresh_interpreter(user_project, run_dir)
-    assert "fit LinearInverse" in loaded and "plugin loaded by load_run: True" in loaded
+    assert "evaluate exit 0" in out.stdout and "plugin loaded: True" in out.stdout, out.stdout
+    assert "LinearInverse" in out.stdout
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_bench_times_the_users_planner(user_project: Path, tmp_path: Path) -> None:
     """`bench suite=planner` with the plugin's planner and its model as a case
     (``pendulum_linear``; no YAML among the loop's: their schemas' defaults) beside the
