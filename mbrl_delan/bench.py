@@ -37,9 +37,10 @@ from mbrl_delan.conf.checks import (
     check_device,
     check_ranges,
     exit_on_config_errors,
+    load_config_plugins,
     schema_error_message,
 )
-from mbrl_delan.conf.registry import MODELS, PLANNERS, PluginError, load_plugins
+from mbrl_delan.conf.registry import MODELS, PLANNERS
 from mbrl_delan.conf.schema import MODEL_SCHEMAS, BenchConfig
 
 log = logging.getLogger("mbrl_delan.bench")
@@ -125,10 +126,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
     """Check the config and turn it into the suite's plain options (quick sizes applied),
     once its ``plugins`` are loaded (their planners count among `planners`' choices)."""
     typed = typed_bench_config(cfg)
-    try:
-        load_plugins(typed.plugins)
-    except PluginError as err:
-        raise ConfigError(str(err)) from err
+    load_config_plugins(typed)
     for name in typed.planners or ():
         if name not in PLANNERS:
             raise ConfigError(

@@ -16,7 +16,6 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
-from mbrl_delan.conf.registry import load_plugins
 from mbrl_delan.training.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from mbrl_delan.training.recorder import RUN_CONFIG, SUMMARY_FILE
 
@@ -59,11 +58,11 @@ def load_run(run_dir: str | Path) -> Run:
 
 def _train_model(run_dir: Path) -> tuple[DictConfig, nn.Module]:
     """A train run's config and its world model with the checkpoint's weights."""
-    from mbrl_delan.conf.checks import DTYPES
+    from mbrl_delan.conf.checks import DTYPES, load_config_plugins
     from mbrl_delan.conf.loop import build_world_model, env_parts
 
     cfg = OmegaConf.load(run_dir / RUN_CONFIG)
-    load_plugins(cfg.get("plugins") or [])  # a plugin's env or model, as the run had it
+    load_config_plugins(cfg)  # a plugin's env or model, as the run had it
     system = env_parts(cfg).system
     model = build_world_model(cfg, system, torch.device("cpu"), DTYPES[cfg.dtype])
     state = load_checkpoint(run_dir / CHECKPOINT_FILE)  # tensors and plain containers only

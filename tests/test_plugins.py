@@ -236,3 +236,18 @@ def test_bench_times_the_users_planner(user_project: Path, tmp_path: Path) -> No
         unknown = compose("config", overrides=["suite=planner", "planners=[no_such_planner]"])
     with pytest.raises(ConfigError, match="'no_such_planner' is not a registered planner"):
         build_options(unknown)
+
+
+def test_evaluate_names_a_plugin_the_run_saved_that_cannot_be_imported(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A run whose saved plugin is gone: `evaluate` ends with one line naming the module,
+    before it reads the checkpoint."""
+    from mbrl_delan.evaluate import main as evaluate_main
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "config.yaml").write_text("plugins: [no_such_plugin]\n")
+    (run_dir / "checkpoint.pt").write_bytes(b"")
+    assert evaluate_main([str(run_dir)]) == 2
+    assert "plugins: cannot import 'no_such_plugin'" in caplog.text, caplog.text

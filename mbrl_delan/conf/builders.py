@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from mbrl_delan.conf.checks import ConfigError  # noqa: E402
+from mbrl_delan.conf.checks import ConfigError
 from mbrl_delan.conf.registry import MODELS, PLANNERS
 from mbrl_delan.conf.schema import (
     MODEL_SCHEMAS,

@@ -266,6 +266,15 @@ def _has_field(cfg: DictConfig, group: str, leaf: str) -> bool:
     return schema is not None and leaf in {f.name for f in fields(schema)}
 
 
+def load_config_plugins(cfg: DictConfig) -> None:
+    """Import the modules of a config's ``plugins`` (train, fit, bench alike); one that
+    cannot be imported is a ConfigError naming it and the cause."""
+    try:
+        load_plugins(cfg.get("plugins") or [])
+    except PluginError as err:
+        raise ConfigError(str(err)) from err
+
+
 def validate_train_config(cfg: DictConfig) -> DictConfig:
     """The training config typed by its schemas and checked, before anything is built or
     written; a `ConfigError` names the first bad key. Returns the typed config.
@@ -275,10 +284,7 @@ def validate_train_config(cfg: DictConfig) -> DictConfig:
     (`check_ranges`: also NaN or inf in any float), the names against the registries, and the
     rules between keys (`_check_rules`).
     """
-    try:
-        load_plugins(cfg.get("plugins") or [])
-    except PluginError as err:
-        raise ConfigError(str(err)) from err
+    load_config_plugins(cfg)
     typed = typed_train_config(cfg)
     check_ranges(typed)
     for family, registry in (("env", ENVS), ("model", MODELS), ("planner", PLANNERS)):

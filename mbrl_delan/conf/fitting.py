@@ -32,14 +32,13 @@ from mbrl_delan.conf.checks import (
     check_ranges,
     check_whole,
     compose_config,
+    load_config_plugins,
     refuse_used_run_dir,
     schema_error_message,
 )
 from mbrl_delan.conf.inverse import InverseContext, build_inverse_model
 from mbrl_delan.conf.registry import (
     INVERSE_MODELS,
-    PluginError,
-    load_plugins,
 )
 from mbrl_delan.data.arrays import SPLITS as ARRAY_SPLITS
 from mbrl_delan.data.arrays import VAL_BY, DerivativeSettings, save_arrays
@@ -288,10 +287,7 @@ def _validate_data(cfg: DictConfig) -> None:
 def validate_fit_config(cfg: DictConfig) -> None:
     """Every value the fit entry point uses, checked before anything is built or written,
     once the config's ``plugins`` are loaded (their inverse-dynamics models)."""
-    try:
-        load_plugins(cfg.get("plugins") or [])
-    except PluginError as err:
-        raise ConfigError(str(err)) from err
+    load_config_plugins(cfg)
     _choice("dtype", cfg.dtype, tuple(DTYPES))
     check_device(cfg.device)
     check_whole("seed", cfg.seed, 0)
@@ -770,7 +766,7 @@ def load_fit_model(run_dir: str | Path) -> tuple[DictConfig, InverseDynamicsMode
     on the system its data name (the MJCF's tree and armature, or the joint list), once the
     run's ``plugins`` are loaded (a plugin's model)."""
     cfg, state = read_fit_run(run_dir)
-    load_plugins(cfg.get("plugins") or [])
+    load_config_plugins(cfg)
     model = build_system_model(cfg, system_of(read_provenance(run_dir)))
     model = model.to(DTYPES[cfg.get("dtype", "float32")])
     model.load_state_dict(state)
