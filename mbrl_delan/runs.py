@@ -17,7 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from mbrl_delan.training.checkpoint import CHECKPOINT_FILE, load_checkpoint
-from mbrl_delan.training.recorder import RUN_CONFIG, SUMMARY_FILE
+from mbrl_delan.training.recorder import RUN_CONFIG, SUMMARY_FILE, WEIGHTS_FILE
 
 FIT_MODEL_FILE = "model.pt"  # `mbrl_delan.fit.MODEL_FILE`
 
@@ -39,7 +39,8 @@ def load_run(run_dir: str | Path) -> Run:
     the modules of the run's ``plugins`` are imported first (its own env, model).
 
     Raises FileNotFoundError when `run_dir` holds neither a fit's ``model.pt`` nor a train
-    run's ``config.yaml`` and ``checkpoint.pt``."""
+    run's ``config.yaml`` with its ``checkpoint.pt`` or its final weights ``world_model.pt``
+    (a record folder)."""
     run_dir = Path(run_dir)
     summary_path = run_dir / SUMMARY_FILE
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else None
@@ -48,16 +49,18 @@ def load_run(run_dir: str | Path) -> Run:
 
         cfg, model = load_fit_model(run_dir)
         return Run("fit", run_dir, cfg, model, summary)
-    if (run_dir / RUN_CONFIG).is_file() and (run_dir / CHECKPOINT_FILE).is_file():
-        return Run("train", run_dir, *_train_model(run_dir), summary)
+    weights = [run_dir / f for f in (CHECKPOINT_FILE, WEIGHTS_FILE) if (run_dir / f).is_file()]
+    if (run_dir / RUN_CONFIG).is_file() and weights:
+        return Run("train", run_dir, *_train_model(run_dir, weights[0]), summary)
     raise FileNotFoundError(
         f"{run_dir} is not a finished run: it holds neither {FIT_MODEL_FILE} (fit) nor "
-        f"{RUN_CONFIG} and {CHECKPOINT_FILE} (train)"
+        f"{RUN_CONFIG} and {CHECKPOINT_FILE} or {WEIGHTS_FILE} (train)"
     )
 
 
-def _train_model(run_dir: Path) -> tuple[DictConfig, nn.Module]:
-    """A train run's config and its world model with the checkpoint's weights."""
+def _train_model(run_dir: Path, weights: Path) -> tuple[DictConfig, nn.Module]:
+    """A train run's config and its world model with the weights of its checkpoint or its
+    `WEIGHTS_FILE`."""
     from mbrl_delan.conf.checks import DTYPES, load_config_plugins
     from mbrl_delan.conf.loop import build_world_model, env_parts
 
@@ -65,6 +68,6 @@ def _train_model(run_dir: Path) -> tuple[DictConfig, nn.Module]:
     load_config_plugins(cfg)  # a plugin's env or model, as the run had it
     system = env_parts(cfg).system
     model = build_world_model(cfg, system, torch.device("cpu"), DTYPES[cfg.dtype])
-    state = load_checkpoint(run_dir / CHECKPOINT_FILE)  # tensors and plain containers only
-    model.load_state_dict(state["loop"]["model"])
+    state = load_checkpoint(weights)  # tensors and plain containers only
+    model.load_state_dict(state["loop"]["model"] if weights.name == CHECKPOINT_FILE else state)
     return cfg, model

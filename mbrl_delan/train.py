@@ -52,6 +52,7 @@ from mbrl_delan.training.recorder import (
     METRICS_FILE,
     RUN_CONFIG,
     SUMMARY_FILE,
+    WEIGHTS_FILE,
     Recorder,
     WandbOptions,
     read_metrics,
@@ -71,9 +72,17 @@ def _save(run_dir: Path, loop: MBRLLoop) -> None:
         "loop": loop.state_dict(),
         "rng": rng_state(),
         "oracle_returns": loop.oracle_returns,
+        "oracle_steps": loop.oracle_steps,
         "warmup_done": loop.warmup_done,
     }
     save_checkpoint(run_dir / CHECKPOINT_FILE, state)
+
+
+def _save_weights(run_dir: Path, loop: MBRLLoop) -> None:
+    """The final world model's state dict as `WEIGHTS_FILE`: small, where the checkpoint
+    holds the replay buffer too, so a record folder can keep it and be re-scored."""
+    state = loop.model.state_dict()
+    atomic_write(run_dir / WEIGHTS_FILE, lambda f: torch.save(state, f), keep_prev=False)
 
 
 def _resolve_run(cfg: DictConfig) -> tuple[DictConfig, Path, dict[str, Any] | None, bool]:
@@ -124,6 +133,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         loop.load_state_dict(state["loop"])
         set_rng_state(state["rng"])
         loop.oracle_returns, loop.warmup_done = state["oracle_returns"], state["warmup_done"]
+        loop.oracle_steps = state.get("oracle_steps")  # absent from older checkpoints
         log.info(
             "resumed %s at iteration %d (%d env steps)",
             run_dir,
@@ -151,6 +161,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     )
     with recorder:
         _run(cfg, run_dir, loop, oracle, recorder)
+        _save_weights(run_dir, loop)
         summary = _summary(cfg, run_dir, loop)
         recorder.write_summary(summary)
         for path in plot_run(run_dir):
@@ -241,8 +252,13 @@ def _summary(cfg: DictConfig, run_dir: Path, loop: MBRLLoop) -> dict[str, Any]:
             else None,
             "fraction_of_oracle": eval_mean / oracle_mean if oracle_mean else None,
             "eval_steps_median": last.get("eval_steps_median"),
-        },
+        }
+        | {key: last[key] for key in PAIRED_KEYS if key in last},
     )
+
+
+# a paired final evaluation's figures (`MBRLLoop.paired_figures`), in the summary too
+PAIRED_KEYS = ("paired_episodes", "falls", "oracle_falls", "both_stood", "standing_return_ratio")
 
 
 def _last_evaluation(run_dir: Path) -> dict[str, Any]:

@@ -21,17 +21,16 @@ from mbrl_delan.data.excitation import (
     inverse_dynamics,
     mass_matrix_error,
 )
-from mbrl_delan.models.rigid_body import (
-    WhiteBoxInverse,
+from mbrl_delan.models.inertial import (
     cholesky_of_pi,
     inertial_parameters,
     moving_bodies,
     physically_consistent,
     pi_from_cholesky,
     pseudo_inertia,
-    regressor,
     set_inertial_parameters,
 )
+from mbrl_delan.models.rigid_body import WhiteBoxInverse, regressor
 from mbrl_delan.systems.arms import arm_model
 
 # noise-free; 3 harmonics: the unfiltered differences' O(dt^2) error (qd, qdd) stays below the

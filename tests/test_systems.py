@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from mbrl_delan.systems.external import humanoid_cmu_xml, humanoid_v5_xml
 from mbrl_delan.systems.posarith import differentiate_pos, integrate_pos
 from mbrl_delan.systems.system import JointLayout, actuation_matrix, asset_path, load_system
 from mbrl_delan.tasks.acrobot import ACROBOT_GEAR
@@ -171,6 +172,24 @@ def test_actuation_matrix_is_gear_placement(name: str) -> None:
     for i in range(model.nu):
         placed[model.jnt_dofadr[model.actuator_trnid[i, 0]], i] = model.actuator_gear[i, 0]
     np.testing.assert_allclose(actuation_matrix(model), placed, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["humanoid_v5", "humanoid_cmu", "panda", "ur5e"])
+def test_actuation_matrix_gives_mujocos_actuator_force(name: str) -> None:
+    """B ctrl is MuJoCo's qfrc_actuator for controls anywhere in the range, also where the
+    range is narrower than 1 (Humanoid-v5's +-0.4, where ctrl = 1 is clamped)."""
+    if name == "humanoid_cmu":
+        pytest.importorskip("dm_control")
+    xml = {"humanoid_v5": humanoid_v5_xml, "humanoid_cmu": humanoid_cmu_xml}.get(name)
+    system = load_system(name if xml is None else xml())
+    model = system.mj_model()
+    data = mujoco.MjData(model)
+    rng = np.random.default_rng(0)
+    for _ in range(3):
+        data.ctrl[:] = rng.uniform(*model.actuator_ctrlrange.T)
+        mujoco.mj_forward(model, data)
+        tau = system.actuation.numpy() @ data.ctrl
+        np.testing.assert_allclose(tau, data.qfrc_actuator, atol=1e-9)
 
 
 @pytest.mark.parametrize("name", sorted(EXPECTED_B))

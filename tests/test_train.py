@@ -252,7 +252,7 @@ def test_humanoid_walk_oracle_is_ilqr_on_the_cheaper_physics() -> None:
     ("override", "expected"),
     [
         ("planner.horizon=-5", "planner.horizon=-5 is not valid; it must be a whole number >= 1"),
-        ("model.name=transformer", "choose one of: delan, delan_ensemble, ensemble"),
+        ("model.name=transformer", "choose one of: delan, tree, tree_delan, delan_ensemble, ensemble"),
         ("env.name=moon", "choose one of: pendulum, cartpole, acrobot, arm_reach"),
         ("device=tpu", "device='tpu'"),
         ("resume=/nonexistent/run", "no config.yaml in that folder"),

@@ -1,11 +1,13 @@
 """The package's world models and planners built from their config groups: the registry's
-built-ins (`MODELS`: delan, delan_ensemble, ensemble, whitebox; `PLANNERS`: cem, icem,
-predictive, mppi), `build_model` and `build_planner` for any registered one, and the DeLaN
-`Structure` a config describes (`delan_structure`)."""
+built-ins (`MODELS`: delan, tree, tree_delan, delan_ensemble, ensemble, whitebox;
+`PLANNERS`: cem, icem, predictive, mppi), `build_model` and `build_planner` for any
+registered one, and the DeLaN `Structure` a config describes (`delan_structure`)."""
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import mujoco
@@ -20,11 +22,17 @@ from mbrl_delan.conf.schema import (
     PLANNER_SCHEMAS,
 )
 from mbrl_delan.models.base import WorldModel
-from mbrl_delan.models.contact import ContactModel, JointLimits
+from mbrl_delan.models.contact import ContactModel, ContactPoints, JointLimits
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
 from mbrl_delan.models.ensemble import GaussianEnsemble
 from mbrl_delan.models.structure import Structure
+from mbrl_delan.models.tree import (
+    RigidBodyTree,
+    TreeStart,
+    documented_start,
+    geometric_start,
+)
 from mbrl_delan.models.whitebox import IdentifyConfig, WhiteBoxModel
 from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus
 from mbrl_delan.planners.base import SamplingPlanner
@@ -32,7 +40,10 @@ from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.predictive import PredictiveSampling
+from mbrl_delan.systems.forward_kinematics import ForwardKinematics
 from mbrl_delan.systems.system import FREE, System
+
+log = logging.getLogger(__name__)
 
 
 def delan_structure(cfg: DictConfig, system: System, **fixed: Any) -> Structure:
@@ -115,6 +126,69 @@ def _delan(cfg: DictConfig, system: System) -> DeLaN:
         contact = ContactModel.from_mujoco(system.mj_model(), implicit=implicit)
     limits = JointLimits.from_mujoco(system.mj_model()) if cfg.joint_limits else None
     return DeLaN(**_delan_arguments(cfg, system), contact=contact, limits=limits)
+
+
+@MODELS.register("tree_delan", schema=MODEL_SCHEMAS["tree_delan"])
+@MODELS.register("tree", schema=MODEL_SCHEMAS["tree"])
+def _tree(cfg: DictConfig, system: System) -> DeLaN:
+    """The MJCF's tree with learned inertias (`RigidBodyTree`) from `cfg.start`; the contact
+    model and joint limits where the system has a floor; with ``lagrangian_residual``,
+    DeLaN's networks beside it started near zero. What the tree's start knows stands in for
+    the MJCF's inertial numbers wherever the DeLaN would read them (a free root's units and
+    weight, the contact law's weight unit)."""
+    tree = RigidBodyTree.from_mujoco(system.mj_model(), tree_start(cfg, system))
+    gravity = float(np.linalg.norm(system.mj_model().opt.gravity))
+    weight = float(tree.total_mass().detach()) * gravity
+    contact, limits = _floor_parts(cfg, system, weight)
+    fixed: dict[str, Any] = {"residual": cfg.residual}
+    if cfg.lagrangian_residual:
+        fixed |= {"start_level": cfg.start_level, "friction_init": cfg.start_level}
+    if cfg.known_root:
+        fixed |= {"root_inertia": tree_root_inertia(tree, system), "root_weight": weight}
+    arguments = _delan_arguments(cfg, system) | {"structure": delan_structure(cfg, system,
+                                                                              **fixed)}  # fmt: skip
+    return DeLaN(**arguments, contact=contact, limits=limits, tree=tree,
+                 tree_residual=cfg.lagrangian_residual)  # fmt: skip
+
+
+def tree_start(cfg: DictConfig, system: System) -> TreeStart:
+    """The tree's start a model config names (``start``, ``total_mass``)."""
+    if cfg.start == "mjcf":
+        return TreeStart.of_model(system.mj_model())
+    spec = mujoco.MjSpec.from_file(str(system.xml_path))
+    make = geometric_start if cfg.start == "geometric" else documented_start
+    return make(spec, cfg.total_mass)
+
+
+def tree_root_inertia(tree: RigidBodyTree, system: System) -> tuple[float, ...]:
+    """A free root's six diagonal inertias at qpos0 by the tree's own numbers; a ConfigError
+    without a free root."""
+    if not system.layout.types or system.layout.types[0] != FREE:
+        raise ConfigError(f"model.known_root=true needs a free root; {system.name} has none")
+    q0 = torch.as_tensor(system.mj_model().qpos0, dtype=torch.float64)
+    with torch.no_grad():
+        diagonal = tree.mass_matrix(q0).diagonal()[:6]
+    return tuple(float(v) for v in diagonal)
+
+
+def _floor_parts(
+    cfg: DictConfig, system: System, weight: float
+) -> tuple[ContactModel | None, JointLimits | None]:
+    """The contact model (its weight unit `weight`) and the joint limits a config asks for,
+    where the system has a floor its geoms can touch (else none, logged)."""
+    model = system.mj_model()
+    contact = None
+    if cfg.contacts:
+        try:
+            points = ContactPoints.from_mujoco(model)
+        except ValueError as err:
+            log.info("model.contacts: none on %s (%s)", system.name, err)
+        else:
+            contact = ContactModel(ForwardKinematics.from_mujoco(model),
+                                   replace(points, weight=weight),
+                                   implicit=cfg.contact_solve == "implicit")  # fmt: skip
+    limits = JointLimits.from_mujoco(model) if cfg.joint_limits else None
+    return contact, limits
 
 
 @MODELS.register("delan_ensemble", schema=MODEL_SCHEMAS["delan_ensemble"])

@@ -333,4 +333,5 @@ def schedule_of(cfg: DictConfig) -> Schedule:
         eval_episodes=b.eval_episodes,
         final_eval_episodes=b.final_eval_episodes,
         env_steps=b.env_steps,
+        paired=b.paired,
     )

@@ -112,6 +112,8 @@ class EnvConfig:
     env_steps: int | None = rule(None, low=1)  # the run's env-step budget (null: rounds only)
     eval_every: int = rule(1, low=1)
     eval_episodes: int = rule(2, low=0)
+    final_eval_episodes: int = rule(5, low=0)
+    paired_eval: bool = False  # the final evaluation paired with the oracle's (budget.paired)
     model_integrator: str = rule("euler", choices=INTEGRATORS)
     model_substeps: int = rule(1, low=1)
     model_residual: bool = False
@@ -174,6 +176,21 @@ class DeLaNConfig(_LagrangianConfig):
     contact_solve: str = rule("implicit", choices=("implicit", "explicit"))
     joint_limits: bool = False  # the MJCF's joint ranges as implicit one-sided springs
     init_from: str | None = None
+
+
+TREE_STARTS = ("documented", "geometric", "mjcf")
+
+
+@dataclass
+class TreeConfig(DeLaNConfig):
+    """``model=tree`` and ``model=tree_delan``: the MJCF's kinematic tree with learned
+    inertias, damping and armature (`models/tree.py`), with DeLaN's networks as a residual
+    Lagrangian beside it where `lagrangian_residual` (tree_delan)."""
+
+    start: str = rule("documented", choices=TREE_STARTS)
+    total_mass: float | None = rule(None, low=0, above=True)  # kg; None: geometry at 1,000 kg/m^3
+    lagrangian_residual: bool = False
+    start_level: float = rule(2e-3, low=0, above=True)  # the residual's L diagonal, of its unit
 
 
 @dataclass
@@ -290,6 +307,7 @@ class BudgetConfig:
     oracle_episodes: int = rule(low=0)
     oracle_planner: str = rule(choices=("same", "ilqr"))
     collect_envs: int = rule(1, low=1)  # episodes collected at once, one per env
+    paired: bool = False  # the final evaluation and the oracle's share starts and planner seeds
 
 
 @dataclass
@@ -344,6 +362,8 @@ class TrainConfig:
 
 MODEL_SCHEMAS = {
     "delan": DeLaNConfig,
+    "tree": TreeConfig,
+    "tree_delan": TreeConfig,
     "delan_ensemble": DeLaNEnsembleConfig,
     "ensemble": EnsembleConfig,
     "whitebox": WhiteBoxConfig,

@@ -69,10 +69,27 @@ class WorldModel(nn.Module, abc.ABC):
         `training.fit.FitReport`."""
         raise NotImplementedError(f"{type(self).__name__} is fitted by its loss, not identified")
 
+    def rigid_body(self, q: Tensor) -> RigidBody | None:
+        """Its mass matrix, potential force and actuation at configurations q (..., nq), for
+        the rigid-body truth figures (`training.fidelity.rigid_body_metrics`); None: a model
+        without them (a black box)."""
+        return None
+
     def objective_factory(self, task: Any, discount: float = 1.0) -> Any | None:
         """Its own planning objective factory ((q0, qd0) -> objective over (N, H, nu)
         actions), or None: the planner rolls out `step` (`model_objective_factory`)."""
         return None
+
+
+@dataclass(frozen=True)
+class RigidBody:
+    """A model's rigid body at configurations (...): M (..., nv, nv), the generalized force
+    that holds the body still against gravity and the joints' springs (..., nv), and the
+    actuation B (nv, nu)."""
+
+    mass_matrix: Tensor
+    potential_force: Tensor
+    actuation: Tensor
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ from tensordict import TensorDictBase
 from torch import Tensor
 
 from mbrl_delan import keys
-from mbrl_delan.models.base import LossOutput, WorldModel
+from mbrl_delan.models.base import LossOutput, RigidBody, WorldModel
 from mbrl_delan.models.contact import (
     ContactModel,
     ImplicitTerms,
@@ -29,6 +29,7 @@ from mbrl_delan.models.lagrangian import (
     to_root_frame,
 )
 from mbrl_delan.models.structure import Structure
+from mbrl_delan.models.tree import RigidBodyTree, TreeDynamics
 from mbrl_delan.systems.posarith import differentiate_pos
 from mbrl_delan.systems.system import JointLayout, State
 
@@ -88,6 +89,11 @@ class DeLaN(WorldModel):
     joint ranges as stiff one-sided springs (`JointLimits`), always taken implicitly. When a
     step solves implicitly, the friction's slope is taken at the step's end as well.
 
+    `tree`: the known kinematic tree's rigid body with learned inertias (`RigidBodyTree`)
+    instead of the networks' M, V and friction; with `tree_residual` the networks' mechanics
+    are a residual Lagrangian beside it (`TreeDynamics`: M = M_tree + M_res, V = V_tree +
+    V_res, the friction added), started near zero by the structure's ``start_level``.
+
     Losses (`loss=`): 'forward' compares the integrated next state with the data, per DoF
     normalised by the std of the one-step change; 'inverse' compares the predicted torque
     B a with DeLaN's inverse dynamics at the finite-difference acceleration (or the batch's
@@ -128,6 +134,8 @@ class DeLaN(WorldModel):
         max_velocity: float = 100.0,
         contact: ContactModel | None = None,
         limits: JointLimits | None = None,
+        tree: RigidBodyTree | None = None,
+        tree_residual: bool = False,
     ) -> None:
         super().__init__()
         if integrator not in INTEGRATORS:
@@ -147,6 +155,11 @@ class DeLaN(WorldModel):
         self.layout, self.control_dt = layout, control_dt
         self.integrator, self.substeps, self.loss_kind = integrator, substeps, loss
         self.dynamics, self.residual = structure.build(layout, actuation)
+        if tree is not None:  # the known tree's rigid body, DeLaN's mechanics a residual
+            residual = self.dynamics if tree_residual else None
+            self.dynamics = TreeDynamics(tree, self.dynamics.actuation, residual)
+        elif tree_residual:
+            raise ValueError("tree_residual needs a tree")
         self.contact, self.limits = contact, limits
         n = layout.nv
         for name in ("q_scale", "qd_scale", "tau_scale"):
@@ -158,6 +171,12 @@ class DeLaN(WorldModel):
 
     def terms(self, q: Tensor, qd: Tensor) -> LagrangianTerms:
         return self.dynamics.terms(q, qd)
+
+    @torch.no_grad()
+    def rigid_body(self, q: Tensor) -> RigidBody:
+        """M(q), dV/dq (gravity and springs; the tree's g + k (q - q_spring)) and B."""
+        terms = self.dynamics.terms(q, torch.zeros(*q.shape[:-1], self.layout.nv).to(q))
+        return RigidBody(terms.mass_matrix, terms.gravity, self.dynamics.actuation)
 
     def acceleration(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
         """Forward dynamics under controls: (..., nq), (..., nv), (..., nu) -> (..., nv)."""
@@ -251,6 +270,8 @@ class DeLaN(WorldModel):
         if self.structure.inertia_scaling:
             self._fit_inertia_scale(data, tau)
         field = self.dynamics.field
+        if field is None:  # a tree without a residual Lagrangian: nothing learned has units
+            return
         field.features.standardize(q)
         if isinstance(field, LagrangianNetwork):
             field.start_height_weight(tau, self.structure.root_weight)
@@ -316,9 +337,9 @@ class DeLaN(WorldModel):
         tau_std, qdd_std = tau.std(dim=0), qdd.to(tau.dtype).std(dim=0)
         qd_rms = qd.pow(2).mean(dim=0).sqrt()
         known = _varies(tau_std) & _varies(qdd_std) & _varies(qd.std(dim=0))
-        if not known.any():
-            return
         field = self.dynamics.field
+        if not known.any() or field is None:
+            return
         inertia = _fill_geometric(tau_std / qdd_std, known)
         held = _varies(tau_std) & ~known  # torque without motion
         typical_qdd = qdd_std[known].log().mean().exp()

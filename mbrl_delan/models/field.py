@@ -3,6 +3,7 @@ and the unstructured residual force (`ResidualForce`)."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import torch
@@ -139,6 +140,19 @@ class LagrangianNetwork(MechanicsField):
         head = self.trunk.head
         head.weight[self.n :].zero_()
         head.bias[self.n :].zero_()
+
+    @torch.no_grad()
+    def start_small(self, level: float) -> None:
+        """`start_diagonal`, and L's diagonal at `level` of its units everywhere (its head's
+        weights zero): M starts at about level^2 of its units, V at 0 (a residual Lagrangian
+        beside a known rigid body, `models.tree.TreeDynamics`). A factor L L^T cannot start
+        at exactly zero: its gradient vanishes there."""
+        if level <= self.diag_shift:
+            raise ValueError(f"level must be > diag_shift ({self.diag_shift}), got {level}")
+        self.start_diagonal()
+        head = self.trunk.head
+        head.weight[: self.n].zero_()
+        head.bias[: self.n].fill_(math.log(math.expm1(level - self.diag_shift)))
 
     def _matrix_head(self) -> tuple[Tensor, Tensor]:
         """The L head laid out as the matrix L, row-major: weight (n*n, hidden), bias (n*n,).

@@ -51,6 +51,10 @@ class Structure:
         the data cannot (its generalized force is zero). None: from the data.
     root_weight: the body's weight m |g| (N); with `translation_invariant` the root height's
         potential starts at it (the data's mean root force is zero: contacts carry the body).
+    start_level: the mechanics start near zero, a residual Lagrangian beside a known rigid
+        body (`models.tree.TreeDynamics`): L's diagonal at this share of its units (M at its
+        square), V and L's other entries at 0 (`LagrangianNetwork.start_small`), the friction
+        at `friction_init`. None: as `diagonal_init` says.
     """
 
     hidden: int = 64
@@ -71,6 +75,7 @@ class Structure:
     residual: bool = False
     root_inertia: tuple[float, ...] | None = None
     root_weight: float | None = None
+    start_level: float | None = None
 
     # what M, V and the friction are made of: `load_mechanics` needs these equal
     MECHANICS: ClassVar[tuple[str, ...]] = (
@@ -145,7 +150,9 @@ class Structure:
             rotational_dofs=rotational_dofs(layout),
             armature=_armature(self.armature, n),
         )
-        if self.diagonal_init:
+        if self.start_level is not None:
+            network.start_small(self.start_level)
+        elif self.diagonal_init:
             network.start_diagonal()
         if not self.residual:
             return dynamics, None

@@ -39,7 +39,8 @@ from tensordict import TensorDictBase
 from torch import Tensor
 
 from mbrl_delan import keys
-from mbrl_delan.models.base import LossOutput, WorldModel
+from mbrl_delan.models.base import LossOutput, RigidBody, WorldModel
+from mbrl_delan.models.inertial import rigid_body_at
 from mbrl_delan.objectives.mujoco import (
     FULLPHYSICS,
     QPOS,
@@ -432,6 +433,14 @@ class WhiteBoxModel(WorldModel):
     def set_extra_state(self, state: dict[str, Any]) -> None:
         self._set_theta(state["theta"].numpy())
         self.identifications = int(state["identifications"])
+
+    def rigid_body(self, q: Tensor) -> RigidBody:
+        """M, the potential force at rest and B of the identified MJCF (`rigid_body_at`)."""
+        model, _ = self.mj_model()
+        flat = q.detach().to("cpu", torch.float64).reshape(-1, q.shape[-1]).numpy()
+        mass, force = rigid_body_at(model, flat)
+        as_q = lambda x: torch.from_numpy(x).to(q).reshape(*q.shape[:-1], *x.shape[1:])  # noqa: E731
+        return RigidBody(as_q(mass), as_q(force), self.system.actuation.to(q))
 
     def step(
         self, q: Tensor, qd: Tensor, action: Tensor, generator: torch.Generator | None = None

@@ -5,6 +5,7 @@ Nothing here learns; models and tasks read a `System` and never an `MjModel`.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -148,7 +149,11 @@ def asset_path(name: str) -> Path:
 
 
 def actuation_matrix(model: mujoco.MjModel) -> np.ndarray:
-    """B with tau = B @ ctrl, read from MuJoCo at qpos0 (constant for joint transmissions)."""
+    """B with tau = B @ ctrl, read from MuJoCo at qpos0 (constant for joint transmissions):
+    column i is the generalized force of ctrl_i = 1, the control range's clamp switched off
+    (a range narrower than 1, as Humanoid-v5's +-0.4, would scale the column by it)."""
+    model = copy.copy(model)  # MjModel's copy is a deep one
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL)
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     B = np.zeros((model.nv, model.nu))

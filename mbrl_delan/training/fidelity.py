@@ -17,6 +17,19 @@ world model on it:
 
 The steps a planner survives when it plans in the model and acts in the env is the fourth
 figure (`benchmarks/fidelity.py`; the loop's evaluation episodes).
+
+`rigid_body_metrics` compares a model's rigid body (`WorldModel.rigid_body`: DeLaN, the tree,
+the white box) with MuJoCo's at the reference's states (medians over the states):
+
+- ``mass_matrix_error``: |M - M*|_F / |M*|_F against `mj_fullM`;
+- ``total_mass_error``: |M_zz - m*| / m*, M_zz the free root's vertical translation (the
+  mass the body's weight acts on), m* the MJCF's total mass;
+- ``gravity_error``: |g - g*| / |g*|, g the force that holds the body at rest against gravity
+  and the joints' springs (DeLaN: dV/dq), g* MuJoCo's ``qfrc_bias - qfrc_passive`` at rest;
+- ``gravity_identity_residual``: |g_root - |gravity| M[root, z]| / |g_root| over the free
+  root's six rows (where no spring acts): 0 for any rigid body under uniform gravity;
+- ``actuation_response_error``: |M^-1 B - M*^-1 B|_F / |M*^-1 B|_F, the acceleration per unit
+  of action the planner feels.
 """
 
 from __future__ import annotations
@@ -34,8 +47,9 @@ from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.models.base import WorldModel, eval_mode, model_placement
+from mbrl_delan.models.inertial import rigid_body_at
 from mbrl_delan.objectives.mujoco import ENV_PHYSICS, MujocoObjectiveFactory
-from mbrl_delan.systems.system import System
+from mbrl_delan.systems.system import FREE, System
 from mbrl_delan.tasks.humanoid import HumanoidTask
 
 HORIZONS = (10, 30)  # head-height error horizons, control steps
@@ -209,6 +223,61 @@ def candidate_rank_rho(objective_factory: Any, reference: FidelityReference) -> 
         rho = spearmanr(model_returns.numpy(), reference.candidate_returns[c].numpy()).statistic
         rhos.append(0.0 if not math.isfinite(float(rho)) else float(rho))
     return float(np.mean(rhos))
+
+
+@dataclass
+class RigidBodyTruth:
+    """MuJoCo's rigid body at the reference's states (`rigid_body_at`)."""
+
+    q: Tensor  # (S, nq) float64
+    mass_matrix: Tensor  # (S, nv, nv)
+    potential_force: Tensor  # (S, nv)
+    actuation: Tensor  # (nv, nu)
+    total_mass: float
+    gravity: float  # |g|, m/s^2
+
+    @classmethod
+    def of(cls, system: System, q: Tensor) -> RigidBodyTruth:
+        model = system.mj_model()
+        mass, force = rigid_body_at(model, q.to(torch.float64).numpy())
+        return cls(q.to(torch.float64), torch.from_numpy(mass), torch.from_numpy(force),
+                   system.actuation.to(torch.float64), float(model.body_mass.sum()),
+                   float(np.linalg.norm(model.opt.gravity)))  # fmt: skip
+
+
+@torch.no_grad()
+def rigid_body_metrics(model: WorldModel, truth: RigidBodyTruth) -> dict[str, float]:
+    """The module docstring's rigid-body figures of `model` ({} for a model without a rigid
+    body); the total mass and the identity only for a free root (its z translation at v 2)."""
+    place = model_placement(model)
+    body = model.rigid_body(truth.q.to(place.device, place.dtype))
+    if body is None:
+        return {}
+    mass = body.mass_matrix.to("cpu", torch.float64)
+    force = body.potential_force.to("cpu", torch.float64)
+    B = body.actuation.to("cpu", torch.float64)
+    response = torch.linalg.solve(mass, B.expand(*mass.shape[:-1], B.shape[-1]))
+    true_response = torch.linalg.solve(truth.mass_matrix, truth.actuation.expand_as(response))
+    out = {
+        "mass_matrix_error": _median_relative(mass, truth.mass_matrix),
+        "gravity_error": _median_relative(force, truth.potential_force),
+        "actuation_response_error": _median_relative(response, true_response),
+    }
+    if model.layout is not None and model.layout.types[:1] == (FREE,):
+        m_zz = mass[:, 2, 2]
+        out["total_mass_error"] = float(((m_zz - truth.total_mass).abs() / truth.total_mass)
+                                        .median())  # fmt: skip
+        root = force[:, :6]
+        residual = root - truth.gravity * mass[:, :6, 2]
+        out["gravity_identity_residual"] = float((residual.norm(dim=-1) / root.norm(dim=-1))
+                                                 .median())  # fmt: skip
+    return out
+
+
+def _median_relative(x: Tensor, truth: Tensor) -> float:
+    """Median over the first dim of |x - truth| / |truth| (Frobenius over the rest)."""
+    error = (x - truth).flatten(1).norm(dim=-1) / truth.flatten(1).norm(dim=-1)
+    return float(error.median()) if bool(torch.isfinite(error).all()) else math.inf
 
 
 def _rms(x: Tensor) -> float:

@@ -40,14 +40,18 @@ from mbrl_delan.training.fidelity import (
     EVERY,
     CandidateRecorder,
     FidelityReference,
+    RigidBodyTruth,
     build_reference,
     fidelity_metrics,
+    rigid_body_metrics,
 )
 from mbrl_delan.training.fit import FitConfig, FitReport, fit_model
 
 log = logging.getLogger(__name__)
 
 EVAL_SEED_OFFSET = 1_000_003  # evaluation episodes use seeds disjoint from training ones
+# a paired evaluation seeds the planner of each episode with this + the episode's seed
+PLANNER_SEED_OFFSET = 7_000_001
 FIDELITY_STARTS = 32  # at most about this many starts of the oracle's episode in the reference
 
 
@@ -186,7 +190,8 @@ class Schedule:
     the first fit), then rounds until `iterations` rounds are done or, with `env_steps` set,
     until a round's collection brings the env steps (the warm-up's included) to `env_steps`;
     round k evaluates `eval_episodes` episodes when `eval_every` divides k, and the last round
-    `final_eval_episodes`."""
+    `final_eval_episodes`. With `paired`, the oracle and the final evaluation plan each
+    episode with the same planner seed (`PLANNER_SEED_OFFSET` + the episode's seed)."""
 
     oracle_episodes: int
     random_episodes: int
@@ -195,10 +200,16 @@ class Schedule:
     eval_episodes: int
     final_eval_episodes: int
     env_steps: int | None = None
+    paired: bool = False  # the final evaluation and the oracle's: the same planner seeds
 
     def is_last(self, k: int, env_steps: int) -> bool:
         """Whether round k (1-based) ends the run, `env_steps` collected by its end."""
         return k >= self.iterations or (self.env_steps is not None and env_steps >= self.env_steps)
+
+    def oracle_evaluations(self) -> int:
+        """The oracle's episodes: with `paired`, at least the final evaluation's (the same
+        starts and planner seeds)."""
+        return max(self.oracle_episodes, self.final_eval_episodes if self.paired else 0)
 
     def evaluations_at(self, k: int, env_steps: int) -> int:
         """Evaluation episodes of round k (1-based), `env_steps` collected by its end."""
@@ -242,6 +253,15 @@ class Evaluation:
     returns: list[float] = field(default_factory=list)
     rollouts: list[TensorDict] = field(default_factory=list)  # the first `keep_rollouts` kept
     steps: list[int] = field(default_factory=list)  # each episode's control steps
+
+    def falls(self, episode_len: int) -> int:
+        """Episodes that ended before `episode_len` steps (the task terminated them)."""
+        return sum(steps < episode_len for steps in self.steps)
+
+    def episode_records(self, episode_len: int) -> dict[str, Any]:
+        """Each episode's return and control steps, and the falls, for `metrics.jsonl`."""
+        return {"eval_episode_returns": list(self.returns), "eval_episode_steps": list(self.steps),
+                "eval_falls": self.falls(episode_len)}  # fmt: skip
 
     @property
     def median_steps(self) -> float:
@@ -289,6 +309,7 @@ class MBRLLoop:
         self.keep_eval_rollouts = keep_eval_rollouts  # e.g. for videos of evaluation episodes
         self.last_evaluation: Evaluation | None = None  # of the last `iterate`, if it evaluated
         self.oracle_returns: list[float] | None = None  # once `run` has evaluated the oracle
+        self.oracle_steps: list[int] | None = None  # its episodes' control steps
         # zero controls from the final evaluation's starts, once `run` has evaluated them
         self.zero_returns: list[float] | None = None
         self.oracle_rollouts: list[TensorDict] = []  # its first `keep_eval_rollouts` episodes
@@ -298,6 +319,7 @@ class MBRLLoop:
         # evaluation (`training.fidelity`); its reference, once the oracle has run
         self.fidelity_task = fidelity_task
         self.fidelity_reference: FidelityReference | None = None
+        self.rigid_body_truth: RigidBodyTruth | None = None  # MuJoCo's, at its states
 
     def run(
         self, schedule: Schedule, oracle: EpisodePolicy, hooks: LoopHooks | None = None
@@ -306,13 +328,15 @@ class MBRLLoop:
         state says is done): the oracle's returns, the warm-up, then the rounds left."""
         hooks = hooks or LoopHooks()
         if self.oracle_returns is None:
+            episodes = schedule.oracle_evaluations()
             log.info(
-                "evaluating the oracle planner on MuJoCo's dynamics (%d episodes)",
-                schedule.oracle_episodes,
-            )
+                "evaluating the oracle planner on MuJoCo's dynamics (%d episodes%s)",
+                episodes, ", paired" if schedule.paired else "",
+            )  # fmt: skip
             with self.timed():
-                ev = self._evaluate_oracle(oracle, schedule.oracle_episodes)
+                ev = self._evaluate_oracle(oracle, episodes, schedule.paired)
             self.oracle_returns, self.oracle_rollouts = ev.returns, ev.rollouts
+            self.oracle_steps = ev.steps
             hooks.checkpoint()
         if self.zero_returns is None:
             self.evaluate_zero(schedule.final_eval_episodes)
@@ -391,11 +415,18 @@ class MBRLLoop:
             self.model, self.optimizer, data, self.fit_config, self.fit_generator, dropped
         )
 
-    def evaluate(self, policy: EpisodePolicy, episodes: int, keep_rollouts: int = 0) -> Evaluation:
-        """Returns of `episodes` seeded episodes; the first `keep_rollouts` rollouts are kept."""
+    def evaluate(
+        self, policy: EpisodePolicy, episodes: int, keep_rollouts: int = 0, paired: bool = False
+    ) -> Evaluation:
+        """Returns of `episodes` seeded episodes; the first `keep_rollouts` rollouts are kept.
+        `paired`: each episode's planner seeded from the episode's seed (`PLANNER_SEED_OFFSET`),
+        so two policies evaluated so meet the same starts with the same planner noise."""
         seeds = [EVAL_SEED_OFFSET + self.seed * 100 + i for i in range(episodes)]
         ev = Evaluation()
+        generator = getattr(policy, "generator", None) if paired else None
         for i, s in enumerate(seeds):
+            if generator is not None:
+                generator.manual_seed(PLANNER_SEED_OFFSET + s)
             rollout = run_episode(self.eval_env, policy, s, self.episode_len)
             ev.returns.append(episode_return(rollout))
             ev.steps.append(int(rollout.shape[0]))
@@ -403,17 +434,17 @@ class MBRLLoop:
                 ev.rollouts.append(rollout)
         return ev
 
-    def _evaluate_oracle(self, oracle: EpisodePolicy, episodes: int) -> Evaluation:
-        """The oracle's evaluation; with a `fidelity_task`, its first episode's candidates
-        are recorded and become the fidelity reference."""
+    def _evaluate_oracle(self, oracle: EpisodePolicy, episodes: int, paired: bool) -> Evaluation:
+        """The oracle's evaluation (`paired`: see `evaluate`); with a `fidelity_task`, its first
+        episode's candidates are recorded and become the fidelity reference."""
         factory = getattr(oracle, "objective_factory", None)
         if self.fidelity_task is None or episodes == 0 or factory is None:
-            return self.evaluate(oracle, episodes, self.keep_eval_rollouts)
+            return self.evaluate(oracle, episodes, self.keep_eval_rollouts, paired)
         every = max(EVERY, self.episode_len // FIDELITY_STARTS)
         recorder = CandidateRecorder(factory, every, until=self.episode_len)
         oracle.objective_factory = recorder  # type: ignore[attr-defined]
         try:
-            ev = self.evaluate(oracle, episodes, max(self.keep_eval_rollouts, 1))
+            ev = self.evaluate(oracle, episodes, max(self.keep_eval_rollouts, 1), paired)
         finally:
             oracle.objective_factory = factory  # type: ignore[attr-defined]
         try:
@@ -473,13 +504,48 @@ class MBRLLoop:
             "fit_val_loss": report.best_val_loss,
         }
         if eval_episodes > 0:
-            ev = self.evaluate(self.policy, eval_episodes, self.keep_eval_rollouts)
+            final = schedule.is_last(self.counters.iteration + 1, self.counters.env_steps)
+            paired = final and schedule.paired
+            ev = self.evaluate(self.policy, eval_episodes, self.keep_eval_rollouts, paired)
             self.last_evaluation = ev
             metrics.update(
                 eval_return_mean=ev.mean, eval_return_std=ev.std, eval_steps_median=ev.median_steps
             )
+            metrics.update(ev.episode_records(self.episode_len))
+            if paired:
+                metrics.update(self.paired_figures(ev))
             metrics.update(self.fidelity())
+            metrics.update(self.rigid_body_figures())
         return metrics
+
+    def paired_figures(self, ev: Evaluation) -> dict[str, Any]:
+        """The final evaluation against the oracle's episodes from the same starts and planner
+        seeds: `paired_episodes`, `falls`, `oracle_falls` and `standing_return_ratio` (the
+        model's mean return over the episodes where both stood over the oracle's), with the
+        oracle's own returns and steps per episode."""
+        n = min(len(ev.returns), len(self.oracle_returns or []))
+        oracle = Evaluation(list((self.oracle_returns or [])[:n]),
+                            steps=list((self.oracle_steps or [])[:n]))  # fmt: skip
+        both = [i for i in range(n) if ev.steps[i] >= self.episode_len
+                and oracle.steps[i] >= self.episode_len]  # fmt: skip
+        ratio = (sum(ev.returns[i] for i in both) / sum(oracle.returns[i] for i in both)
+                 if both else math.nan)  # fmt: skip
+        return {
+            "paired_episodes": n, "falls": Evaluation(steps=ev.steps[:n]).falls(self.episode_len),
+            "oracle_falls": oracle.falls(self.episode_len), "both_stood": len(both),
+            "standing_return_ratio": ratio, "oracle_episode_returns": oracle.returns,
+            "oracle_episode_steps": oracle.steps,
+        }  # fmt: skip
+
+    def rigid_body_figures(self) -> dict[str, float]:
+        """The model's rigid-body figures on the fidelity reference's states (none without a
+        reference or a rigid body)."""
+        if self.fidelity_reference is None:
+            return {}
+        if self.rigid_body_truth is None:
+            q = self.fidelity_reference.q
+            self.rigid_body_truth = RigidBodyTruth.of(self.system, q[: q.shape[0] // 2])
+        return rigid_body_metrics(self.model, self.rigid_body_truth)
 
     def state_dict(self) -> dict[str, Any]:
         return {

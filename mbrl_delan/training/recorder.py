@@ -25,6 +25,7 @@ log = logging.getLogger(__name__)
 RUN_CONFIG = "config.yaml"  # the run's resolved config, written by the entry point
 METRICS_FILE = "metrics.jsonl"
 SUMMARY_FILE = "summary.json"
+WEIGHTS_FILE = "world_model.pt"  # a train run's final world model (state dict), kept to re-score
 WANDB_ID_FILE = "wandb_id.txt"
 ITERATION = "iteration"  # step key of every metrics record
 LOGGERS = ("none", "wandb", "csv", "tensorboard")  # `logger.backend`

@@ -1,0 +1,136 @@
+"""The kinematic tree with learned inertias (`models/tree.py`): MuJoCo's M, bias and passive
+forces at the MJCF's numbers, the free-floating identity g = |g| M[:, z] and physical
+consistency at any parameters, the residual Lagrangian starting at the tree, and a fit that
+moves a wrong start towards MuJoCo's rigid body."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from mbrl_delan.conf.builders import build_model
+from mbrl_delan.conf.checks import compose_train_config
+from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.models.tree import RigidBodyTree, TreeStart, documented_start, geometric_start
+from mbrl_delan.systems.external import humanoid_v5_xml
+from mbrl_delan.systems.system import asset_path
+
+MODELS = {"humanoid_v5": humanoid_v5_xml, "panda": lambda: asset_path("panda")}
+
+
+def random_states(model: mujoco.MjModel, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """n configurations moved from qpos0 by N(0, 0.5) in velocity space (the root shifted by
+    up to 5 m where it is free) and velocities N(0, 1). -> q (n, nq), qd (n, nv)"""
+    rng = np.random.default_rng(seed)
+    q = np.tile(model.qpos0, (n, 1))
+    for i in range(n):
+        mujoco.mj_integratePos(model, q[i], rng.normal(size=model.nv) * 0.5, 1.0)
+        if model.jnt_type[0] == mujoco.mjtJoint.mjJNT_FREE:
+            q[i, :3] += rng.uniform(-5, 5, 3)
+    return q, rng.normal(size=(n, model.nv))
+
+
+def mujoco_terms(model: mujoco.MjModel, q: np.ndarray, qd: np.ndarray) -> dict[str, np.ndarray]:
+    data = mujoco.MjData(model)
+    out: dict[str, list[np.ndarray]] = {"M": [], "bias": [], "passive": []}
+    for qpos, qvel in zip(q, qd, strict=True):
+        data.qpos[:], data.qvel[:] = qpos, qvel
+        mujoco.mj_forward(model, data)
+        full = np.zeros((model.nv, model.nv))
+        mujoco.mj_fullM(model, data, full)
+        out["M"].append(full)
+        out["bias"].append(data.qfrc_bias.copy())
+        out["passive"].append(data.qfrc_passive.copy())
+    return {k: np.stack(v) for k, v in out.items()}
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_tree_at_the_mjcfs_numbers_is_mujocos_rigid_body(name: str) -> None:
+    """M = mj_fullM (armature included), c + g = qfrc_bias, k (q - q_s) + b qd = -qfrc_passive,
+    to 1e-8 relative, at random configurations and velocities."""
+    model = mujoco.MjModel.from_xml_path(str(MODELS[name]()))
+    tree = RigidBodyTree.from_mujoco(model)
+    q, qd = random_states(model, 8, seed=0)
+    truth = mujoco_terms(model, q, qd)
+    q_t, qd_t = torch.from_numpy(q), torch.from_numpy(qd)
+    with torch.no_grad():
+        kin = tree.kinematics(q_t)
+        mass = tree.mass_matrix(q_t, kin).numpy()
+        bias = tree.bias(qd_t, kin).numpy()
+        passive = tree.passive(q_t, qd_t).numpy()
+    for got, want in ((mass, truth["M"]), (bias, truth["bias"]), (passive, -truth["passive"])):
+        np.testing.assert_allclose(got, want, atol=1e-8 * max(np.abs(want).max(), 1.0))
+
+
+def scrambled(tree: RigidBodyTree, seed: int, size: float = 1.0) -> RigidBodyTree:
+    """The tree with every raw parameter moved by N(0, size)."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in tree.parameters():
+            p.add_(size * torch.randn(p.shape, generator=g, dtype=p.dtype))
+    return tree
+
+
+def test_gravity_is_weight_times_the_vertical_column_of_m_at_any_parameters() -> None:
+    """For a free root under uniform gravity g(q) = |g| M(q)[:, z] (MuJoCo: to round-off); the
+    tree keeps it by construction, whatever its inertias."""
+    model = mujoco.MjModel.from_xml_path(str(humanoid_v5_xml()))
+    tree = scrambled(RigidBodyTree.from_mujoco(model), seed=1)
+    q, _ = random_states(model, 8, seed=2)
+    q_t = torch.from_numpy(q)
+    with torch.no_grad():
+        kin = tree.kinematics(q_t)
+        mass, gravity = tree.mass_matrix(q_t, kin), tree.gravity(q_t, kin)
+    true_mass = float(TreeStart.of_model(model).inertial[:, 0].sum())
+    assert abs(float(tree.total_mass().detach()) - true_mass) > 1.0  # the parameters moved
+    torch.testing.assert_close(gravity, 9.81 * mass[..., :, 2], rtol=1e-10, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_any_raw_parameters_give_a_physically_consistent_body(seed: int) -> None:
+    """Positive mass, and principal inertias about the centre of mass that are positive and
+    satisfy the triangle inequality I_a + I_b >= I_c, for raw parameters anywhere."""
+    model = mujoco.MjModel.from_xml_path(str(humanoid_v5_xml()))
+    tree = scrambled(RigidBodyTree.from_mujoco(model), seed, size=3.0)
+    with torch.no_grad():
+        parts = tree.inertial()
+    mass, h = parts["mass"], parts["first_moment"]
+    assert bool((mass > 0).all())
+    com = h / mass[:, None]
+    shift = mass[:, None, None] * (
+        (com * com).sum(-1)[:, None, None] * torch.eye(3, dtype=com.dtype)
+        - com[:, :, None] * com[:, None, :]
+    )
+    principal = torch.linalg.eigvalsh(parts["inertia"] - shift)  # (B, 3) ascending
+    scale = principal[:, 2:]
+    assert bool((principal > -1e-9 * scale).all())
+    assert bool((principal[:, 0] + principal[:, 1] >= principal[:, 2] - 1e-9 * scale[:, 0]).all())
+
+
+def test_geometric_start_of_humanoid_v5_is_its_mjcf_and_the_documented_one_is_not() -> None:
+    """Humanoid-v5's MJCF takes its inertias from its geoms at 1,000 kg/m^3: the geometric
+    start is its truth; the documented start moves every body's mass by up to 50%."""
+    spec = mujoco.MjSpec.from_file(str(humanoid_v5_xml()))
+    truth = TreeStart.of_model(spec.compile())
+    np.testing.assert_allclose(geometric_start(spec).inertial, truth.inertial, atol=1e-10)
+    scaled = geometric_start(spec, total_mass=2 * truth.inertial[:, 0].sum())
+    np.testing.assert_allclose(scaled.inertial, 2 * truth.inertial, rtol=1e-12)
+    wrong = documented_start(spec).inertial[:, 0] / truth.inertial[:, 0]
+    assert 0.5 <= wrong.min() < 0.8 and 1.2 < wrong.max() <= 1.5
+
+
+def test_residual_lagrangian_at_its_start_is_the_tree() -> None:
+    """model=tree_delan before any fit: M within 1e-5 of the tree's own, the same gravity
+    (its potential and friction start at zero, M's residual at start_level^2 of its unit)."""
+    parts = make_env_parts("humanoid_stand")
+    tree_cfg = compose_train_config(["env=humanoid_stand", "model=tree"]).model
+    both_cfg = compose_train_config(["env=humanoid_stand", "model=tree_delan"]).model
+    torch.manual_seed(0)
+    tree, both = build_model(tree_cfg, parts.system), build_model(both_cfg, parts.system)
+    q, _ = random_states(parts.system.mj_model(), 4, seed=3)
+    q_t = torch.from_numpy(q).float()
+    alone, beside = tree.rigid_body(q_t), both.rigid_body(q_t)
+    torch.testing.assert_close(beside.mass_matrix, alone.mass_matrix, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(beside.potential_force, alone.potential_force, rtol=1e-5, atol=1e-3)
