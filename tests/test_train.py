@@ -252,7 +252,10 @@ def test_humanoid_walk_oracle_is_ilqr_on_the_cheaper_physics() -> None:
     ("override", "expected"),
     [
         ("planner.horizon=-5", "planner.horizon=-5 is not valid; it must be a whole number >= 1"),
-        ("model.name=transformer", "choose one of: delan, tree, tree_delan, delan_ensemble, ensemble"),
+        (
+            "model.name=transformer",
+            "choose one of: delan, tree, tree_delan, delan_ensemble, ensemble",
+        ),
         ("env.name=moon", "choose one of: pendulum, cartpole, acrobot, arm_reach"),
         ("device=tpu", "device='tpu'"),
         ("resume=/nonexistent/run", "no config.yaml in that folder"),
@@ -419,3 +422,49 @@ def test_collecting_with_two_envs_gives_one_episode_per_env_each_round(
     state = load_checkpoint(run_dir / "checkpoint.pt", weights_only=False)
     episode = state["loop"]["buffer"]["filled"][keys.EPISODE].reshape(-1)
     assert torch.equal(torch.bincount(episode), torch.full((6,), 15))
+
+
+def test_paired_figures_count_falls_and_compare_where_both_stood() -> None:
+    """`MBRLLoop.paired_figures`: episodes shorter than the episode length fell; the
+    standing-return ratio is over the episodes where neither fell."""
+    from mbrl_delan.training.loop import Evaluation, MBRLLoop
+
+    loop = MBRLLoop.__new__(MBRLLoop)  # only the oracle's record and the episode length
+    loop.episode_len = 100
+    loop.oracle_returns, loop.oracle_steps = [90.0, 80.0, 20.0, 95.0], [100, 100, 30, 100]
+    model = Evaluation(returns=[45.0, 10.0, 50.0, 95.0], steps=[100, 12, 100, 100])
+    figures = loop.paired_figures(model)
+    assert figures["paired_episodes"] == 4
+    assert figures["falls"] == 1 and figures["oracle_falls"] == 1 and figures["both_stood"] == 2
+    assert figures["standing_return_ratio"] == pytest.approx((45.0 + 95.0) / (90.0 + 95.0))
+    assert figures["oracle_episode_steps"] == [100, 100, 30, 100]
+
+
+@pytest.mark.slow
+def test_tiny_tree_run_pairs_its_final_evaluation_and_keeps_its_weights(tmp_path: Path) -> None:
+    """model=tree on humanoid_stand with a paired final evaluation: the oracle plans the same
+    starts with the same planner seeds (as many episodes), each episode's return and steps
+    are recorded, the summary holds the paired figures, and the final weights
+    (`world_model.pt`) alone rebuild the model (a record folder, without the checkpoint)."""
+    import shutil
+
+    from mbrl_delan.runs import load_run
+
+    run_dir = tmp_path / "tree"
+    out = train(run_dir, "env=humanoid_stand", "model=tree", "budget.iterations=1",
+                "budget.final_eval_episodes=2", "budget.paired=true")  # fmt: skip
+    assert out.returncode == 0, out.stdout + out.stderr
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["paired_episodes"] == 2
+    assert 0 <= summary["falls"] <= 2 and 0 <= summary["oracle_falls"] <= 2
+    last = records(run_dir)[-1]
+    assert len(last["eval_episode_returns"]) == 2 and len(last["oracle_episode_returns"]) == 2
+    assert sum(last["eval_episode_returns"]) == pytest.approx(2 * last["eval_return_mean"])
+    assert all(1 <= s <= 15 for s in last["eval_episode_steps"] + last["oracle_episode_steps"])
+    record = tmp_path / "record"
+    record.mkdir()
+    for name in ("config.yaml", "summary.json", "world_model.pt"):
+        shutil.copy(run_dir / name, record / name)
+    saved = load_run(run_dir).model.state_dict()
+    for key, value in load_run(record).model.state_dict().items():
+        torch.testing.assert_close(value, saved[key])

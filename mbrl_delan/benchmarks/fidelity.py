@@ -16,6 +16,17 @@ the learned models' contact structure at its start (``rigid_contact_start``: `Co
 and `JointLimits`, implicit, 2 x 7.5 ms), planned on in torch. `runs`: train run dirs
 whose final world model (checkpoint) is scored too, case ``<model>:<run dir name>``.
 
+The learned models (`FIT_CASES`: ``tree``, ``tree_delan``, ``delan`` with the contact model,
+``whitebox``, ``ensemble``), named in `models`, are each built as the loop builds them and
+fitted once, as the loop's refit does (seed `seed`), on the first `transitions` (default
+5,000) transitions of `data_run`'s replay buffer (the loop's own data), or without
+`data_run` on episodes of uniformly random actions from the task's starts.
+
+Besides the fidelity figures, every case with a rigid body gets the rigid-body figures of
+`training.fidelity.rigid_body_metrics` on the reference's states (``mass_matrix_error``,
+``total_mass_error``, ``gravity_error``, ``gravity_identity_residual``,
+``actuation_response_error``).
+
 Every record carries `model` (the case), `data` (what the model was fitted on), `metric`,
 the episode's `seed` and `oracle_steps`, and the host fields.
 """
@@ -23,6 +34,7 @@ the episode's `seed` and `oracle_steps`, and the host fields.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,13 +44,16 @@ import mujoco
 import numpy as np
 import torch
 from omegaconf import DictConfig
+from tensordict import TensorDict
 
+from mbrl_delan import keys
 from mbrl_delan.benchmarks import FIDELITY_CASES, SuiteOptions, host_fields
+from mbrl_delan.benchmarks.humanoid import first_transitions, split_run_episodes
 from mbrl_delan.benchmarks.records import BenchRecord
-from mbrl_delan.conf.checks import compose_train_config
+from mbrl_delan.conf.checks import DTYPES, compose_train_config
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import EnvParts, make_env_parts
-from mbrl_delan.models.base import WorldModel
+from mbrl_delan.models.base import WorldModel, model_placement
 from mbrl_delan.models.contact import ContactModel, JointLimits
 from mbrl_delan.models.rigid_contact import RigidContactModel
 from mbrl_delan.models.whitebox import WhiteBoxModel
@@ -46,9 +61,12 @@ from mbrl_delan.objectives.mujoco import PlanPhysics
 from mbrl_delan.training.fidelity import (
     CandidateRecorder,
     FidelityReference,
+    RigidBodyTruth,
     build_reference,
     fidelity_metrics,
+    rigid_body_metrics,
 )
+from mbrl_delan.training.fit import fit_model
 from mbrl_delan.training.loop import run_episode
 
 log = logging.getLogger(__name__)
@@ -60,6 +78,19 @@ QUICK_STEPS = 35  # under `quick`: just past the 30-step horizon
 UNITS = {
     "root_velocity_error_1step": "m/s", "head_height_error_10step": "cm",
     "head_height_error_30step": "cm", "candidate_rank_rho": "", "steps_survived": "steps",
+    "mass_matrix_error": "", "total_mass_error": "", "gravity_error": "",
+    "gravity_identity_residual": "", "actuation_response_error": "", "fit_seconds": "s",
+}  # fmt: skip
+DEFAULT_TRANSITIONS = 5000  # the learned cases' training set
+# the learned cases: the train config each is built from (`python -m mbrl_delan.train
+# env=humanoid_stand` with these), the DeLaN as the loop's DeLaN with the contact model
+FIT_CASES = {
+    "tree": ("model=tree",),
+    "tree_delan": ("model=tree_delan",),
+    "delan": ("model=delan", "model.contacts=true", "model.joint_limits=true",
+              "model.residual=false", "model.translation_invariant=true", "model.substeps=1"),
+    "whitebox": ("model=whitebox",),
+    "ensemble": ("model=ensemble",),
 }  # fmt: skip
 
 
@@ -133,11 +164,12 @@ WHITEBOX_START = "whitebox_start"  # the white-box model's documented wrong star
 # start: `ContactModel` and `JointLimits`, implicit (`models/rigid_contact.py`)
 RIGID_CONTACT = "rigid_contact_start"
 REFERENCE_CASES = (*PERTURBATIONS, WHITEBOX_START, RIGID_CONTACT)
+ALL_CASES = (*REFERENCE_CASES, *FIT_CASES)
 CASE_NOTES = {
     WHITEBOX_START: "the white-box model's documented wrong start",
     RIGID_CONTACT: "rigid body exact, contact law at its start, joint limits implicit",
 }
-assert REFERENCE_CASES == FIDELITY_CASES, "benchmarks.FIDELITY_CASES lists the same cases"
+assert ALL_CASES == FIDELITY_CASES, "benchmarks.FIDELITY_CASES lists the same cases"
 
 
 def perturbed_model(
@@ -232,7 +264,17 @@ def run_fidelity_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
     base = dict(seed=seed, oracle_steps=steps, starts=int(reference.q.shape[0]),
                 candidate_starts=int(reference.candidate_starts.numel()))  # fmt: skip
     cases = REFERENCE_CASES if opts.models is None else opts.models
-    for name in cases:
+    data: TensorDict | None = None
+    for name in (c for c in cases if c in FIT_CASES):
+        if data is None:
+            data, described = training_data(opts, parts, seed)
+        case_cfg = compose_train_config([f"env={TASK}", *FIT_CASES[name], f"seed={seed}",
+                                         *opts.overrides])  # fmt: skip
+        model, seconds = fitted_model(case_cfg, parts, data, seed)
+        yield from _case(case_cfg, parts, model, name, described, reference, steps, seed,
+                         base | host | {"transitions": int(data.shape[0])},
+                         {"fit_seconds": seconds})  # fmt: skip
+    for name in (c for c in cases if c not in FIT_CASES):
         model = perturbed_model(cfg, parts, name, seed, nthread)
         what = PERTURBATIONS[name].what if name in PERTURBATIONS else CASE_NOTES[name]
         yield from _case(cfg, parts, model, name, "none (MuJoCo: " + what + ")", reference,
@@ -243,9 +285,73 @@ def run_fidelity_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
         yield from _case(run_cfg, parts, model, name, data, reference, steps, seed, base | host)
 
 
+def training_data(opts: SuiteOptions, parts: EnvParts, seed: int) -> tuple[TensorDict, str]:
+    """The learned cases' transitions and what they are: the first `transitions[0]` of
+    `data_run`'s buffer, or random-action episodes from the task's starts (seed `seed`)."""
+    n = (opts.transitions or (DEFAULT_TRANSITIONS,))[0]
+    if opts.data_run is not None:
+        train, _ = split_run_episodes(opts.data_run, TASK, 0)
+        return (first_transitions(train, n, opts.data_run),
+                f"the first {n} transitions of {Path(opts.data_run).name}")  # fmt: skip
+    return random_episodes(parts, n, seed), f"{n} transitions of random actions (seed {seed})"
+
+
+def random_episodes(parts: EnvParts, n: int, seed: int) -> TensorDict:
+    """n transitions of episodes of uniformly random controls from the task's starts, each
+    until the task ends it (float64, time-ordered)."""
+    system, task = parts.system, parts.task
+    model = system.mj_model()
+    data = mujoco.MjData(model)
+    generator = torch.Generator().manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    low, high = system.ctrl_low.numpy(), system.ctrl_high.numpy()
+    rows: list[tuple[np.ndarray, ...]] = []
+    while len(rows) < n:
+        start = task.initial_state((), generator)
+        mujoco.mj_resetData(model, data)
+        data.qpos[:], data.qvel[:] = start.q.numpy(), start.qd.numpy()
+        for _ in range(task.episode_len):
+            q, qd = data.qpos.copy(), data.qvel.copy()
+            data.ctrl[:] = rng.uniform(low, high)
+            mujoco.mj_step(model, data, nstep=system.frame_skip)
+            rows.append((q, qd, data.ctrl.copy(), data.qpos.copy(), data.qvel.copy()))
+            ended = task.terminated(torch.from_numpy(data.qpos), torch.from_numpy(data.qvel))
+            if len(rows) == n or bool(ended):
+                break
+    q, qd, action, q_next, qd_next = (
+        torch.from_numpy(np.stack(c)) for c in zip(*rows, strict=True)
+    )
+    return TensorDict({keys.Q: q, keys.QD: qd, keys.ACTION: action, keys.NEXT_Q: q_next,
+                       keys.NEXT_QD: qd_next}, batch_size=[n])  # fmt: skip
+
+
+def fitted_model(
+    cfg: DictConfig, parts: EnvParts, data: TensorDict, seed: int
+) -> tuple[WorldModel, float]:
+    """The world model `cfg` names, built and fitted on `data` once as the loop's refit does
+    (its identification for the white box), and the fit's seconds."""
+    from mbrl_delan.conf.loop import build_fit_config, build_world_model
+
+    torch.manual_seed(seed)
+    model = build_world_model(cfg, parts.system, torch.device("cpu"), DTYPES[cfg.dtype])
+    place = model_placement(model)
+    data = data.to(place.dtype)
+    generator = torch.Generator().manual_seed(seed + 1)
+    start = time.perf_counter()
+    if model.identifies:
+        model.identify(data, generator)
+    else:
+        optimizer = torch.optim.Adam(model.parameters(), lr=cfg.model.lr,
+                                     weight_decay=cfg.model.weight_decay)  # fmt: skip
+        report = fit_model(model, optimizer, data, build_fit_config(cfg), generator)
+        log.info("fidelity: %s fitted in %d epochs", cfg.model.name, report.epochs_run)
+    return model, time.perf_counter() - start
+
+
 def _case(
     cfg: DictConfig, parts: EnvParts, model: WorldModel, name: str, data: str,
     reference: FidelityReference, steps: int, seed: int, fields: dict[str, Any],
+    extra: dict[str, float] | None = None,
 ) -> Iterator[BenchRecord]:  # fmt: skip
     from mbrl_delan.conf.loop import build_policy
 
@@ -256,6 +362,8 @@ def _case(
         close = getattr(policy.objective_factory, "close", None)
         if close is not None:
             close()
+    q = reference.q[: reference.q.shape[0] // 2]  # the unperturbed starts
+    metrics |= rigid_body_metrics(model, RigidBodyTruth.of(parts.system, q)) | (extra or {})
     metrics["steps_survived"] = steps_survived(cfg, parts, model, steps, seed)
     log.info("fidelity: %s %s", name, {k: round(v, 4) for k, v in metrics.items()})
     for metric, value in metrics.items():

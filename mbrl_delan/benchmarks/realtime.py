@@ -1,7 +1,7 @@
 """Suite `realtime`: milliseconds of planning per control step at the loop's own settings.
 
 For each task in `tasks` (`humanoid_stand`, `humanoid_walk`, `pendulum`) and each dynamics in
-`models` (`mujoco`, `delan`, `ensemble`), the config is the one
+`models` (`mujoco`, `delan`, `tree`, `tree_delan`, `ensemble`), the config is the one
 ``python -m mbrl_delan.train env=<task> model=<dynamics>`` composes (with the suite's
 `overrides`), and the policy is the one the loop builds from it (`train.build_policy`, or
 `train.build_oracle` for `mujoco`):
@@ -59,7 +59,12 @@ log = logging.getLogger(__name__)
 SUITE = "realtime"
 METRIC = "plan_ms_per_control_step"
 # the learned models' planning path: the DeLaN compiled, as the loop runs it with compile on
-MODEL_OVERRIDES = {"delan": ("model=delan", "accel.compile=true"), "ensemble": ("model=ensemble",)}
+MODEL_OVERRIDES = {
+    "delan": ("model=delan", "accel.compile=true"),
+    "tree": ("model=tree", "accel.compile=true"),
+    "tree_delan": ("model=tree_delan", "accel.compile=true"),
+    "ensemble": ("model=ensemble",),
+}
 QUICK_STEPS = 5  # control steps of a mujoco episode under `quick`
 PLANNER_FIELDS = ("num_samples", "iterations", "knots", "interpolation", "horizon", "replan_every")
 

@@ -48,15 +48,16 @@ ORACLE_PLANNERS = ("mppi", "cem", "icem", "predictive", "ilqr")  # suite humanoi
 ILQR_TASKS = ("cmu_track",)  # suite humanoid: tasks of its tracking iLQR oracle
 # suite realtime: its tasks and the dynamics each is planned on
 REALTIME_TASKS = ("humanoid_stand", "humanoid_walk", "pendulum")
-REALTIME_DYNAMICS = ("mujoco", "delan", "ensemble")
-# suite fidelity's reference cases: MuJoCo at the oracle's physics, perturbed copies of it, the
-# white-box model's documented wrong start, and MuJoCo's rigid body with the contact model
-# (`benchmarks/fidelity.py`)
+REALTIME_DYNAMICS = ("mujoco", "delan", "tree", "tree_delan", "ensemble")
+# suite fidelity's cases: MuJoCo at the oracle's physics, perturbed copies of it, the white-box
+# model's documented wrong start, MuJoCo's rigid body with the contact model, and the learned
+# models fitted on the loop's data (`benchmarks/fidelity.py`)
 FIDELITY_CASES = (
     "mujoco", "mass_x0.5", "mass_x0.8", "mass_x1.25", "mass_x1.5", "mass_x2", "mass_random",
     "com_2cm", "gear_x0.8", "gear_x0.65", "gear_x0.5", "damping_x2",
     "friction_0.2", "contact_3x_softer", "contact_10x_softer", "foot_x0.7", "contacts_off",
     "whitebox_start", "rigid_contact_start",
+    "tree", "tree_delan", "delan", "whitebox", "ensemble",
 )  # fmt: skip
 
 # suite own_arm: the shipped arms (`mbrl_delan.systems.arms.ARMS`) and the fits' models

@@ -19,8 +19,9 @@ from tensordict import TensorDictBase
 from torch import Tensor
 
 from mbrl_delan import keys
-from mbrl_delan.models.base import LossOutput, WorldModel
+from mbrl_delan.models.base import LossOutput, RigidBody, WorldModel
 from mbrl_delan.models.contact import ContactModel, JointLimits, implicit_acceleration
+from mbrl_delan.models.inertial import rigid_body_at
 from mbrl_delan.models.integrators import integrate
 from mbrl_delan.systems.posarith import differentiate_pos
 from mbrl_delan.systems.system import State, System
@@ -48,6 +49,13 @@ class RigidContactModel(WorldModel):
         self._data = mujoco.MjData(self.mj)
         self.register_buffer("q_scale", torch.ones(system.nv, dtype=torch.float64))
         self.register_buffer("qd_scale", torch.ones(system.nv, dtype=torch.float64))
+
+    def rigid_body(self, q: Tensor) -> RigidBody:
+        """MuJoCo's own M, potential force at rest and B (`rigid_body_at`)."""
+        flat = q.detach().to("cpu", torch.float64).reshape(-1, q.shape[-1]).numpy()
+        mass, force = rigid_body_at(self.mj, flat)
+        as_q = lambda x: torch.from_numpy(x).to(q).reshape(*q.shape[:-1], *x.shape[1:])  # noqa: E731
+        return RigidBody(as_q(mass), as_q(force), self.system.actuation.to(q))
 
     def rigid_terms(self, q: Tensor, qd: Tensor, action: Tensor) -> tuple[Tensor, Tensor]:
         """M (..., nv, nv) and the non-contact generalized force (..., nv) from MuJoCo (no
