@@ -166,6 +166,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         oracle_overrides=tuple(v["oracle_overrides"]),
         seed=v["seed"],
         data_run=v["data_run"],
+        env=v["env"],
         tasks=tuples("tasks"),
         overrides=tuple(v["overrides"]),
         runs=tuple(v["runs"]),

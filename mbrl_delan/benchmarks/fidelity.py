@@ -72,7 +72,7 @@ from mbrl_delan.training.loop import run_episode
 log = logging.getLogger(__name__)
 
 SUITE = "fidelity"
-TASK = "humanoid_stand"
+TASK = "humanoid_stand"  # the default env (`env`: also humanoid_stand_exo)
 STEPS = 300  # control steps of the oracle's episode and of each case's episode
 QUICK_STEPS = 35  # under `quick`: just past the 30-step horizon
 UNITS = {
@@ -80,6 +80,7 @@ UNITS = {
     "head_height_error_30step": "cm", "candidate_rank_rho": "", "steps_survived": "steps",
     "mass_matrix_error": "", "total_mass_error": "", "gravity_error": "",
     "gravity_identity_residual": "", "actuation_response_error": "", "fit_seconds": "s",
+    "spring_stiffness_error": "",
 }  # fmt: skip
 DEFAULT_TRANSITIONS = 5000  # the learned cases' training set
 # the learned cases: the train config each is built from (`python -m mbrl_delan.train
@@ -208,17 +209,17 @@ def reference_episode(
     """The oracle's episode from the start of `seed` with its candidates recorded."""
     from mbrl_delan.conf.loop import build_oracle
 
-    oracle = build_oracle(cfg, parts.system, parts.task)
+    oracle = build_oracle(cfg, parts.physics, parts.task)
     recorder = CandidateRecorder(oracle.objective_factory)
     oracle.objective_factory = recorder
-    env = make_real_env(TASK, seed=seed, episode_len=parts.task.episode_len)
+    env = make_real_env(parts.task.name, seed=seed, episode_len=parts.task.episode_len)
     try:
         rollout = run_episode(env, oracle, seed, steps)
     finally:
         env.close()
         recorder.close()
     log.info("fidelity: the oracle's reference episode kept %d of %d steps", len(rollout), steps)
-    return build_reference(rollout, recorder, parts.system, parts.task, seed=seed,
+    return build_reference(rollout, recorder, parts.physics, parts.task, seed=seed,
                            nthread=nthread)  # fmt: skip
 
 
@@ -231,7 +232,7 @@ def steps_survived(
 
     generator = torch.Generator().manual_seed(seed)
     policy = build_policy(cfg, parts.system, parts.task, model, generator)
-    env = make_real_env(TASK, seed=seed, episode_len=parts.task.episode_len)
+    env = make_real_env(parts.task.name, seed=seed, episode_len=parts.task.episode_len)
     try:
         return int(run_episode(env, policy, seed, steps).shape[0])
     finally:
@@ -257,18 +258,19 @@ def run_fidelity_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
     seed = opts.seed or 0
     steps = opts.oracle_steps or (QUICK_STEPS if opts.quick else STEPS)
     nthread = max(1, torch.get_num_threads())
-    cfg = compose_train_config([f"env={TASK}", *opts.overrides])
-    parts = make_env_parts(TASK, None, None)
+    task = opts.env or TASK
+    cfg = compose_train_config([f"env={task}", *opts.overrides])
+    parts = make_env_parts(task, None, None)
     reference = reference_episode(cfg, parts, steps, seed, nthread)
     host = host_fields(torch.device("cpu"))
-    base = dict(seed=seed, oracle_steps=steps, starts=int(reference.q.shape[0]),
+    base = dict(env=task, seed=seed, oracle_steps=steps, starts=int(reference.q.shape[0]),
                 candidate_starts=int(reference.candidate_starts.numel()))  # fmt: skip
     cases = REFERENCE_CASES if opts.models is None else opts.models
     data: TensorDict | None = None
     for name in (c for c in cases if c in FIT_CASES):
         if data is None:
             data, described = training_data(opts, parts, seed)
-        case_cfg = compose_train_config([f"env={TASK}", *FIT_CASES[name], f"seed={seed}",
+        case_cfg = compose_train_config([f"env={task}", *FIT_CASES[name], f"seed={seed}",
                                          *opts.overrides])  # fmt: skip
         model, seconds = fitted_model(case_cfg, parts, data, seed)
         yield from _case(case_cfg, parts, model, name, described, reference, steps, seed,
@@ -290,7 +292,7 @@ def training_data(opts: SuiteOptions, parts: EnvParts, seed: int) -> tuple[Tenso
     `data_run`'s buffer, or random-action episodes from the task's starts (seed `seed`)."""
     n = (opts.transitions or (DEFAULT_TRANSITIONS,))[0]
     if opts.data_run is not None:
-        train, _ = split_run_episodes(opts.data_run, TASK, 0)
+        train, _ = split_run_episodes(opts.data_run, parts.task.name, 0)
         return (first_transitions(train, n, opts.data_run),
                 f"the first {n} transitions of {Path(opts.data_run).name}")  # fmt: skip
     return random_episodes(parts, n, seed), f"{n} transitions of random actions (seed {seed})"
@@ -299,7 +301,7 @@ def training_data(opts: SuiteOptions, parts: EnvParts, seed: int) -> tuple[Tenso
 def random_episodes(parts: EnvParts, n: int, seed: int) -> TensorDict:
     """n transitions of episodes of uniformly random controls from the task's starts, each
     until the task ends it (float64, time-ordered)."""
-    system, task = parts.system, parts.task
+    system, task = parts.physics, parts.task  # what the env simulates
     model = system.mj_model()
     data = mujoco.MjData(model)
     generator = torch.Generator().manual_seed(seed)
@@ -363,7 +365,9 @@ def _case(
         if close is not None:
             close()
     q = reference.q[: reference.q.shape[0] // 2]  # the unperturbed starts
-    metrics |= rigid_body_metrics(model, RigidBodyTruth.of(parts.system, q)) | (extra or {})
+    metrics |= rigid_body_metrics(model, RigidBodyTruth.of(parts.physics, q, parts.system)) | (
+        extra or {}
+    )
     metrics["steps_survived"] = steps_survived(cfg, parts, model, steps, seed)
     log.info("fidelity: %s %s", name, {k: round(v, 4) for k, v in metrics.items()})
     for metric, value in metrics.items():

@@ -135,7 +135,7 @@ def mujoco_case(cfg: DictConfig, task: str, steps: int | None, seed: int) -> tup
     from mbrl_delan.conf.loop import build_oracle
 
     parts = make_env_parts(task, None, steps)
-    policy = TimedPolicy(build_oracle(cfg, parts.system, parts.task))
+    policy = TimedPolicy(build_oracle(cfg, parts.physics, parts.task))
     env = make_real_env(task, seed=seed, episode_len=parts.task.episode_len)
     try:
         rollout = run_episode(env, policy, seed, parts.task.episode_len)

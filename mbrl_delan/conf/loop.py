@@ -193,7 +193,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
     )
     model_gen = torch.Generator(device=device).manual_seed(cfg.seed + 3)
     policy = build_policy(cfg, system, task, model, model_gen)
-    oracle = build_oracle(cfg, system, task)
+    oracle = build_oracle(cfg, parts.physics, task)  # plans on the env's own physics
     buffer = _replay_buffer(cfg, run_dir, eval_env, device)
     fit_cfg = build_fit_config(cfg)
     loop = MBRLLoop(
@@ -211,6 +211,7 @@ def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]
         model_generator=model_gen,
         keep_eval_rollouts=cfg.video_episodes if cfg.video else 0,
         fidelity_task=task if isinstance(task, HumanoidTask) else None,
+        physics=parts.physics,
     )
     return loop, oracle
 

@@ -133,12 +133,16 @@ class EnvSpec:
     frame_skip: MuJoCo steps per control step.
     make_task: (system, episode_len or None for the task's default, task options) -> Task.
     options: the task options the env takes (config ``env.task``) with their defaults.
+    physics: the MJCF the env simulates where it differs from `asset`, the one the world
+        models are given (an env whose physics the models' structure cannot express); None:
+        the asset.
     """
 
     asset: str | Path | Callable[[], Path]
     frame_skip: int
     make_task: TaskFactory
     options: Mapping[str, Any] | None = None
+    physics: str | Path | Callable[[], Path] | None = None
 
 
 def register_env(
@@ -146,12 +150,13 @@ def register_env(
     asset: str | Path | Callable[[], Path],
     frame_skip: int,
     options: Mapping[str, Any] | None = None,
+    physics: str | Path | Callable[[], Path] | None = None,
 ) -> Callable[[TaskFactory], TaskFactory]:
     """Decorator: register the decorated task factory, with its MJCF `asset` and `frame_skip`,
     as env `name` (see `EnvSpec`)."""
 
     def add(make_task: TaskFactory) -> TaskFactory:
-        ENVS.add(name, EnvSpec(asset, frame_skip, make_task, options))
+        ENVS.add(name, EnvSpec(asset, frame_skip, make_task, options, physics))
         return make_task
 
     return add

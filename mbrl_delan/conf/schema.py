@@ -24,6 +24,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, ListConfig
 
 from mbrl_delan.conf.bench_names import (
+    FIDELITY_ENVS,
     HUMANOID_ORACLE_TASKS,
     ORACLE_PLANNERS,
     OWN_ARM_ROBOTS,
@@ -421,6 +422,7 @@ class BenchConfig:
     tasks: list[str] | None = rule(None, choices=REALTIME_TASKS)
     overrides: list[str] = field(default_factory=list)
     runs: list[str] = field(default_factory=list)  # suite fidelity: train run dirs to score
+    env: str | None = rule(None, choices=FIDELITY_ENVS)  # suite fidelity: its env
     robots: list[str] | None = rule(None, choices=OWN_ARM_ROBOTS)  # suite own_arm
     friction: list[bool] | None = None  # suite own_arm: the arms without/with joint friction
     samples: list[int] | None = rule(None, low=1)  # suite own_arm: training-set sizes

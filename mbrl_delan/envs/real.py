@@ -62,7 +62,7 @@ class MujocoTaskEnv(gym.Env):
         self.env_name = env_name
         self.env_parts: EnvParts = make_env_parts(env_name, skip, episode_len, task_options)
         system = self.env_parts.system
-        self._model = system.mj_model()
+        self._model = self.env_parts.physics.mj_model()  # what the env simulates
         self._data = mujoco.MjData(self._model)
         self._low = system.ctrl_low.numpy()
         self._high = system.ctrl_high.numpy()

@@ -13,7 +13,7 @@ from typing import Any, TypeVar
 import torch
 
 from mbrl_delan.conf.registry import ENVS, EnvSpec, TaskFactory, register_env
-from mbrl_delan.systems.external import humanoid_cmu_xml, humanoid_v5_xml
+from mbrl_delan.systems.external import humanoid_cmu_xml, humanoid_v5_exo_xml, humanoid_v5_xml
 from mbrl_delan.systems.system import System, load_system
 from mbrl_delan.tasks import AcrobotSwingup, ArmReach, CartpoleSwingup, PendulumSwingup
 from mbrl_delan.tasks.base import Task
@@ -42,10 +42,16 @@ CMU_TRACK_OPTIONS: dict[str, Any] = {
 
 @dataclass
 class EnvParts:
-    """The system (dynamics) and task (reward, initial states) of one environment."""
+    """The system the world models are given, the task (reward, initial states) and the
+    system the env simulates (`physics`: the same unless the env registered its own)."""
 
     system: System
     task: Task
+    physics: System | None = None
+
+    def __post_init__(self) -> None:
+        if self.physics is None:
+            self.physics = self.system
 
 
 def _humanoid_v5_task(
@@ -139,6 +145,11 @@ register_env("arm_reach", "arm2", 2)(_episode_len_task(ArmReach))  # 0.05 s
 # Humanoid-v5 (contacts on): 5 x 0.003 s = 0.015 s per control step
 register_env("humanoid_stand", humanoid_v5_xml, 5)(_humanoid_v5_task(None, "humanoid_stand"))
 register_env("humanoid_walk", humanoid_v5_xml, 5)(_humanoid_v5_task(1.0, "humanoid_walk"))
+# Humanoid-v5 in an exoskeleton (springs at the hips and knees, joint friction: EXOSKELETON):
+# the env simulates it, the world models are given Humanoid-v5's own MJCF
+register_env("humanoid_stand_exo", humanoid_v5_xml, 5, physics=humanoid_v5_exo_xml)(
+    _humanoid_v5_task(None, "humanoid_stand_exo")
+)
 # dm_control's CMU humanoid (contacts on): 15 x 0.002 s = 0.03 s per control step
 register_env("cmu_track", humanoid_cmu_xml, 15, CMU_TRACK_OPTIONS)(_cmu_track_task)
 
@@ -176,4 +187,8 @@ def make_env_parts(
     skip = spec.frame_skip if frame_skip is None else frame_skip
     asset = spec.asset() if callable(spec.asset) else spec.asset
     system = load_system(asset, frame_skip=skip)
-    return EnvParts(system=system, task=spec.make_task(system, episode_len, options))
+    physics = None
+    if spec.physics is not None:
+        path = spec.physics() if callable(spec.physics) else spec.physics
+        physics = load_system(path, frame_skip=skip, name=f"{system.name} ({name})")
+    return EnvParts(system, spec.make_task(system, episode_len, options), physics)

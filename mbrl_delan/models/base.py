@@ -75,6 +75,12 @@ class WorldModel(nn.Module, abc.ABC):
         without them (a black box)."""
         return None
 
+    def joint_stiffness(self, q: Tensor) -> Tensor | None:
+        """Each DoF's spring stiffness (nv,), the median over configurations q (..., nq) of
+        the potential force's slope along the DoF less gravity's, where the model can tell its
+        springs from gravity; None where it cannot (a DeLaN's V holds both)."""
+        return None
+
     def objective_factory(self, task: Any, discount: float = 1.0) -> Any | None:
         """Its own planning objective factory ((q0, qd0) -> objective over (N, H, nu)
         actions), or None: the planner rolls out `step` (`model_objective_factory`)."""

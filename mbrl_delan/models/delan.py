@@ -178,6 +178,14 @@ class DeLaN(WorldModel):
         terms = self.dynamics.terms(q, torch.zeros(*q.shape[:-1], self.layout.nv).to(q))
         return RigidBody(terms.mass_matrix, terms.gravity, self.dynamics.actuation)
 
+    def joint_stiffness(self, q: Tensor) -> Tensor | None:
+        """On a tree (`TreeDynamics`): its springs plus the residual potential's slope
+        d g_res,j / d q_j (central differences of 1e-3 rad on the DoF's coordinate; hinges
+        and slides), the median over q (S, nq); None without a tree."""
+        if not isinstance(self.dynamics, TreeDynamics):
+            return None
+        return self.dynamics.joint_stiffness(q)
+
     def acceleration(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
         """Forward dynamics under controls: (..., nq), (..., nv), (..., nu) -> (..., nv)."""
         return self.dynamics.forward_dynamics(q, qd, self.applied_force(q, qd, action))

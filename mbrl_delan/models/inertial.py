@@ -121,3 +121,11 @@ def rigid_body_at(model: mujoco.MjModel, q: np.ndarray) -> tuple[np.ndarray, np.
         mujoco.mj_fullM(model, data, mass[i])
         force[i] = data.qfrc_bias - data.qfrc_passive
     return mass, force
+
+
+def dof_stiffness(model: mujoco.MjModel) -> np.ndarray:
+    """Each DoF's joint spring stiffness (MuJoCo's ``jnt_stiffness``; hinges and slides, 0 on
+    free and ball joints). (nv,)"""
+    scalar = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+    joint = model.dof_jntid
+    return np.where(np.isin(model.jnt_type[joint], scalar), model.jnt_stiffness[joint], 0.0)

@@ -502,6 +502,26 @@ class TreeDynamics(nn.Module):
         mass, bias = self.mass_and_bias(q, qd)
         return cholesky_solve(torch.linalg.cholesky_ex(mass).L, tau - bias)
 
+    @torch.no_grad()
+    def joint_stiffness(self, q: Tensor, step: float = 1e-3) -> Tensor:
+        """The tree's springs plus the residual potential's slope along each hinge or slide,
+        d g_res,j / d q_j by central differences of `step` on its coordinate, the median over
+        configurations q (S, nq). (nv,)"""
+        tree = self.tree
+        stiffness = tree.stiffness.to(q).clone()
+        if self.residual is None:
+            return stiffness
+        for v in torch.nonzero(tree.scalar).flatten().tolist():
+            index = int(tree.spring_q[v])
+            up, down = q.clone(), q.clone()
+            up[..., index] += step
+            down[..., index] -= step
+            zero = torch.zeros(*q.shape[:-1], tree.nv, dtype=q.dtype, device=q.device)
+            slope = (self.residual.terms(up, zero).gravity[..., v]
+                     - self.residual.terms(down, zero).gravity[..., v]) / (2 * step)  # fmt: skip
+            stiffness[v] += slope.median()
+        return stiffness
+
     def terms(self, q: Tensor, qd: Tensor) -> LagrangianTerms:
         """Every term at (q, qd) (the residual's added where there is one)."""
         kin = self.tree.kinematics(q)

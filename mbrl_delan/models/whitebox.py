@@ -40,7 +40,7 @@ from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.models.base import LossOutput, RigidBody, WorldModel
-from mbrl_delan.models.inertial import rigid_body_at
+from mbrl_delan.models.inertial import dof_stiffness, rigid_body_at
 from mbrl_delan.objectives.mujoco import (
     FULLPHYSICS,
     QPOS,
@@ -433,6 +433,12 @@ class WhiteBoxModel(WorldModel):
     def set_extra_state(self, state: dict[str, Any]) -> None:
         self._set_theta(state["theta"].numpy())
         self.identifications = int(state["identifications"])
+
+    def joint_stiffness(self, q: Tensor) -> Tensor:
+        """The identified MJCF's springs per DoF (hinges and slides; it does not identify
+        them: the MJCF's own). (nv,)"""
+        model, _ = self.mj_model()
+        return torch.from_numpy(dof_stiffness(model)).to(q)
 
     def rigid_body(self, q: Tensor) -> RigidBody:
         """M, the potential force at rest and B of the identified MJCF (`rigid_body_at`)."""

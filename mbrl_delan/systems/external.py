@@ -1,4 +1,5 @@
-"""MJCF models shipped by other packages: gymnasium's Humanoid-v5 and dm_control's CMU humanoid.
+"""MJCF models shipped by other packages: gymnasium's Humanoid-v5 and dm_control's CMU humanoid;
+and Humanoid-v5 in an exoskeleton (`humanoid_v5_exo_xml`), written from it.
 
 Both are loaded with plain mujoco; the packages are located, not imported (dm_control's
 simulator does not work with mujoco 4, and importing gymnasium's envs is not needed).
@@ -6,8 +7,15 @@ simulator does not work with mujoco 4, and importing gymnasium's envs is not nee
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
+import os
+import tempfile
+from dataclasses import dataclass
 from pathlib import Path
+
+import mujoco
+import numpy as np
 
 
 class MissingPackageError(ModuleNotFoundError):
@@ -38,3 +46,48 @@ def humanoid_v5_xml() -> Path:
     hint = "it ships humanoid.xml (pip install gymnasium==1.4.0)"
     base = _package_dir("gymnasium", hint)
     return _existing(base / "envs" / "mujoco" / "assets" / "humanoid.xml", "gymnasium")
+
+
+@dataclass(frozen=True)
+class Exoskeleton:
+    """What `humanoid_v5_exo_xml` adds to Humanoid-v5: springs at the hips and knees (each
+    joint's `stiffness` in N m/rad pulling towards `rest`, rad, MuJoCo's ``springref``), on
+    top of the MJCF's own springs, and Coulomb friction at every hinge (MuJoCo's
+    ``frictionloss``, N m)."""
+
+    stiffness: tuple[tuple[str, float, float], ...] = (
+        ("hip_x", 20.0, 0.0), ("hip_z", 20.0, 0.0), ("hip_y", 100.0, -1.0), ("knee", 60.0, -1.2),
+    )  # (joint suffix, added stiffness, rest)  # fmt: skip
+    frictionloss: float = 5.0
+
+
+EXOSKELETON = Exoskeleton()
+
+
+def humanoid_v5_exo_xml(exo: Exoskeleton = EXOSKELETON) -> Path:
+    """Humanoid-v5 in an exoskeleton (`Exoskeleton`): its MJCF written once per content to the
+    system's temporary folder, for the env's physics; models of it get the plain MJCF, so no
+    inertial parameter can express the difference."""
+    spec = mujoco.MjSpec.from_file(str(humanoid_v5_xml()))
+    unit = 180.0 / np.pi if spec.compiler.degree else 1.0  # the MJCF's angles: Humanoid-v5 degrees
+    for joint in spec.joints:
+        if joint.type != mujoco.mjtJoint.mjJNT_HINGE:
+            continue
+        joint.frictionloss = exo.frictionloss
+        for suffix, stiffness, rest in exo.stiffness:
+            if joint.name.endswith(suffix):
+                coefficients = np.array(joint.stiffness, dtype=float)  # [linear, higher orders]
+                own, reference = float(coefficients[0]), float(joint.springref)
+                total = own + stiffness  # both springs as one about their weighted rest
+                coefficients[0] = total
+                joint.stiffness = coefficients
+                joint.springref = (own * reference + stiffness * rest * unit) / total
+    text = spec.to_xml()
+    digest = hashlib.sha256(text.encode()).hexdigest()[:12]
+    path = Path(tempfile.gettempdir()) / "mbrl_delan" / f"humanoid_exo_{digest}.xml"
+    if not path.is_file():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    return path

@@ -47,7 +47,7 @@ from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.models.base import WorldModel, eval_mode, model_placement
-from mbrl_delan.models.inertial import rigid_body_at
+from mbrl_delan.models.inertial import dof_stiffness, rigid_body_at
 from mbrl_delan.objectives.mujoco import ENV_PHYSICS, MujocoObjectiveFactory
 from mbrl_delan.systems.system import FREE, System
 from mbrl_delan.tasks.humanoid import HumanoidTask
@@ -235,14 +235,23 @@ class RigidBodyTruth:
     actuation: Tensor  # (nv, nu)
     total_mass: float
     gravity: float  # |g|, m/s^2
+    stiffness: Tensor  # (nv,) each DoF's spring in the physics
+    given_stiffness: Tensor  # (nv,) ... in the MJCF the models are given
 
     @classmethod
-    def of(cls, system: System, q: Tensor) -> RigidBodyTruth:
-        model = system.mj_model()
+    def of(cls, physics: System, q: Tensor, given: System | None = None) -> RigidBodyTruth:
+        """The env's physics at configurations q (S, nq); `given`: the system the models
+        are given, where it differs (its springs)."""
+        model = physics.mj_model()
         mass, force = rigid_body_at(model, q.to(torch.float64).numpy())
+        stiffness = torch.from_numpy(dof_stiffness(model))
+        given_stiffness = (
+            stiffness if given is None else torch.from_numpy(dof_stiffness(given.mj_model()))
+        )
         return cls(q.to(torch.float64), torch.from_numpy(mass), torch.from_numpy(force),
-                   system.actuation.to(torch.float64), float(model.body_mass.sum()),
-                   float(np.linalg.norm(model.opt.gravity)))  # fmt: skip
+                   physics.actuation.to(torch.float64), float(model.body_mass.sum()),
+                   float(np.linalg.norm(model.opt.gravity)), stiffness,
+                   given_stiffness)  # fmt: skip
 
 
 @torch.no_grad()
@@ -271,7 +280,22 @@ def rigid_body_metrics(model: WorldModel, truth: RigidBodyTruth) -> dict[str, fl
         residual = root - truth.gravity * mass[:, :6, 2]
         out["gravity_identity_residual"] = float((residual.norm(dim=-1) / root.norm(dim=-1))
                                                  .median())  # fmt: skip
-    return out
+    return out | _stiffness_figures(model, truth, place)
+
+
+def _stiffness_figures(model: WorldModel, truth: RigidBodyTruth, place: Any) -> dict[str, float]:
+    """Where the physics' springs differ from the given MJCF's (the exoskeleton) and the
+    model can tell its springs from gravity: ``spring_stiffness_error``, the median over
+    those DoFs of |k - k*| / k*."""
+    changed = (truth.stiffness - truth.given_stiffness).abs() > 1e-9 * (1 + truth.stiffness)
+    if not bool(changed.any()):
+        return {}
+    learned = model.joint_stiffness(truth.q.to(place.device, place.dtype))
+    if learned is None:
+        return {}
+    learned = learned.to("cpu", torch.float64)
+    error = (learned - truth.stiffness).abs() / truth.stiffness
+    return {"spring_stiffness_error": float(error[changed].median())}
 
 
 def _median_relative(x: Tensor, truth: Tensor) -> float:

@@ -297,8 +297,10 @@ class MBRLLoop:
         model_generator: torch.Generator | None = None,
         keep_eval_rollouts: int = 0,
         fidelity_task: HumanoidTask | None = None,
+        physics: System | None = None,
     ) -> None:
         self.env, self.eval_env, self.system = env, eval_env, system
+        self.physics = physics or system  # what the env simulates: the fidelity's truth
         self.episode_len = episode_len
         self.model, self.optimizer, self.policy, self.buffer = model, optimizer, policy, buffer
         self.fit_config, self.seed, self.error_horizon = fit_config, seed, error_horizon
@@ -449,7 +451,7 @@ class MBRLLoop:
             oracle.objective_factory = factory  # type: ignore[attr-defined]
         try:
             self.fidelity_reference = build_reference(
-                ev.rollouts[0], recorder, self.system, self.fidelity_task, every=every,
+                ev.rollouts[0], recorder, self.physics, self.fidelity_task, every=every,
                 seed=self.seed,
             )  # fmt: skip
         except ValueError as err:
@@ -544,7 +546,8 @@ class MBRLLoop:
             return {}
         if self.rigid_body_truth is None:
             q = self.fidelity_reference.q
-            self.rigid_body_truth = RigidBodyTruth.of(self.system, q[: q.shape[0] // 2])
+            self.rigid_body_truth = RigidBodyTruth.of(self.physics, q[: q.shape[0] // 2],
+                                                      self.system)  # fmt: skip
         return rigid_body_metrics(self.model, self.rigid_body_truth)
 
     def state_dict(self) -> dict[str, Any]:
