@@ -37,7 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from mbrl_delan.systems.forward_kinematics import ForwardKinematics, quat_rotate
+from mbrl_delan.systems.forward_kinematics import ForwardKinematics, Frames
 
 PENETRATION_UNIT = 0.01  # delta, m: k is the force per point, in body weights, at 1 cm
 SLIP_SPEED = 0.01  # eps, m/s: below this slip the friction force fades linearly to zero
@@ -257,13 +257,14 @@ class ContactModel(nn.Module):
         velocity = torch.einsum("...pkv,...v->...pk", jacobian, qd)
         return ContactState(position, velocity, self.point_forces(position, velocity))
 
-    def kinematics(self, q: Tensor) -> tuple[Tensor, Tensor]:
+    def kinematics(self, q: Tensor, frames: Frames | None = None) -> tuple[Tensor, Tensor]:
         """The points (..., P, 3) and their Jacobians (..., P, 3, nv) at q (..., nq):
-        dp_i/dt = J_i qd."""
-        poses, axes = self.fk.dof_axes(q)
+        dp_i/dt = J_i qd. `frames`: the tree's `ForwardKinematics.dof_axes(q)` where the
+        caller has it already."""
+        poses, axes = frames or self.fk.dof_axes(q)
         pos = poses.xpos.index_select(-2, self.body)
-        quat = poses.xquat.index_select(-2, self.body)
-        position = pos + quat_rotate(quat, self.offset.to(q).expand_as(pos))  # (..., P, 3)
+        mat = poses.xmat.index_select(-3, self.body)
+        position = pos + (mat * self.offset.to(q).unsqueeze(-2)).sum(-1)  # (..., P, 3)
         lever = position.unsqueeze(-2) - axes.anchor.unsqueeze(-3)  # (..., P, nv, 3)
         axis = axes.axis.unsqueeze(-3).expand_as(lever)
         turn = torch.linalg.cross(axis, lever, dim=-1)
@@ -292,12 +293,15 @@ class ContactModel(nn.Module):
         tangential = -law["friction"].unsqueeze(-1) * normal.unsqueeze(-1) * slip / speed
         return torch.cat([tangential, normal.unsqueeze(-1)], dim=-1)
 
-    def implicit_terms(self, q: Tensor, qd: Tensor, dt: float) -> ImplicitTerms:
-        """The law linearised about the end of a step of `dt`: the normal force
+    def implicit_terms(
+        self, q: Tensor, qd: Tensor, dt: float, frames: Frames | None = None
+    ) -> ImplicitTerms:
+        """The law linearised about the end of a step of `dt` (`frames`: as `kinematics`):
+        the normal force
         s(d - dt v_n+) (1 - c v_n+) ~ s - (dt ds/dd + s c) v_n+, and friction as a damping
         of the slip, mu f_n / sqrt(|v_t|^2 + eps^2) with f_n at the step's start, times -v_t+
         (inside the cone while the slip does not grow)."""
-        position, jacobian = self.kinematics(q)
+        position, jacobian = self.kinematics(q, frames)
         velocity = torch.einsum("...pkv,...v->...pk", jacobian, qd)  # (..., P, 3)
         law = self.point_law(position)
         depth, spring = self._spring(position, law)

@@ -30,6 +30,7 @@ from mbrl_delan.models.lagrangian import (
 )
 from mbrl_delan.models.structure import Structure
 from mbrl_delan.models.tree import RigidBodyTree, TreeDynamics
+from mbrl_delan.systems.forward_kinematics import Frames
 from mbrl_delan.systems.posarith import differentiate_pos
 from mbrl_delan.systems.system import JointLayout, State
 
@@ -221,10 +222,12 @@ class DeLaN(WorldModel):
         def accel(q_: Tensor, qd_: Tensor) -> Tensor:
             qd_ = self._clamp_velocity(q_, qd_)
             force = self._with_learned_forces(tau, q_, qd_, action, contact=not implicit_contact)
-            parts = self._implicit_parts(q_, qd_, h)
+            frames = self._shared_frames(q_)
+            parts = self._implicit_parts(q_, qd_, h, frames)
             if not parts:
                 return self.dynamics.forward_dynamics(q_, qd_, force)
-            mass_matrix, bias = self.dynamics.mass_and_bias(q_, qd_, damping_dt=h)
+            shared = {} if frames is None else {"frames": frames}
+            mass_matrix, bias = self.dynamics.mass_and_bias(q_, qd_, damping_dt=h, **shared)
             return implicit_acceleration(parts, qd_, h, mass_matrix, force - bias)
 
         # positions move with clamped velocities: a huge learned acceleration cannot throw
@@ -234,11 +237,20 @@ class DeLaN(WorldModel):
             limit=self._clamp_velocity,
         )  # fmt: skip
 
-    def _implicit_parts(self, q: Tensor, qd: Tensor, dt: float) -> list[ImplicitTerms]:
+    def _shared_frames(self, q: Tensor) -> Frames | None:
+        """The tree's frames at q, computed once for its rigid body and the contacts (the
+        same kinematic tree), where the model has both; else None."""
+        if self.contact is None or not isinstance(self.dynamics, TreeDynamics):
+            return None
+        return self.dynamics.tree.fk.dof_axes(q)
+
+    def _implicit_parts(
+        self, q: Tensor, qd: Tensor, dt: float, frames: Frames | None = None
+    ) -> list[ImplicitTerms]:
         """What a step of `dt` takes implicitly: the contacts (when implicit), the limits."""
         parts = []
         if self.contact is not None and self.contact.implicit:
-            parts.append(self.contact.implicit_terms(q, qd, dt))
+            parts.append(self.contact.implicit_terms(q, qd, dt, frames))
         if self.limits is not None:
             parts.append(self.limits.implicit_terms(q, qd, dt))
         return parts

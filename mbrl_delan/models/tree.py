@@ -42,7 +42,6 @@ import torch
 from torch import Tensor, nn
 
 from mbrl_delan.models.contact import _subtree_mask
-from mbrl_delan.models.features import rotation_matrix
 from mbrl_delan.models.inertial import inertial_parameters, moving_bodies, pseudo_inertia
 from mbrl_delan.models.kernels import cholesky_solve
 from mbrl_delan.models.lagrangian import LagrangianDynamics, LagrangianTerms
@@ -52,7 +51,7 @@ from mbrl_delan.systems.forward_kinematics import (
     HINGE,
     SLIDE,
     ForwardKinematics,
-    quat_rotate,
+    Frames,
 )
 
 _UPPER = torch.triu_indices(4, 4, 1)  # V's entries above the diagonal, row by row
@@ -302,12 +301,12 @@ class RigidBodyTree(nn.Module):
 
     # ------------------------------------------------------------------ the dynamics
 
-    def kinematics(self, q: Tensor) -> Kinematics:
+    def kinematics(self, q: Tensor, frames: Frames | None = None) -> Kinematics:
         """Each DoF's motion and each moving body's spatial inertia at q (..., nq), in q's
-        dtype."""
-        poses, axes = self.fk.dof_axes(q)
+        dtype; `frames`: the tree's `ForwardKinematics.dof_axes(q)` where the caller has it."""
+        poses, axes = frames or self.fk.dof_axes(q)
         xpos = poses.xpos.index_select(-2, self.body_index)  # (..., B, 3)
-        rotation = rotation_matrix(poses.xquat.index_select(-2, self.body_index))
+        rotation = poses.xmat.index_select(-3, self.body_index)
         reference = xpos[..., :1, :]
         rotational = self.rotational.unsqueeze(-1)
         lever = axes.anchor - reference  # (..., nv, 3)
@@ -374,11 +373,10 @@ class RigidBodyTree(nn.Module):
         """Gravity's and the springs' energy. (...)"""
         poses = self.fk(q)
         xpos = poses.xpos.index_select(-2, self.body_index)
-        xquat = poses.xquat.index_select(-2, self.body_index)
+        xmat = poses.xmat.index_select(-3, self.body_index)
         parts = {k: v.to(q) for k, v in self.inertial().items()}
-        first = parts["mass"].unsqueeze(-1) * xpos + quat_rotate(
-            xquat, parts["first_moment"].expand_as(xpos)
-        )
+        turned = (xmat * parts["first_moment"].unsqueeze(-2)).sum(-1)  # R h
+        first = parts["mass"].unsqueeze(-1) * xpos + turned
         height = (first * self.gravity_accel[3:].to(q)).sum((-1, -2))
         offset = q.index_select(-1, self.spring_q) - self.spring_ref.to(q)
         return height + 0.5 * (self.stiffness.to(q) * offset.square()).sum(-1)
@@ -470,18 +468,20 @@ class TreeDynamics(nn.Module):
         """tau = B a: (..., nu) -> (..., n)."""
         return action @ self.actuation.to(action).transpose(-1, -2)
 
-    def _tree_terms(self, q: Tensor, qd: Tensor) -> tuple[Tensor, Tensor]:
+    def _tree_terms(
+        self, q: Tensor, qd: Tensor, frames: Frames | None = None
+    ) -> tuple[Tensor, Tensor]:
         """The tree's M (..., n, n) and c + g + springs + damping (..., n)."""
-        kin = self.tree.kinematics(q)
+        kin = self.tree.kinematics(q, frames)
         return self.tree.mass_matrix(q, kin), self.tree.bias(qd, kin) + self.tree.passive(q, qd)
 
     def mass_and_bias(
-        self, q: Tensor, qd: Tensor, damping_dt: float = 0.0
+        self, q: Tensor, qd: Tensor, damping_dt: float = 0.0, frames: Frames | None = None
     ) -> tuple[Tensor, Tensor]:
         """M (..., n, n) and c + g + d (..., n); `damping_dt` > 0: the damping (the tree's
         and the residual's friction slope) taken at the end of a step that long (M + dt
-        dd/dqd), as MuJoCo's Euler does."""
-        mass, bias = self._tree_terms(q, qd)
+        dd/dqd), as MuJoCo's Euler does; `frames`: as `RigidBodyTree.kinematics`."""
+        mass, bias = self._tree_terms(q, qd, frames)
         if damping_dt > 0:
             mass = mass + torch.diag_embed(damping_dt * self.tree.damping.to(q).expand_as(qd))
         if self.residual is not None:

@@ -26,8 +26,6 @@ import mujoco
 import torch
 from torch import Tensor, nn
 
-from mbrl_delan.systems.posarith import quat_exp, quat_mul
-
 FREE, BALL, SLIDE, HINGE = (
     int(mujoco.mjtJoint.mjJNT_FREE),
     int(mujoco.mjtJoint.mjJNT_BALL),
@@ -67,8 +65,13 @@ class Poses:
     """World poses of every body and site."""
 
     xpos: Tensor  # (..., nbody, 3) body frame origins; body 0 is the world
-    xquat: Tensor  # (..., nbody, 4) body orientations
+    xmat: Tensor  # (..., nbody, 3, 3) body orientations (body axes to world)
     site_xpos: Tensor  # (..., nsite, 3)
+
+    @property
+    def xquat(self) -> Tensor:
+        """The orientations as unit quaternions (w, x, y, z), w >= 0. (..., nbody, 4)"""
+        return mat_to_quat(self.xmat)
 
 
 @dataclass
@@ -78,6 +81,9 @@ class DofAxes:
 
     axis: Tensor  # (..., nv, 3) unit vectors
     anchor: Tensor  # (..., nv, 3)
+
+
+Frames = tuple[Poses, DofAxes]  # what `ForwardKinematics.dof_axes` gives
 
 
 class ForwardKinematics(nn.Module):
@@ -175,83 +181,138 @@ class ForwardKinematics(nn.Module):
         self, q: Tensor, axes: list[tuple[Tensor, Tensor]] | None, nbody: int | None = None
     ) -> Poses:
         """Poses of the first `nbody` bodies (None: all, with the sites) at q (..., nq); each
-        DoF's (axis, anchor) appended to `axes` unless None."""
+        DoF's (axis, anchor) appended to `axes` unless None. Orientations are carried as
+        rotation matrices: a hinge turns its body by exp(theta [a]x) = 1 + sin(theta) [a]x +
+        (1 - cos(theta)) [a]x^2 with [a]x and its square constants of the tree."""
         batch, c = q.shape[:-1], self.placed(q)
         xpos = [q.new_zeros((*batch, 3))]
-        xquat = [c.world_quat.expand(*batch, 4)]
+        xmat = [c.world_mat.expand(*batch, 3, 3)]
         for b in range(1, len(self.parent) if nbody is None else nbody):
-            pos, quat = self._body(q, b, xpos, xquat, c, axes)
+            pos, mat = self._body(q, b, xpos, xmat, c, axes)
             xpos.append(pos)
-            xquat.append(_unit(quat))
-        xpos_t, xquat_t = torch.stack(xpos, dim=-2), torch.stack(xquat, dim=-2)
-        sites = self._sites(xpos_t, xquat_t, c) if nbody is None else xpos_t[..., :0, :]
-        return Poses(xpos=xpos_t, xquat=xquat_t, site_xpos=sites)
+            xmat.append(mat)
+        xpos_t, xmat_t = torch.stack(xpos, dim=-2), torch.stack(xmat, dim=-3)
+        sites = self._sites(xpos_t, xmat_t, c) if nbody is None else xpos_t[..., :0, :]
+        return Poses(xpos=xpos_t, xmat=xmat_t, site_xpos=sites)
 
     def _body(
         self,
         q: Tensor,
         b: int,
         xpos: list[Tensor],
-        xquat: list[Tensor],
+        xmat: list[Tensor],
         c: _Placed,
         axes: list[tuple[Tensor, Tensor]] | None = None,
     ) -> tuple[Tensor, Tensor]:
-        """Position (..., 3) and orientation (..., 4) of body b from its parent's."""
+        """Position (..., 3) and orientation (..., 3, 3) of body b from its parent's."""
         joints = self.joints[b]
         if len(joints) == 1 and joints[0].kind == FREE:
             adr = joints[0].qpos_adr
-            pos, quat = q[..., adr : adr + 3], _unit(q[..., adr + 3 : adr + 7])
+            pos, mat = q[..., adr : adr + 3], quat_to_mat(q[..., adr + 3 : adr + 7])
             if axes is not None:
-                world = torch.eye(3, dtype=q.dtype, device=q.device).expand(*pos.shape, 3)
+                world = c.world_mat.expand(*mat.shape)
                 axes += [(world[..., k, :], pos) for k in range(3)]
-                axes += _body_axes(quat, pos)
-            return pos, quat
+                axes += [(mat[..., :, k], pos) for k in range(3)]
+            return pos, mat
         p = self.parent[b]
-        pos = xpos[p] + quat_rotate(xquat[p], c.body_pos[b].expand_as(xpos[p]))
-        quat = quat_mul(xquat[p], c.body_quat[b].expand_as(xquat[p]))
-        for joint, axis, anchor in zip(joints, c.axes[b], c.anchors[b], strict=True):
-            if axes is not None and joint.kind in (HINGE, SLIDE):
-                world_axis = quat_rotate(quat, axis.expand_as(pos))
-                axes.append((world_axis, pos + quat_rotate(quat, anchor.expand_as(pos))))
-            pos, quat = self._joint(q, joint, axis, anchor, pos, quat)
-            if axes is not None and joint.kind == BALL:
-                axes += _body_axes(_unit(quat), pos + quat_rotate(quat, anchor.expand_as(pos)))
-        return pos, quat
+        pos = xpos[p] + _turn(xmat[p], c.body_pos[b])
+        mat = _compose(xmat[p], c.body_mat[b])
+        for joint, const in zip(joints, c.joints[b], strict=True):
+            pos, mat = self._joint(q, joint, const, pos, mat, axes)
+        return pos, mat
 
     @staticmethod
     def _joint(
-        q: Tensor, joint: Joint, axis: Tensor, anchor: Tensor, pos: Tensor, quat: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """Apply one joint (its axis and anchor (3,)) to the body frame (pos (..., 3), quat
-        (..., 4))."""
-        axis, anchor = axis.expand_as(pos), anchor.expand_as(pos)
+        q: Tensor, joint: Joint, const: _JointConstants, pos: Tensor, mat: Tensor,
+        axes: list[tuple[Tensor, Tensor]] | None,
+    ) -> tuple[Tensor, Tensor]:  # fmt: skip
+        """Apply one joint to the body frame (pos (..., 3), mat (..., 3, 3)); its DoFs'
+        (axis, anchor) appended to `axes` unless None."""
         value = q[..., joint.qpos_adr : joint.qpos_adr + 1] - joint.qpos0  # (..., 1)
         if joint.kind == SLIDE:
-            return pos + quat_rotate(quat, axis) * value, quat
+            axis = _turn(mat, const.axis)
+            if axes is not None:
+                axes.append((axis, pos + _turn(mat, const.anchor)))
+            return pos + axis * value, mat
+        anchor = pos + _turn(mat, const.anchor)  # stays in place
         if joint.kind == HINGE:
-            local = quat_exp(axis * value)
+            if axes is not None:
+                axes.append((_turn(mat, const.axis), anchor))
+            angle = value.unsqueeze(-1)  # (..., 1, 1)
+            local = const.eye + torch.sin(angle) * const.skew
+            local = local + (1.0 - torch.cos(angle)) * const.skew_sq
         elif joint.kind == BALL:
-            local = _unit(q[..., joint.qpos_adr : joint.qpos_adr + 4])
+            local = quat_to_mat(q[..., joint.qpos_adr : joint.qpos_adr + 4])
         else:
             raise ValueError("a free joint must be its body's only joint")
-        world_anchor = pos + quat_rotate(quat, anchor)
-        quat = quat_mul(quat, local)
-        return world_anchor - quat_rotate(quat, anchor), quat
+        mat = _compose(mat, local)
+        if axes is not None and joint.kind == BALL:
+            axes += [(mat[..., :, k], anchor) for k in range(3)]
+        return anchor - _turn(mat, const.anchor), mat
 
-    def _sites(self, xpos: Tensor, xquat: Tensor, c: _Placed) -> Tensor:
-        """(..., nbody, 3), (..., nbody, 4) -> site positions (..., nsite, 3)."""
+    def _sites(self, xpos: Tensor, xmat: Tensor, c: _Placed) -> Tensor:
+        """(..., nbody, 3), (..., nbody, 3, 3) -> site positions (..., nsite, 3)."""
         if not self.site_body:
             return xpos[..., :0, :]
         body_pos = xpos.index_select(-2, c.site_body)
-        body_quat = xquat.index_select(-2, c.site_body)
-        return body_pos + quat_rotate(body_quat, c.site_pos.expand_as(body_pos))
+        body_mat = xmat.index_select(-3, c.site_body)
+        return body_pos + _turn(body_mat, c.site_pos)
 
 
-def _body_axes(quat: Tensor, anchor: Tensor) -> list[tuple[Tensor, Tensor]]:
-    """A body's own x, y, z axes in the world (..., 3) at orientation quat (..., 4), each
-    with `anchor` (..., 3): the DoFs of a body-frame angular velocity."""
-    eye = torch.eye(3, dtype=quat.dtype, device=quat.device)
-    return [(quat_rotate(quat, eye[k].expand_as(anchor)), anchor) for k in range(3)]
+def _turn(mat: Tensor, vec: Tensor) -> Tensor:
+    """mat @ vec for rotations (..., 3, 3) and vectors (..., 3) or (3,), as broadcast products
+    (they fuse when compiled). -> (..., 3)"""
+    return (mat * vec.unsqueeze(-2)).sum(-1)
+
+
+def _compose(a: Tensor, b: Tensor) -> Tensor:
+    """a @ b for 3x3 matrices (..., 3, 3), as broadcast products. -> (..., 3, 3)"""
+    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+
+
+def quat_to_mat(quat: Tensor) -> Tensor:
+    """Rotation matrices of quaternions (w, x, y, z), normalised first. (..., 4) -> (..., 3, 3)"""
+    w, x, y, z = _unit(quat).unbind(-1)
+    rows = (
+        (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+        (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+        (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
+    )
+    return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
+
+
+def mat_to_quat(mat: Tensor) -> Tensor:
+    """Unit quaternions (w, x, y, z) with w >= 0 of rotation matrices (..., 3, 3), from the
+    largest of the four candidate pivots (Shepperd's method). -> (..., 4)"""
+    m = mat
+    trace = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    pivots = torch.stack([trace, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]], -1)
+    candidates = torch.stack([
+        torch.stack([1 + trace, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0],
+                     m[..., 1, 0] - m[..., 0, 1]], -1),
+        torch.stack([m[..., 2, 1] - m[..., 1, 2], 1 + 2 * m[..., 0, 0] - trace,
+                     m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0]], -1),
+        torch.stack([m[..., 0, 2] - m[..., 2, 0], m[..., 0, 1] + m[..., 1, 0],
+                     1 + 2 * m[..., 1, 1] - trace, m[..., 1, 2] + m[..., 2, 1]], -1),
+        torch.stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0],
+                     m[..., 1, 2] + m[..., 2, 1], 1 + 2 * m[..., 2, 2] - trace], -1),
+    ], -2)  # fmt: skip
+    best = pivots.argmax(-1, keepdim=True)  # (..., 1)
+    quat = candidates.gather(-2, best.unsqueeze(-1).expand(*best.shape, 4)).squeeze(-2)
+    quat = _unit(quat)
+    return torch.where(quat[..., :1] < 0, -quat, quat)
+
+
+@dataclass(frozen=True)
+class _JointConstants:
+    """One joint's constants on a device: its axis and anchor (3,) in the body frame, the
+    cross-product matrix [a]x of its axis and its square (3, 3), and the identity."""
+
+    axis: Tensor
+    anchor: Tensor
+    skew: Tensor
+    skew_sq: Tensor
+    eye: Tensor
 
 
 @dataclass(frozen=True)
@@ -259,24 +320,29 @@ class _Placed:
     """`ForwardKinematics`' constants on one device, in one dtype."""
 
     body_pos: Tensor  # (nbody, 3)
-    body_quat: Tensor  # (nbody, 4)
+    body_mat: Tensor  # (nbody, 3, 3)
     site_pos: Tensor  # (nsite, 3)
     site_body: Tensor  # (nsite,) int64
-    world_quat: Tensor  # (4,) the identity
-    axes: list[list[Tensor]]  # per body, per joint: (3,)
-    anchors: list[list[Tensor]]  # per body, per joint: (3,)
+    world_mat: Tensor  # (3, 3) the identity
+    joints: list[list[_JointConstants]]  # per body, per joint
 
     @classmethod
     def build(cls, fk: ForwardKinematics, like: Tensor) -> _Placed:
         def vec(values: tuple[float, ...]) -> Tensor:
             return torch.tensor(values, dtype=like.dtype, device=like.device)
 
+        eye = torch.eye(3, dtype=like.dtype, device=like.device)
+
+        def constants(joint: Joint) -> _JointConstants:
+            axis = vec(joint.axis)
+            skew = torch.linalg.cross(axis.expand(3, 3), eye, dim=-1).transpose(0, 1)
+            return _JointConstants(axis, vec(joint.anchor), skew, skew @ skew, eye)
+
         return cls(
             body_pos=fk.body_pos.to(like),
-            body_quat=fk.body_quat.to(like),
+            body_mat=quat_to_mat(fk.body_quat.to(like)),
             site_pos=fk.site_pos.to(like),
             site_body=torch.tensor(fk.site_body, dtype=torch.long, device=like.device),
-            world_quat=vec((1.0, 0.0, 0.0, 0.0)),
-            axes=[[vec(j.axis) for j in joints] for joints in fk.joints],
-            anchors=[[vec(j.anchor) for j in joints] for joints in fk.joints],
+            world_mat=eye,
+            joints=[[constants(j) for j in joints] for joints in fk.joints],
         )

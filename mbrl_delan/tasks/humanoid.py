@@ -24,7 +24,7 @@ import mujoco
 import torch
 from torch import Tensor
 
-from mbrl_delan.systems.forward_kinematics import ForwardKinematics, Poses, quat_rotate
+from mbrl_delan.systems.forward_kinematics import ForwardKinematics, Poses
 from mbrl_delan.systems.system import State
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.common import PlacedConstants
@@ -108,15 +108,15 @@ class HumanoidTask(Task):
 
     def _head_z(self, poses: Poses) -> Tensor:
         """Head height (...) in m."""
-        pos, quat = poses.xpos[..., self.head, :], poses.xquat[..., self.head, :]
-        offset = self.constants.on(pos)["head_offset"].expand_as(pos)
-        return (pos + quat_rotate(quat, offset))[..., 2]
+        pos, mat = poses.xpos[..., self.head, :], poses.xmat[..., self.head, :, :]
+        offset = self.constants.on(pos)["head_offset"]
+        return pos[..., 2] + (mat[..., 2, :] * offset).sum(-1)
 
     def _up_z(self, poses: Poses) -> Tensor:
         """World z of the torso's up axis (...), in [-1, 1]."""
-        quat = poses.xquat[..., self.torso, :]
-        up = self.constants.on(quat)["torso_up"].expand_as(quat[..., 1:])
-        return quat_rotate(quat, up)[..., 2]
+        mat = poses.xmat[..., self.torso, :, :]
+        up = self.constants.on(mat)["torso_up"]
+        return (mat[..., 2, :] * up).sum(-1)
 
     def _poses(self, q: Tensor) -> Poses:
         """Poses of the head, the torso and the bodies before them. (..., nq) ->"""
