@@ -167,6 +167,7 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         seed=v["seed"],
         data_run=v["data_run"],
         env=v["env"],
+        save_models=v["save_models"],
         tasks=tuples("tasks"),
         overrides=tuple(v["overrides"]),
         runs=tuple(v["runs"]),

@@ -134,3 +134,48 @@ def test_residual_lagrangian_at_its_start_is_the_tree() -> None:
     alone, beside = tree.rigid_body(q_t), both.rigid_body(q_t)
     torch.testing.assert_close(beside.mass_matrix, alone.mass_matrix, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(beside.potential_force, alone.potential_force, rtol=1e-5, atol=1e-3)
+
+
+def test_a_fit_from_the_geometric_start_moves_m_towards_mujocos() -> None:
+    """The Panda's geometric start (its capsules at 1,000 kg/m^3: 7.7 kg against 16.8) fitted
+    on 2,000 samples of exact inverse dynamics (MuJoCo's forward dynamics at random states and
+    controls) brings M to within a tenth of its start's error from `mj_fullM` on other
+    states."""
+    from tensordict import TensorDict
+
+    from mbrl_delan import keys
+    from mbrl_delan.models.delan import DeLaN
+    from mbrl_delan.models.inertial import rigid_body_at
+    from mbrl_delan.systems.system import load_system
+    from mbrl_delan.training.fit import FitConfig, fit_model
+
+    system = load_system("panda")
+    model = system.mj_model()
+    data, rng = mujoco.MjData(model), np.random.default_rng(0)
+    rows = []
+    for _ in range(2064):
+        data.qpos[:] = rng.uniform(*model.jnt_range.T)
+        data.qvel[:] = rng.normal(size=model.nv)
+        data.ctrl[:] = rng.uniform(-1, 1, model.nu)
+        mujoco.mj_forward(model, data)
+        rows.append((data.qpos.copy(), data.qvel.copy(), data.ctrl.copy(), data.qacc.copy()))
+    q, qd, action, qdd = (torch.tensor(np.stack(c)) for c in zip(*rows, strict=True))
+    samples = TensorDict({keys.Q: q, keys.QD: qd, keys.ACTION: action, keys.QDD: qdd}, [len(q)])
+    spec = mujoco.MjSpec.from_file(str(system.xml_path))
+    tree = RigidBodyTree.from_mujoco(model, geometric_start(spec))
+    delan = DeLaN(system.layout, system.actuation, system.control_dt, loss="inverse", tree=tree)
+    test_q = q[-64:]
+    truth, _ = rigid_body_at(model, test_q.numpy())
+
+    def error() -> float:
+        mass = delan.rigid_body(test_q).mass_matrix.numpy()
+        return float(np.median(np.linalg.norm(mass - truth, axis=(1, 2))
+                               / np.linalg.norm(truth, axis=(1, 2))))  # fmt: skip
+
+    before = error()
+    torch.manual_seed(0)
+    optimizer = torch.optim.Adam(delan.parameters(), lr=0.03)
+    settings = FitConfig(batch_size=256, max_epochs=60, patience=None, max_batches_per_epoch=8)
+    fit_model(delan, optimizer, samples[:-64], settings, torch.Generator().manual_seed(1))
+    after = error()
+    assert before > 0.3 and after < 0.1 * before, (before, after)  # measured: 0.465 -> 0.005

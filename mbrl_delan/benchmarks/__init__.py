@@ -135,6 +135,7 @@ class SuiteOptions:
     # suite fidelity
     runs: tuple[str, ...] = ()  # train run dirs whose final world models are scored
     env: str | None = None  # of FIDELITY_ENVS (None: humanoid_stand)
+    save_models: str | None = None  # a folder that keeps each fitted case as a record folder
     # suite own_arm (None: the suite's default, or its quick size under `quick`)
     robots: tuple[str, ...] | None = None  # of OWN_ARM_ROBOTS
     friction: tuple[bool, ...] | None = None  # the arms without and with joint friction

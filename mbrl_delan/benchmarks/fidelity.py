@@ -43,7 +43,7 @@ from typing import Any
 import mujoco
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 
 from mbrl_delan import keys
@@ -68,6 +68,7 @@ from mbrl_delan.training.fidelity import (
 )
 from mbrl_delan.training.fit import fit_model
 from mbrl_delan.training.loop import run_episode
+from mbrl_delan.training.recorder import RUN_CONFIG, WEIGHTS_FILE
 
 log = logging.getLogger(__name__)
 
@@ -273,6 +274,8 @@ def run_fidelity_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
         case_cfg = compose_train_config([f"env={task}", *FIT_CASES[name], f"seed={seed}",
                                          *opts.overrides])  # fmt: skip
         model, seconds = fitted_model(case_cfg, parts, data, seed)
+        if opts.save_models is not None:
+            keep_model(Path(opts.save_models) / f"{name}_s{seed}", case_cfg, model)
         yield from _case(case_cfg, parts, model, name, described, reference, steps, seed,
                          base | host | {"transitions": int(data.shape[0])},
                          {"fit_seconds": seconds})  # fmt: skip
@@ -285,6 +288,15 @@ def run_fidelity_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
         run_cfg, model, data = _run_model(run_dir)
         name = f"{run_cfg.model.name}:{Path(run_dir).name}"
         yield from _case(run_cfg, parts, model, name, data, reference, steps, seed, base | host)
+
+
+def keep_model(folder: Path, cfg: DictConfig, model: WorldModel) -> None:
+    """A fitted case as a record folder (`config.yaml`, `world_model.pt`), which
+    `runs.load_run` reads back (`runs=[...]` scores it again, e.g. with an edited config)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / RUN_CONFIG).write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    torch.save(model.state_dict(), folder / WEIGHTS_FILE)
+    log.info("fidelity: the fitted model kept in %s", folder)
 
 
 def training_data(opts: SuiteOptions, parts: EnvParts, seed: int) -> tuple[TensorDict, str]:

@@ -423,6 +423,7 @@ class BenchConfig:
     overrides: list[str] = field(default_factory=list)
     runs: list[str] = field(default_factory=list)  # suite fidelity: train run dirs to score
     env: str | None = rule(None, choices=FIDELITY_ENVS)  # suite fidelity: its env
+    save_models: str | None = None  # suite fidelity: keep each fitted case in <this>/<case>_s<seed>
     robots: list[str] | None = rule(None, choices=OWN_ARM_ROBOTS)  # suite own_arm
     friction: list[bool] | None = None  # suite own_arm: the arms without/with joint friction
     samples: list[int] | None = rule(None, low=1)  # suite own_arm: training-set sizes
