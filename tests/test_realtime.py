@@ -74,7 +74,8 @@ def test_realtime_options() -> None:
 
     default = RealtimeConfig.from_options(options())
     assert default.tasks == ("humanoid_stand", "humanoid_walk", "pendulum")
-    assert default.dynamics == ("mujoco", "delan", "ensemble") and default.oracle_steps is None
+    assert default.dynamics == ("mujoco", "delan", "tree", "tree_delan", "ensemble")
+    assert default.oracle_steps is None
     some = RealtimeConfig.from_options(options("models=[delan]", "tasks=[humanoid_walk]"))
     assert some.dynamics == ("delan",) and some.tasks == ("humanoid_walk",)
     with pytest.raises(ConfigError, match="tasks"):

@@ -15,17 +15,19 @@ geometry and learns those numbers by gradient, physically consistent for any val
 - the joints' springs (MuJoCo's ``stiffness`` about ``springref``) are the MJCF's, fixed.
 
 The dynamics, in MuJoCo's coordinates (a free root's linear velocity in the world frame and
-its angular velocity in the body frame), from spatial vectors in world axes about the root's
-position (Plücker coordinates; `spatial_cross`):
+its angular velocity in the body frame), from spatial vectors in world axes about the first
+moving body's origin (Plücker coordinates; `spatial_cross`), on one forward kinematics per
+configuration (`ForwardKinematics.dof_axes`, shared with the contact model):
 
-- S_v (..., nv, 6): each DoF's motion (axis, lever x axis) from `ForwardKinematics.dof_axes`;
-  J_b = [S_v for the DoFs above body b] and the body's twist V_b = J_b qd;
-- M = sum_b J_b^T I_b J_b + diag(armature), I_b the body's 6x6 spatial inertia;
-- c + g = sum_b J_b^T (I_b A_b + V_b x* I_b V_b) with A_b = sum_v (V_frame(v) x S_v) qd_v, the
-  bias acceleration (`Kinematics.frame`: the velocity of the frame each axis is fixed in) and
-  the gravity as an upward acceleration of the base: g(q) = sum_b J_b^T I_b a_g. For a free
-  root, M's column of its vertical translation is sum_b J_b^T I_b (0, e_z), so
-  g = |g| M[:, z] holds by construction at any parameters;
+- S_v (..., nv, 6): each DoF's motion per unit velocity (axis, lever x axis); I_b each
+  moving body's spatial inertia in world axes (`world_inertia`);
+- M by composite rigid bodies: M_ij = S_i^T Ic_j S_j for DoF i at or above DoF j, Ic_j the
+  summed inertia of DoF j's body and all below it, plus diag(armature);
+- c + g by Newton-Euler in world axes: each body's twist V_b = sum of S_v qd_v above it, its
+  bias acceleration A_b = sum of (V_frame(v) x S_v) qd_v (the frame each axis is fixed in,
+  `_frames`) plus gravity as an upward acceleration of the base; the body forces
+  I_b A_b + V_b x* I_b V_b summed below each DoF and projected on S_v. For a free root the
+  gravity term is |g| times M's column of the vertical translation, at any parameters;
 - passive: k (q - q_spring) + b qd.
 
 `tests/test_tree.py` checks M against `mj_fullM` and c + g against `qfrc_bias` at the MJCF's
@@ -110,7 +112,8 @@ def geometric_start(spec: mujoco.MjSpec, total_mass: float | None = None,
     its geoms' volumes at one `density` (MuJoCo's inertia from geometry, every geom at that
     density, the MJCF's own inertial numbers ignored), scaled so the bodies weigh
     `total_mass` when it is given; the joints' damping and armature as the MJCF gives them.
-    A moving body without geoms gets `MIN_MASS_SHARE` of the total as a small sphere."""
+    A moving body that weighs nothing by its geoms gets `MIN_MASS_SHARE` of the total as a
+    small sphere."""
     spec = spec.copy()
     spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_TRUE
     for geom in spec.geoms:
