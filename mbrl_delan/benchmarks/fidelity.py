@@ -28,7 +28,7 @@ Besides the fidelity figures, every case with a rigid body gets the rigid-body f
 ``actuation_response_error``).
 
 Every record carries `model` (the case), `data` (what the model was fitted on), `metric`,
-the episode's `seed` and `oracle_steps`, and the host fields.
+the episode's `seed` and `oracle_steps`, the suite's `overrides`, and the host fields.
 """
 
 from __future__ import annotations
@@ -265,7 +265,8 @@ def run_fidelity_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
     reference = reference_episode(cfg, parts, steps, seed, nthread)
     host = host_fields(torch.device("cpu"))
     base = dict(env=task, seed=seed, oracle_steps=steps, starts=int(reference.q.shape[0]),
-                candidate_starts=int(reference.candidate_starts.numel()))  # fmt: skip
+                candidate_starts=int(reference.candidate_starts.numel()),
+                overrides=list(opts.overrides))  # fmt: skip
     cases = REFERENCE_CASES if opts.models is None else opts.models
     data: TensorDict | None = None
     for name in (c for c in cases if c in FIT_CASES):

@@ -254,14 +254,11 @@ class Evaluation:
     rollouts: list[TensorDict] = field(default_factory=list)  # the first `keep_rollouts` kept
     steps: list[int] = field(default_factory=list)  # each episode's control steps
 
-    def falls(self, episode_len: int) -> int:
-        """Episodes that ended before `episode_len` steps (the task terminated them)."""
-        return sum(steps < episode_len for steps in self.steps)
-
     def episode_records(self, episode_len: int) -> dict[str, Any]:
-        """Each episode's return and control steps, and the falls, for `metrics.jsonl`."""
+        """Each episode's return and control steps, and the falls (episodes that ended before
+        `episode_len` steps), for `metrics.jsonl`."""
         return {"eval_episode_returns": list(self.returns), "eval_episode_steps": list(self.steps),
-                "eval_falls": self.falls(episode_len)}  # fmt: skip
+                "eval_falls": sum(steps < episode_len for steps in self.steps)}  # fmt: skip
 
     @property
     def median_steps(self) -> float:
@@ -526,17 +523,16 @@ class MBRLLoop:
         model's mean return over the episodes where both stood over the oracle's), with the
         oracle's own returns and steps per episode."""
         n = min(len(ev.returns), len(self.oracle_returns or []))
-        oracle = Evaluation(list((self.oracle_returns or [])[:n]),
-                            steps=list((self.oracle_steps or [])[:n]))  # fmt: skip
-        both = [i for i in range(n) if ev.steps[i] >= self.episode_len
-                and oracle.steps[i] >= self.episode_len]  # fmt: skip
-        ratio = (sum(ev.returns[i] for i in both) / sum(oracle.returns[i] for i in both)
+        returns, steps = list((self.oracle_returns or [])[:n]), list((self.oracle_steps or [])[:n])
+        full = self.episode_len
+        both = [i for i in range(n) if ev.steps[i] >= full and steps[i] >= full]
+        ratio = (sum(ev.returns[i] for i in both) / sum(returns[i] for i in both)
                  if both else math.nan)  # fmt: skip
         return {
-            "paired_episodes": n, "falls": Evaluation(steps=ev.steps[:n]).falls(self.episode_len),
-            "oracle_falls": oracle.falls(self.episode_len), "both_stood": len(both),
-            "standing_return_ratio": ratio, "oracle_episode_returns": oracle.returns,
-            "oracle_episode_steps": oracle.steps,
+            "paired_episodes": n, "falls": sum(s < full for s in ev.steps[:n]),
+            "oracle_falls": sum(s < full for s in steps), "both_stood": len(both),
+            "standing_return_ratio": ratio, "oracle_episode_returns": returns,
+            "oracle_episode_steps": steps,
         }  # fmt: skip
 
     def rigid_body_figures(self) -> dict[str, float]:
