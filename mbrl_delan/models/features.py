@@ -25,21 +25,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from mbrl_delan.systems.forward_kinematics import quat_to_mat as rotation_matrix
 from mbrl_delan.systems.system import BALL, FREE, HINGE, JointLayout
 
 PLAIN_BOUND = 5.0  # plain features saturate at +-5 standard deviations of the data
 PLAIN_MIN_STD = 1e-3  # a plain coordinate with a smaller std in the data is held still
-
-
-def rotation_matrix(quat: Tensor) -> Tensor:
-    """Unit-normalised quaternion (..., 4) as (w, x, y, z) -> rotation matrix (..., 3, 3)."""
-    w, x, y, z = (quat / quat.norm(dim=-1, keepdim=True).clamp_min(1e-12)).unbind(-1)
-    rows = (
-        (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-        (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-        (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
-    )
-    return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
 
 
 def skew(v: Tensor) -> Tensor:
