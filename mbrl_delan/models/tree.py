@@ -514,12 +514,12 @@ class TreeDynamics(nn.Module):
         stiffness = tree.stiffness.to(q).clone()
         if self.residual is None:
             return stiffness
+        zero = torch.zeros(*q.shape[:-1], tree.nv, dtype=q.dtype, device=q.device)
         for v in torch.nonzero(tree.scalar).flatten().tolist():
             index = int(tree.spring_q[v])
             up, down = q.clone(), q.clone()
             up[..., index] += step
             down[..., index] -= step
-            zero = torch.zeros(*q.shape[:-1], tree.nv, dtype=q.dtype, device=q.device)
             slope = (self.residual.terms(up, zero).gravity[..., v]
                      - self.residual.terms(down, zero).gravity[..., v]) / (2 * step)  # fmt: skip
             stiffness[v] += slope.median()
