@@ -44,6 +44,24 @@ def test_compiled_step_equals_eager_step() -> None:
     torch.testing.assert_close(compiled.qd, eager.qd, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
+def test_two_compiled_models_in_one_process_step_as_their_own() -> None:
+    """Two models whose steps share code but not their settings (control periods dt and 2 dt):
+    each compiled step equals its own eager step (a graph traced for the first is not reused)."""
+    system = load_system("acrobot")
+    torch.manual_seed(0)
+    models = [DeLaN(system.layout, system.actuation.float(), k * system.control_dt,
+                    Structure(hidden=16)) for k in (1, 2)]  # fmt: skip
+    models[1].load_state_dict(models[0].state_dict())
+    g = torch.Generator().manual_seed(1)
+    q, qd, a = (torch.randn(8, k, generator=g) for k in (system.nq, system.nv, system.nu))
+    with torch.inference_mode():
+        steps = [CompiledStep(m).step(q, qd, a) for m in models]
+    for model, compiled in zip(models, steps, strict=True):
+        torch.testing.assert_close(compiled.q, model.step(q, qd, a).q, rtol=1e-5, atol=1e-5)
+    assert not torch.allclose(steps[0].q, steps[1].q)  # the settings differ in the result
+
+
 def test_unrolled_cholesky_solve_equals_lapack() -> None:
     g = torch.Generator().manual_seed(0)
     for n in range(1, SMALL_SOLVE + 1):

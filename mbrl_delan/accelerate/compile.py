@@ -21,13 +21,23 @@ def compile_dynamics(fn: Callable[..., Any]) -> Callable[..., Any]:
     place are read at each call; inputs of another dtype or device compile another graph).
     The C++ kernels may contract a multiply and an add into one fused multiply-add (one
     rounding instead of two: the softplus polynomial and the layer products are chains of
-    them)."""
+    them).
+
+    Each call compiles graphs of its own: Dynamo keeps its graphs on the code object it
+    enters, and without module guards a graph traced for one model would run for another
+    whose method shares that code (another model's structure, or its float settings such as
+    `substeps` baked in). `fn` is entered through a wrapper with a code object of its own."""
     options = {
         "cpp_wrapper": True,
         "cpp.enable_floating_point_contract_flag": "fast",
         "guard_filter_fn": torch.compiler.skip_guard_on_all_nn_modules_unsafe,
     }
-    return torch.compile(fn, dynamic=False, options=options)
+
+    def entry(*args: Any, **kwargs: Any) -> Any:
+        return fn(*args, **kwargs)
+
+    entry.__code__ = entry.__code__.replace()  # a copy: this call's own graph cache
+    return torch.compile(entry, dynamic=False, options=options)
 
 
 class FitGraph:
