@@ -71,3 +71,49 @@ def _train_model(run_dir: Path, weights: Path) -> tuple[DictConfig, nn.Module]:
     state = load_checkpoint(weights)  # tensors and plain containers only
     model.load_state_dict(state["loop"]["model"] if weights.name == CHECKPOINT_FILE else state)
     return cfg, model
+
+
+# what a run's oracle and zero-torque episodes depend on: another run that agrees on these
+# met the same starts with the same planner (`oracle_of_run`)
+ORACLE_KEYS = ("env", "planner", "seed", "dtype", "budget.oracle_planner",
+               "budget.oracle_episodes", "budget.final_eval_episodes", "budget.paired")  # fmt: skip
+
+
+@dataclass
+class OracleEpisodes:
+    """A train run's oracle evaluation (returns and control steps per episode, its fidelity
+    reference's state) and its zero-torque returns, as its checkpoint holds them."""
+
+    returns: list[float]
+    steps: list[int] | None
+    zero_returns: list[float]
+    fidelity_reference: dict[str, Any] | None
+
+
+def oracle_of_run(run_dir: str | Path, cfg: DictConfig) -> OracleEpisodes:
+    """The oracle and zero-torque episodes of the train run in `run_dir`, for a run of config
+    `cfg` that would evaluate the same ones (`ORACLE_KEYS` equal).
+
+    Raises FileNotFoundError without the run's config or checkpoint, ValueError naming the
+    first key whose value differs or when the run has not evaluated both yet."""
+    run_dir = Path(run_dir)
+    config_path, checkpoint_path = run_dir / RUN_CONFIG, run_dir / CHECKPOINT_FILE
+    for path in (config_path, checkpoint_path):
+        if not path.is_file():
+            raise FileNotFoundError(f"budget.oracle_from: {path} does not exist")
+    source = OmegaConf.load(config_path)
+    for key in ORACLE_KEYS:
+        theirs, ours = OmegaConf.select(source, key), OmegaConf.select(cfg, key)
+        if isinstance(ours, DictConfig):
+            theirs = OmegaConf.to_container(theirs, resolve=True)
+            ours = OmegaConf.to_container(ours, resolve=True)
+        if theirs != ours:
+            raise ValueError(
+                f"budget.oracle_from={run_dir}: its {key} is {theirs!r}, this run's {ours!r}"
+            )
+    state = load_checkpoint(checkpoint_path, weights_only=False)
+    zero = state["loop"].get("zero_returns")
+    if state.get("oracle_returns") is None or zero is None:
+        raise ValueError(f"budget.oracle_from={run_dir}: its oracle has not been evaluated yet")
+    return OracleEpisodes(state["oracle_returns"], state.get("oracle_steps"), zero,
+                          state["loop"].get("fidelity_reference"))  # fmt: skip

@@ -32,6 +32,7 @@ from mbrl_delan.conf.loop import (
 from mbrl_delan.conf.videos import check_video, write_videos
 from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.runs import OracleEpisodes, oracle_of_run
 from mbrl_delan.sweep import exit_or_raise, marks_crash, resumed_config, with_sweep_group
 from mbrl_delan.systems.external import MissingPackageError
 from mbrl_delan.training.checkpoint import (
@@ -45,6 +46,7 @@ from mbrl_delan.training.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
+from mbrl_delan.training.fidelity import FidelityReference
 from mbrl_delan.training.fit import TrainingDivergedError
 from mbrl_delan.training.loop import LoopHooks, MBRLLoop
 from mbrl_delan.training.plots import plot_run
@@ -76,6 +78,25 @@ def _save(run_dir: Path, loop: MBRLLoop) -> None:
         "warmup_done": loop.warmup_done,
     }
     save_checkpoint(run_dir / CHECKPOINT_FILE, state)
+
+
+def _oracle_from(cfg: DictConfig) -> OracleEpisodes | None:
+    """The episodes `budget.oracle_from` names (None where it is unset); a run dir that does
+    not hold them, or evaluated other ones, is a config error."""
+    if cfg.budget.oracle_from is None:
+        return None
+    try:
+        return oracle_of_run(cfg.budget.oracle_from, cfg)
+    except (FileNotFoundError, ValueError) as err:
+        raise ConfigError(str(err)) from err
+
+
+def _take_oracle(loop: MBRLLoop, episodes: OracleEpisodes) -> None:
+    """Another run's oracle and zero-torque episodes as this run's (`budget.oracle_from`)."""
+    loop.oracle_returns, loop.oracle_steps = episodes.returns, episodes.steps
+    loop.zero_returns = episodes.zero_returns
+    if episodes.fidelity_reference is not None:
+        loop.fidelity_reference = FidelityReference.from_state_dict(episodes.fidelity_reference)
 
 
 def _save_weights(run_dir: Path, loop: MBRLLoop) -> None:
@@ -115,6 +136,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     if state is None and cfg.model.get("init_from") is not None:
         cfg = with_fit_structure(cfg)
     check_video(cfg)
+    taken = None if state is not None else _oracle_from(cfg)  # checked before anything is made
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
@@ -129,6 +151,9 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     if state is None or changed:
         text = OmegaConf.to_yaml(cfg, resolve=True).encode()
         atomic_write(run_dir / RUN_CONFIG, lambda f: f.write(text), keep_prev=False)
+    if taken is not None:
+        _take_oracle(loop, taken)
+        log.info("the oracle's and zero-torque episodes of %s", cfg.budget.oracle_from)
     if state is not None:
         loop.load_state_dict(state["loop"])
         set_rng_state(state["rng"])

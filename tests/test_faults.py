@@ -93,6 +93,27 @@ def test_runs_killed_at_ten_random_moments_resume_to_the_uninterrupted_result(
         assert not leftovers, (phase, n, leftovers)
 
 
+def test_a_run_killed_in_its_last_evaluation_episode_resumes_with_that_episode_alone(
+    tmp_path: Path,
+) -> None:
+    """Killed in the third of three final evaluation episodes (10 env steps each): the resume
+    collects nothing, steps only that episode again, and ends with the uninterrupted run's
+    records and summary."""
+    run = [*RUN, "budget.final_eval_episodes=3"]
+    ref_dir, ref_log = tmp_path / "reference", tmp_path / "reference.log"
+    assert start([*run, f"hydra.run.dir={ref_dir}"], None, ref_log) == 0, ref_log.read_text()
+    evaluated = json.loads(Path(f"{ref_log}.counts.json").read_text())["evaluate"]
+    run_dir, log = tmp_path / "run", tmp_path / "run.log"
+    code = start([*run, f"hydra.run.dir={run_dir}"], ("evaluate", evaluated - 3), log)
+    assert code == -9, log.read_text()
+    resumed = tmp_path / "resume.log"
+    assert start([f"resume={run_dir}"], None, resumed) == 0, resumed.read_text()
+    counts = json.loads(Path(f"{resumed}.counts.json").read_text())
+    assert counts.get("collect", 0) == 0 and counts["evaluate"] == 10, counts
+    assert _records(run_dir) == _records(ref_dir)
+    assert _summary(run_dir) == _summary(ref_dir)
+
+
 def _copy(ref_dir: Path, tmp_path: Path) -> Path:
     run_dir = tmp_path / "run"
     shutil.copytree(ref_dir, run_dir)

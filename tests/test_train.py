@@ -445,7 +445,8 @@ def test_tiny_tree_run_pairs_its_final_evaluation_and_keeps_its_weights(tmp_path
     """model=tree on humanoid_stand with a paired final evaluation: the oracle plans the same
     starts with the same planner seeds (as many episodes), each episode's return and steps
     are recorded, the summary holds the paired figures, and the final weights
-    (`world_model.pt`) alone rebuild the model (a record folder, without the checkpoint)."""
+    (`world_model.pt`) alone rebuild the model (a record folder, without the checkpoint).
+    Another model's run takes its oracle (`budget.oracle_from`)."""
     import shutil
 
     from mbrl_delan.runs import load_run
@@ -468,3 +469,20 @@ def test_tiny_tree_run_pairs_its_final_evaluation_and_keeps_its_weights(tmp_path
     saved = load_run(run_dir).model.state_dict()
     for key, value in load_run(record).model.state_dict().items():
         torch.testing.assert_close(value, saved[key])
+    # a second model takes this run's oracle and zero-torque episodes: the same figures, no
+    # oracle episode planned again; a run of another seed is refused naming the key
+    other = tmp_path / "tree_delan"
+    out = train(other, "env=humanoid_stand", "model=tree_delan", "budget.iterations=1",
+                "budget.final_eval_episodes=2", "budget.paired=true",
+                f"budget.oracle_from={run_dir}")  # fmt: skip
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "evaluating the oracle" not in out.stdout + out.stderr
+    theirs = json.loads((other / "summary.json").read_text())
+    for key in ("oracle_return_mean", "oracle_falls", "zero_torque_return_mean"):
+        assert theirs[key] == summary[key], key
+    assert records(other)[-1]["oracle_episode_steps"] == last["oracle_episode_steps"]
+    refused = train(tmp_path / "seed1", "env=humanoid_stand", "model=tree", "seed=1",
+                    "budget.iterations=1", "budget.final_eval_episodes=2",
+                    "budget.paired=true", f"budget.oracle_from={run_dir}")  # fmt: skip
+    assert refused.returncode == 2, refused.stdout + refused.stderr
+    assert "its seed is 0, this run's 1" in refused.stdout + refused.stderr

@@ -309,6 +309,7 @@ class BudgetConfig:
     oracle_planner: str = rule(choices=("same", "ilqr"))
     collect_envs: int = rule(1, low=1)  # episodes collected at once, one per env
     paired: bool = False  # the final evaluation and the oracle's share starts and planner seeds
+    oracle_from: str | None = None  # a run dir whose oracle and zero-torque episodes this run takes
 
 
 @dataclass

@@ -275,6 +275,27 @@ class Evaluation:
         )
 
 
+@dataclass
+class PendingRound:
+    """A round collected and fitted whose evaluation is under way: its metrics so far, the
+    episodes it evaluates (paired or not) and those done, kept in the checkpoint after each
+    episode so that a resumed run finishes the round where it stopped."""
+
+    metrics: dict[str, Any]
+    episodes: int
+    paired: bool
+    done: Evaluation = field(default_factory=Evaluation)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"metrics": self.metrics, "episodes": self.episodes, "paired": self.paired,
+                "returns": self.done.returns, "steps": self.done.steps}  # fmt: skip
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, Any]) -> PendingRound:
+        done = Evaluation(returns=list(state["returns"]), steps=list(state["steps"]))
+        return cls(state["metrics"], state["episodes"], state["paired"], done)
+
+
 class MBRLLoop:
     """Collect -> buffer -> fit -> plan, with evaluation and model-error diagnostics."""
 
@@ -314,6 +335,8 @@ class MBRLLoop:
         self.oracle_rollouts: list[TensorDict] = []  # its first `keep_eval_rollouts` episodes
         self.warmup_done = False  # once `run` has collected the random episodes and fitted
         self.last_round: dict[str, Any] | None = None  # the metrics of the last round run
+        self.pending: PendingRound | None = None  # a round fitted, its evaluation under way
+        self._clock: float | None = None  # inside `timed`: when its count was last brought up
         # a humanoid task: the model's fidelity on the oracle's first episode at each
         # evaluation (`training.fidelity`); its reference, once the oracle has run
         self.fidelity_task = fidelity_task
@@ -347,7 +370,7 @@ class MBRLLoop:
             self.warmup_done = True
             hooks.checkpoint()
         while not self.finished(schedule):
-            metrics = self.iterate(schedule)
+            metrics = self.iterate(schedule, hooks.checkpoint)
             metrics["oracle_return_mean"] = self.oracle_mean
             self.last_round = metrics
             hooks.log_round(metrics)
@@ -375,11 +398,20 @@ class MBRLLoop:
     @contextmanager
     def timed(self) -> Iterator[None]:
         """Count the enclosed work in `counters.wall_time_s` (which survives resumes)."""
-        start = time.perf_counter()
+        self._clock = time.perf_counter()
         try:
             yield
         finally:
-            self.counters.wall_time_s += time.perf_counter() - start
+            self._count_time()
+            self._clock = None
+
+    def _count_time(self) -> None:
+        """Inside `timed`: add the time since its start (or the last call) to the counter, as
+        a checkpoint taken there must."""
+        if self._clock is not None:
+            now = time.perf_counter()
+            self.counters.wall_time_s += now - self._clock
+            self._clock = now
 
     def _collect(self, policy: EpisodePolicy) -> list[TensorDictBase]:
         """One episode per env of `self.env` into the buffer. -> the episodes, each (T_i,)."""
@@ -415,15 +447,18 @@ class MBRLLoop:
         )
 
     def evaluate(
-        self, policy: EpisodePolicy, episodes: int, keep_rollouts: int = 0, paired: bool = False
-    ) -> Evaluation:
+        self, policy: EpisodePolicy, episodes: int, keep_rollouts: int = 0, paired: bool = False,
+        done: Evaluation | None = None, after_episode: Callable[[], None] = _nothing,
+    ) -> Evaluation:  # fmt: skip
         """Returns of `episodes` seeded episodes; the first `keep_rollouts` rollouts are kept.
         `paired`: each episode's planner seeded from the episode's seed (`PLANNER_SEED_OFFSET`),
-        so two policies evaluated so meet the same starts with the same planner noise."""
-        seeds = [EVAL_SEED_OFFSET + self.seed * 100 + i for i in range(episodes)]
-        ev = Evaluation()
+        so two policies evaluated so meet the same starts with the same planner noise.
+        `done`: the episodes evaluated already (a resumed evaluation goes on after them, and
+        is extended in place); `after_episode` is called after each new one."""
+        ev = done if done is not None else Evaluation()
         generator = getattr(policy, "generator", None) if paired else None
-        for i, s in enumerate(seeds):
+        for i in range(len(ev.returns), episodes):
+            s = EVAL_SEED_OFFSET + self.seed * 100 + i
             if generator is not None:
                 generator.manual_seed(PLANNER_SEED_OFFSET + s)
             rollout = run_episode(self.eval_env, policy, s, self.episode_len)
@@ -431,6 +466,7 @@ class MBRLLoop:
             ev.steps.append(int(rollout.shape[0]))
             if i < keep_rollouts:
                 ev.rollouts.append(rollout)
+            after_episode()
         return ev
 
     def _evaluate_oracle(self, oracle: EpisodePolicy, episodes: int, paired: bool) -> Evaluation:
@@ -472,11 +508,24 @@ class MBRLLoop:
             if kept is not None and self.model_generator is not None:
                 self.model_generator.set_state(kept)
 
-    def iterate(self, schedule: Schedule) -> dict[str, Any]:
+    def iterate(
+        self, schedule: Schedule, checkpoint: Callable[[], None] = _nothing
+    ) -> dict[str, Any]:
         """One round: collect an on-policy episode, score the model on it, refit, evaluate (as
-        many episodes as `schedule` gives this round)."""
+        many episodes as `schedule` gives this round). `checkpoint` is called once the round
+        is fitted and after each evaluation episode (`pending`), so that a resumed run
+        finishes the round where it stopped."""
+
+        def save() -> None:
+            self._count_time()
+            checkpoint()
+
         with self.timed():
-            metrics = self._round(schedule)
+            if self.pending is None:
+                self.pending = self._collect_and_fit(schedule)
+                save()
+            metrics = self._evaluate_round(self.pending, save)
+        self.pending = None
         self.counters.iteration += 1
         metrics.update(
             env_steps=self.counters.env_steps,
@@ -485,12 +534,10 @@ class MBRLLoop:
         )
         return metrics
 
-    def _round(self, schedule: Schedule) -> dict[str, Any]:
-        self.last_evaluation = None
+    def _collect_and_fit(self, schedule: Schedule) -> PendingRound:
+        """A round's collection and refit, with its evaluation still to run."""
         episodes = self._collect(self.policy)
-        eval_episodes = schedule.evaluations_at(
-            self.counters.iteration + 1, self.counters.env_steps
-        )
+        k, steps = self.counters.iteration + 1, self.counters.env_steps
         errors = [model_error(self.model, self.system, e, self.error_horizon) for e in episodes]
         report = self.fit()
         metrics: dict[str, Any] = {  # the means over the round's episodes (one per env)
@@ -502,19 +549,26 @@ class MBRLLoop:
             "fit_train_loss": report.train_loss[-1] if report.train_loss else float("nan"),
             "fit_val_loss": report.best_val_loss,
         }
-        if eval_episodes > 0:
-            final = schedule.is_last(self.counters.iteration + 1, self.counters.env_steps)
-            paired = final and schedule.paired
-            ev = self.evaluate(self.policy, eval_episodes, self.keep_eval_rollouts, paired)
-            self.last_evaluation = ev
-            metrics.update(
-                eval_return_mean=ev.mean, eval_return_std=ev.std, eval_steps_median=ev.median_steps
-            )
-            metrics.update(ev.episode_records(self.episode_len))
-            if paired:
-                metrics.update(self.paired_figures(ev))
-            metrics.update(self.fidelity())
-            metrics.update(self.rigid_body_figures())
+        paired = schedule.paired and schedule.is_last(k, steps)
+        return PendingRound(metrics, schedule.evaluations_at(k, steps), paired)
+
+    def _evaluate_round(self, pending: PendingRound, save: Callable[[], None]) -> dict[str, Any]:
+        """The round's metrics once its evaluation (if it has one) is complete."""
+        self.last_evaluation = None
+        metrics = dict(pending.metrics)
+        if pending.episodes == 0:
+            return metrics
+        ev = self.evaluate(self.policy, pending.episodes, self.keep_eval_rollouts,
+                           pending.paired, pending.done, save)  # fmt: skip
+        self.last_evaluation = ev
+        metrics.update(
+            eval_return_mean=ev.mean, eval_return_std=ev.std, eval_steps_median=ev.median_steps
+        )
+        metrics.update(ev.episode_records(self.episode_len))
+        if pending.paired:
+            metrics.update(self.paired_figures(ev))
+        metrics.update(self.fidelity())
+        metrics.update(self.rigid_body_figures())
         return metrics
 
     def paired_figures(self, ev: Evaluation) -> dict[str, Any]:
@@ -554,6 +608,7 @@ class MBRLLoop:
             "buffer": buffer_state(self.buffer),
             "counters": vars(self.counters).copy(),
             "last_round": self.last_round,
+            "pending": None if self.pending is None else self.pending.state_dict(),
             "zero_returns": self.zero_returns,
             "fidelity_reference": None
             if self.fidelity_reference is None
@@ -574,6 +629,8 @@ class MBRLLoop:
         self.counters = LoopCounters(**state["counters"])
         self.last_round = state.get("last_round")  # absent from older checkpoints
         self.zero_returns = state.get("zero_returns")
+        pending = state.get("pending")  # absent from older checkpoints
+        self.pending = None if pending is None else PendingRound.from_state_dict(pending)
         reference = state.get("fidelity_reference")
         if reference is not None:
             self.fidelity_reference = FidelityReference.from_state_dict(reference)
