@@ -114,6 +114,26 @@ def test_a_run_killed_in_its_last_evaluation_episode_resumes_with_that_episode_a
     assert _summary(run_dir) == _summary(ref_dir)
 
 
+def test_a_run_killed_in_its_third_oracle_episode_resumes_with_that_episode(
+    tmp_path: Path,
+) -> None:
+    """Killed in the third of three (unpaired) oracle episodes: the resume plans the first two
+    no more (20 env steps fewer than the whole run) and ends with the uninterrupted run's
+    records and summary (the oracle's planner stream goes on from the checkpoint)."""
+    run = [*RUN, "budget.oracle_episodes=3"]
+    ref_dir, ref_log = tmp_path / "reference", tmp_path / "reference.log"
+    assert start([*run, f"hydra.run.dir={ref_dir}"], None, ref_log) == 0, ref_log.read_text()
+    evaluated = json.loads(Path(f"{ref_log}.counts.json").read_text())["evaluate"]
+    run_dir, log = tmp_path / "run", tmp_path / "run.log"
+    assert start([*run, f"hydra.run.dir={run_dir}"], ("evaluate", 25), log) == -9
+    resumed = tmp_path / "resume.log"
+    assert start([f"resume={run_dir}"], None, resumed) == 0, resumed.read_text()
+    counts = json.loads(Path(f"{resumed}.counts.json").read_text())
+    assert counts["evaluate"] == evaluated - 20, counts
+    assert _records(run_dir) == _records(ref_dir)
+    assert _summary(run_dir) == _summary(ref_dir)
+
+
 def _copy(ref_dir: Path, tmp_path: Path) -> Path:
     run_dir = tmp_path / "run"
     shutil.copytree(ref_dir, run_dir)

@@ -20,7 +20,7 @@ from typing import Any, Protocol
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torch import Tensor
+from torch import Tensor, nn
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 
@@ -260,6 +260,14 @@ class Evaluation:
         return {"eval_episode_returns": list(self.returns), "eval_episode_steps": list(self.steps),
                 "eval_falls": sum(steps < episode_len for steps in self.steps)}  # fmt: skip
 
+    def state_dict(self) -> dict[str, Any]:
+        """Its returns and steps (the rollouts are not kept)."""
+        return {"returns": list(self.returns), "steps": list(self.steps)}
+
+    @classmethod
+    def of_state(cls, state: dict[str, Any]) -> Evaluation:
+        return cls(returns=list(state["returns"]), steps=list(state["steps"]))
+
     @property
     def median_steps(self) -> float:
         return float(torch.tensor(self.steps, dtype=torch.float64).median()) if self.steps else 0.0
@@ -288,11 +296,11 @@ class PendingRound:
 
     def state_dict(self) -> dict[str, Any]:
         return {"metrics": self.metrics, "episodes": self.episodes, "paired": self.paired,
-                "returns": self.done.returns, "steps": self.done.steps}  # fmt: skip
+                "done": self.done.state_dict()}  # fmt: skip
 
     @classmethod
     def from_state_dict(cls, state: dict[str, Any]) -> PendingRound:
-        done = Evaluation(returns=list(state["returns"]), steps=list(state["steps"]))
+        done = Evaluation.of_state(state["done"])
         return cls(state["metrics"], state["episodes"], state["paired"], done)
 
 
@@ -336,6 +344,8 @@ class MBRLLoop:
         self.warmup_done = False  # once `run` has collected the random episodes and fitted
         self.last_round: dict[str, Any] | None = None  # the metrics of the last round run
         self.pending: PendingRound | None = None  # a round fitted, its evaluation under way
+        self.oracle_done: Evaluation | None = None  # the oracle's episodes while it runs
+        self.oracle_state: dict[str, Any] | None = None  # ... and its policy's state then
         self._clock: float | None = None  # inside `timed`: when its count was last brought up
         # a humanoid task: the model's fidelity on the oracle's first episode at each
         # evaluation (`training.fidelity`); its reference, once the oracle has run
@@ -356,9 +366,9 @@ class MBRLLoop:
                 episodes, ", paired" if schedule.paired else "",
             )  # fmt: skip
             with self.timed():
-                ev = self._evaluate_oracle(oracle, episodes, schedule.paired)
+                ev = self._evaluate_oracle(oracle, episodes, schedule.paired, hooks.checkpoint)
             self.oracle_returns, self.oracle_rollouts = ev.returns, ev.rollouts
-            self.oracle_steps = ev.steps
+            self.oracle_steps, self.oracle_done, self.oracle_state = ev.steps, None, None
             hooks.checkpoint()
         if self.zero_returns is None:
             self.evaluate_zero(schedule.final_eval_episodes)
@@ -469,28 +479,48 @@ class MBRLLoop:
             after_episode()
         return ev
 
-    def _evaluate_oracle(self, oracle: EpisodePolicy, episodes: int, paired: bool) -> Evaluation:
-        """The oracle's evaluation (`paired`: see `evaluate`); with a `fidelity_task`, its first
-        episode's candidates are recorded and become the fidelity reference."""
+    def _evaluate_oracle(
+        self, oracle: EpisodePolicy, episodes: int, paired: bool, checkpoint: Callable[[], None]
+    ) -> Evaluation:
+        """The oracle's evaluation (`paired`: see `evaluate`), checkpointed after each episode
+        (`oracle_done`) and continued from there; with a `fidelity_task`, its first episode's
+        candidates are recorded and become the fidelity reference."""
+
+        def save() -> None:  # the policy's generator too: an unpaired oracle goes on with it
+            self.oracle_state = oracle.state_dict() if isinstance(oracle, nn.Module) else None
+            self._count_time()
+            checkpoint()
+
+        if self.oracle_state is not None and isinstance(oracle, nn.Module):
+            oracle.load_state_dict(self.oracle_state)
+        done = self.oracle_done = self.oracle_done or Evaluation()
         factory = getattr(oracle, "objective_factory", None)
-        if self.fidelity_task is None or episodes == 0 or factory is None:
-            return self.evaluate(oracle, episodes, self.keep_eval_rollouts, paired)
+        if self.fidelity_task is not None and factory is not None and episodes and not done.steps:
+            self._reference_episode(oracle, factory, paired, done)
+            save()
+        ev = self.evaluate(oracle, episodes, self.keep_eval_rollouts, paired, done, save)
+        ev.rollouts = ev.rollouts[: self.keep_eval_rollouts]
+        return ev
+
+    def _reference_episode(
+        self, oracle: EpisodePolicy, factory: Any, paired: bool, done: Evaluation
+    ) -> None:
+        """The oracle's first episode into `done`, its candidates recorded as the fidelity
+        reference."""
         every = max(EVERY, self.episode_len // FIDELITY_STARTS)
         recorder = CandidateRecorder(factory, every, until=self.episode_len)
         oracle.objective_factory = recorder  # type: ignore[attr-defined]
         try:
-            ev = self.evaluate(oracle, episodes, max(self.keep_eval_rollouts, 1), paired)
+            self.evaluate(oracle, 1, 1, paired, done)
         finally:
             oracle.objective_factory = factory  # type: ignore[attr-defined]
         try:
             self.fidelity_reference = build_reference(
-                ev.rollouts[0], recorder, self.physics, self.fidelity_task, every=every,
+                done.rollouts[0], recorder, self.physics, self.fidelity_task, every=every,
                 seed=self.seed,
             )  # fmt: skip
         except ValueError as err:
             log.info("no fidelity figures: %s", err)
-        ev.rollouts = ev.rollouts[: self.keep_eval_rollouts]
-        return ev
 
     def fidelity(self) -> dict[str, float]:
         """The model's figures on the fidelity reference (none without one); the model
@@ -609,6 +639,8 @@ class MBRLLoop:
             "counters": vars(self.counters).copy(),
             "last_round": self.last_round,
             "pending": None if self.pending is None else self.pending.state_dict(),
+            "oracle_done": None if self.oracle_done is None else self.oracle_done.state_dict(),
+            "oracle_state": self.oracle_state,
             "zero_returns": self.zero_returns,
             "fidelity_reference": None
             if self.fidelity_reference is None
@@ -631,6 +663,9 @@ class MBRLLoop:
         self.zero_returns = state.get("zero_returns")
         pending = state.get("pending")  # absent from older checkpoints
         self.pending = None if pending is None else PendingRound.from_state_dict(pending)
+        oracle_done = state.get("oracle_done")
+        self.oracle_done = None if oracle_done is None else Evaluation.of_state(oracle_done)
+        self.oracle_state = state.get("oracle_state")
         reference = state.get("fidelity_reference")
         if reference is not None:
             self.fidelity_reference = FidelityReference.from_state_dict(reference)
