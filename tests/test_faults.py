@@ -134,6 +134,20 @@ def test_a_run_killed_in_its_third_oracle_episode_resumes_with_that_episode(
     assert _summary(run_dir) == _summary(ref_dir)
 
 
+@pytest.mark.slow
+def test_a_tree_run_killed_in_its_first_round_resumes_into_planning_then_fits(
+    tmp_path: Path,
+) -> None:
+    """model=tree killed while collecting its first on-policy episode: the resume plans before
+    it fits again (the tree's constants first built under inference mode) and finishes."""
+    run = [*RUN, "env=humanoid_stand", "model=tree", "budget.iterations=1"]
+    run_dir, log = tmp_path / "tree", tmp_path / "tree.log"
+    assert start([*run, f"hydra.run.dir={run_dir}"], ("collect", 13), log) == -9, log.read_text()
+    resumed = tmp_path / "resume.log"
+    assert start([f"resume={run_dir}"], None, resumed) == 0, resumed.read_text()
+    assert (run_dir / "summary.json").is_file()
+
+
 def _copy(ref_dir: Path, tmp_path: Path) -> Path:
     run_dir = tmp_path / "run"
     shutil.copytree(ref_dir, run_dir)

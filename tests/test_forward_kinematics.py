@@ -136,3 +136,16 @@ def test_the_first_bodies_alone_match_the_whole_tree() -> None:
     assert first.xpos.shape == (5, 3) and first.site_xpos.shape == (0, 3)
     torch.testing.assert_close(first.xpos, whole.xpos[:5])
     torch.testing.assert_close(first.xquat, whole.xquat[:5])
+
+
+def test_constants_first_built_under_inference_mode_serve_autograd() -> None:
+    """A tree first used while planning (inference mode, as a resumed run does) then in a fit:
+    its positions' gradient flows (its cached constants are normal tensors)."""
+    model = mujoco.MjModel.from_xml_path(str(humanoid_v5_xml()))
+    fk = ForwardKinematics.from_mujoco(model)
+    q0 = torch.tensor(model.qpos0, dtype=torch.float32)
+    with torch.inference_mode():
+        fk.dof_axes(q0)
+    q = q0.clone().requires_grad_(True)
+    fk.dof_axes(q)[0].xpos[..., 2].sum().backward()
+    assert q.grad is not None and torch.isfinite(q.grad).all()

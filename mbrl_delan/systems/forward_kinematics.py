@@ -151,10 +151,13 @@ class ForwardKinematics(nn.Module):
         )
 
     def placed(self, like: Tensor) -> _Placed:
-        """The tree's constants on `like`'s device and in its dtype (built on first use)."""
+        """The tree's constants on `like`'s device and in its dtype (built on first use, as
+        normal tensors even under `torch.inference_mode`: a run resumed into planning builds
+        them there, and its fits then use them under autograd)."""
         key = (like.device, like.dtype)
         if key not in self._placed:
-            self._placed[key] = _Placed.build(self, like)
+            with torch.inference_mode(False):
+                self._placed[key] = _Placed.build(self, like)
         return self._placed[key]
 
     def _apply(self, fn: Callable[..., Any], recurse: bool = True) -> ForwardKinematics:
