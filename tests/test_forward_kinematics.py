@@ -138,14 +138,19 @@ def test_the_first_bodies_alone_match_the_whole_tree() -> None:
     torch.testing.assert_close(first.xquat, whole.xquat[:5])
 
 
-def test_constants_first_built_under_inference_mode_serve_autograd() -> None:
-    """A tree first used while planning (inference mode, as a resumed run does) then in a fit:
-    its positions' gradient flows (its cached constants are normal tensors)."""
+@pytest.mark.slow
+@pytest.mark.parametrize("compiled", [False, True])
+def test_constants_first_built_under_inference_mode_serve_autograd(compiled: bool) -> None:
+    """A tree first used while planning (inference mode, eager or compiled, as a resumed run
+    plans before it fits) then in a fit: the positions' gradient flows."""
+    from mbrl_delan.accelerate import compile_dynamics
+
     model = mujoco.MjModel.from_xml_path(str(humanoid_v5_xml()))
     fk = ForwardKinematics.from_mujoco(model)
-    q0 = torch.tensor(model.qpos0, dtype=torch.float32)
+    q0 = torch.tensor(model.qpos0, dtype=torch.float32).expand(4, -1).clone()
+    plan = lambda q: fk.dof_axes(q)[0].xpos  # noqa: E731
     with torch.inference_mode():
-        fk.dof_axes(q0)
+        (compile_dynamics(plan) if compiled else plan)(q0)
     q = q0.clone().requires_grad_(True)
     fk.dof_axes(q)[0].xpos[..., 2].sum().backward()
     assert q.grad is not None and torch.isfinite(q.grad).all()

@@ -151,14 +151,16 @@ class ForwardKinematics(nn.Module):
         )
 
     def placed(self, like: Tensor) -> _Placed:
-        """The tree's constants on `like`'s device and in its dtype (built on first use, as
-        normal tensors even under `torch.inference_mode`: a run resumed into planning builds
-        them there, and its fits then use them under autograd)."""
+        """The tree's constants on `like`'s device and in its dtype, built on first use and
+        again outside inference mode where they were built in it: a run resumed into planning
+        (inference mode, possibly compiled) builds them there, and its fits use them under
+        autograd, which cannot save inference tensors."""
         key = (like.device, like.dtype)
-        if key not in self._placed:
-            with torch.inference_mode(False):
-                self._placed[key] = _Placed.build(self, like)
-        return self._placed[key]
+        placed = self._placed.get(key)
+        if placed is None or (placed.body_mat.is_inference()
+                              and not torch.is_inference_mode_enabled()):  # fmt: skip
+            placed = self._placed[key] = _Placed.build(self, like)
+        return placed
 
     def _apply(self, fn: Callable[..., Any], recurse: bool = True) -> ForwardKinematics:
         self._placed = {}  # a moved or cast module rebuilds its constants from its buffers
