@@ -154,3 +154,15 @@ def test_constants_first_built_under_inference_mode_serve_autograd(compiled: boo
     q = q0.clone().requires_grad_(True)
     fk.dof_axes(q)[0].xpos[..., 2].sum().backward()
     assert q.grad is not None and torch.isfinite(q.grad).all()
+
+
+def test_traces_whole_once_constants_are_placed() -> None:
+    """Planning compiles the kinematics as one graph: the constants' inference-mode check
+    (see `placed`) must not break it once they exist, as they do from the second step on."""
+    model = mujoco.MjModel.from_xml_path(str(humanoid_v5_xml()))
+    fk = ForwardKinematics.from_mujoco(model)
+    q = torch.tensor(model.qpos0, dtype=torch.float32).expand(4, -1).clone()
+    with torch.inference_mode():
+        fk.dof_axes(q)  # places the constants
+        explained = torch._dynamo.explain(lambda q: fk.dof_axes(q)[0].xpos)(q)
+    assert explained.graph_break_count == 0, explained.break_reasons

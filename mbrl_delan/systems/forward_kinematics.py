@@ -154,10 +154,11 @@ class ForwardKinematics(nn.Module):
         """The tree's constants on `like`'s device and in its dtype, built on first use and
         again outside inference mode where they were built in it: a run resumed into planning
         (inference mode, possibly compiled) builds them there, and its fits use them under
-        autograd, which cannot save inference tensors."""
+        autograd, which cannot save inference tensors. Compiled code skips that check (Dynamo
+        cannot trace `is_inference`, and a graph break there splits every planning step)."""
         key = (like.device, like.dtype)
         placed = self._placed.get(key)
-        if placed is None or (placed.body_mat.is_inference()
+        if placed is None or (not torch.compiler.is_compiling() and placed.body_mat.is_inference()
                               and not torch.is_inference_mode_enabled()):  # fmt: skip
             placed = self._placed[key] = _Placed.build(self, like)
         return placed
