@@ -312,6 +312,24 @@ def test_joint_limits_push_back_only_past_a_bound() -> None:
     )
 
 
+def test_joint_terms_equal_their_dense_jacobian_products() -> None:
+    """The joint limits' diagonal shortcut gives the dense J^T (f0 - K J qd), dt J^T K J and
+    normal velocities of their Jacobian rows, on the humanoid's 17 limited hinges."""
+    model = mujoco.MjModel.from_xml_path(str(humanoid_v5_xml()))
+    limits = JointLimits.from_mujoco(model).double()
+    generator = torch.Generator().manual_seed(0)
+    q = torch.tensor(model.qpos0).repeat(6, 1)
+    q[:, 7:] += 1.2 * torch.randn(6, model.nv - 6, generator=generator, dtype=torch.float64)
+    qd = torch.randn(6, model.nv, generator=generator, dtype=torch.float64)
+    terms = limits.implicit_terms(q, qd, dt=0.0075)
+    assert (terms.spring > 0).any() and not (terms.spring > 0).all()
+    active = torch.rand(terms.spring.shape, generator=generator) < 0.7
+    for fast, dense in zip(terms.generalized(active, 0.0075),
+                           ImplicitTerms.generalized(terms, active, 0.0075), strict=True):  # fmt: skip
+        torch.testing.assert_close(fast, dense, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(terms.normal_velocity(qd), ImplicitTerms.normal_velocity(terms, qd))
+
+
 def test_a_hinge_thrown_into_its_limit_gains_no_energy() -> None:
     """Spun at 20 rad/s into its bound at 7.5 ms steps: stepped implicitly, its kinetic energy
     never rises and it ends inside (or a hair past) its range."""

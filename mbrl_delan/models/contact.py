@@ -190,6 +190,32 @@ class ImplicitTerms:
         added = dt * torch.einsum("...pkv,...pkw->...vw", self.jacobian, weighted)
         return force, added
 
+    def normal_velocity(self, qd: Tensor) -> Tensor:
+        """Each point's normal velocity at generalized velocity qd (..., nv) -> (..., P)."""
+        return torch.einsum("...pv,...v->...p", self.jacobian[..., 2, :], qd)
+
+
+@dataclass
+class JointTerms(ImplicitTerms):
+    """`ImplicitTerms` of points that are single DoFs (`dofs` (L,), pushed along `direction`
+    (..., L)), as the joint limits are: the same forces without the dense Jacobian products
+    (the added inertia is diagonal)."""
+
+    dofs: Tensor
+    direction: Tensor
+
+    def generalized(self, active: Tensor, dt: float) -> tuple[Tensor, Tensor]:
+        on = active.to(self.spring.dtype)
+        gain = self.normal_gain * on  # (..., L)
+        push = self.direction * (self.spring * on - gain * self.velocity[..., 2])
+        zeros = self.spring.new_zeros((*self.spring.shape[:-1], self.jacobian.shape[-1]))
+        force = zeros.index_add(-1, self.dofs, push)
+        added = torch.diag_embed(zeros.index_add(-1, self.dofs, dt * gain))
+        return force, added
+
+    def normal_velocity(self, qd: Tensor) -> Tensor:
+        return self.direction * qd.index_select(-1, self.dofs)
+
 
 class ContactModel(nn.Module):
     """Generalized contact forces of a body tree on a floor: (q, qd) -> tau (..., nv).
@@ -367,7 +393,7 @@ class JointLimits(nn.Module):
                    as_t(model.jnt_range[joints, 0]), as_t(model.jnt_range[joints, 1]),
                    as_t(torque[dofs]))  # fmt: skip
 
-    def implicit_terms(self, q: Tensor, qd: Tensor, dt: float) -> ImplicitTerms:
+    def implicit_terms(self, q: Tensor, qd: Tensor, dt: float) -> JointTerms:
         """Each joint as a point whose "normal" is its coordinate out of its range (the bound
         it is nearer to) and that has no tangential part. (..., L)"""
         pos = q.index_select(-1, self.qpos)
@@ -385,7 +411,8 @@ class JointLimits(nn.Module):
         jacobian = torch.cat([jacobian[..., :2, :], rows.unsqueeze(-2)], -2)  # (..., L, 3, nv)
         velocity = torch.zeros(*speed.shape, 3, dtype=q.dtype, device=q.device)
         velocity = torch.cat([velocity[..., :2], speed.unsqueeze(-1)], -1)
-        return ImplicitTerms(spring, normal_gain, torch.zeros_like(spring), jacobian, velocity)
+        return JointTerms(spring, normal_gain, torch.zeros_like(spring), jacobian, velocity,
+                          self.dofs, direction)  # fmt: skip
 
 
 def implicit_acceleration(
@@ -401,10 +428,7 @@ def implicit_acceleration(
     active = [t.spring > 0 for t in parts]
     qdd = _solve(mass_matrix, force, parts, active, dt)
     end = qd + dt * qdd
-    pushes = [
-        t.spring - t.normal_gain * torch.einsum("...pv,...v->...p", t.jacobian[..., 2, :], end) > 0
-        for t in parts
-    ]
+    pushes = [t.spring - t.normal_gain * t.normal_velocity(end) > 0 for t in parts]
     return _solve(
         mass_matrix, force, parts, [a & p for a, p in zip(active, pushes, strict=True)], dt
     )
