@@ -190,6 +190,26 @@ def test_compiled_loop_on_worker_threads_equals_eager_with_particles_kept_togeth
     assert model_objective_factory(model, task, compile=True, rollout_threads=1)._threads is None
 
 
+@pytest.mark.slow
+def test_compiled_steps_on_worker_threads_equal_eager() -> None:
+    """Without the compiled loop (the humanoids' case) the per-step compiled rollouts run in
+    shares on the worker threads too, and score as the eager batch does."""
+    model, task = _pendulum_model(), _AngleReward()
+    q0, qd0 = torch.tensor([0.3]), torch.tensor([-1.0])
+    actions = torch.randn(5, 6, 1, generator=torch.Generator().manual_seed(8))
+    eager = model_objective_factory(model, task, particles=2, discount=0.95)(q0, qd0)(actions)
+    factory = model_objective_factory(
+        model, task, particles=2, discount=0.95, compile=True, rollout_threads=2,
+        compile_loop=False,
+    )  # fmt: skip
+    shared = factory(q0, qd0)(actions)
+    assert not factory.whole_loop and factory._compiled is not None  # per step
+    assert factory.rollout_threads == 2 and factory.planning_threads == 1
+    torch.testing.assert_close(shared, eager, rtol=1e-5, atol=1e-5)
+    assert float(eager.std()) > 1e-3
+    factory.close()
+
+
 def test_rollout_threads_stop_when_the_loop_runs_uncompiled() -> None:
     """Past the compiler's recompile limit a new batch size runs as Python, where the GIL
     would serialise the shares: the factory goes back to one batch, with the same returns.

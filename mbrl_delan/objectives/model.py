@@ -101,8 +101,9 @@ class ModelObjectiveFactory:
         threads = torch.get_num_threads() if rollout_threads is None else rollout_threads
         if threads < 1:
             raise ValueError(f"rollout_threads must be >= 1, got {rollout_threads}")
-        # shares of a batch in parallel: only where the loop compiles and the model draws no
-        # random numbers (a generator shared by threads would make the draws' order vary)
+        # shares of a batch in parallel (the compiled loop, or one compiled call per step: both
+        # release the GIL) where the model draws no random numbers (a generator shared by
+        # threads would make the draws' order vary)
         shares = compile and threads > 1 and model.deterministic
         self._threads = RolloutThreads(threads) if shares else None
         self._graphs = GraphedCalls(
@@ -117,7 +118,8 @@ class ModelObjectiveFactory:
         (nq,), (nv,), (N*P, H, nu) with particle p of sample n at n * P + p, episode step of
         the first action () int64 -> (N,). With `cuda_graph` and CUDA tensors, replayed from a
         CUDA graph per shape (`GraphedCalls`). With `compile` on CPU, the compiled loop
-        (`_looped_returns`) where it compiles, else one compiled call per step.
+        (`_looped_returns`) where it compiles, else one compiled call per step; either with
+        `rollout_threads` in shares of the samples on worker threads.
         """
         if self.cuda_graph and actions.is_cuda:
             return self._graphs(q0, qd0, actions, step)
@@ -130,34 +132,43 @@ class ModelObjectiveFactory:
                 self._loop_compiles = False
                 reason = str(err).strip().splitlines()[0]
                 log.warning("no compiled rollout loop (%s): one compiled call per step", reason)
+        if self.compile and not actions.is_cuda and self._threads is not None:
+            shared = lambda share: self._returns(q0, qd0, share, step)  # noqa: E731
+            return self._shared(self._threads, shared, actions)
         return self._returns(q0, qd0, actions, step)
 
+    def _shared(
+        self, threads: RolloutThreads, fn: Callable[[Tensor], Tensor], actions: Tensor
+    ) -> Tensor:
+        """`fn` (returns of a share of the samples) on `threads`' shares of the samples (each
+        with its P particles), one per worker thread, all of one size (a batch of a new size
+        compiles once, not once per share size). (N*P, H, nu) -> (N,)"""
+        samples = actions.unflatten(0, (-1, self.particles))  # (N, P, H, nu)
+        n, k = samples.shape[0], threads.threads
+        size = -(-n // k)  # samples per share, the last share padded with copies of the last
+        if size * k > n:
+            samples = torch.cat([samples, samples[-1:].expand(size * k - n, *samples.shape[1:])])
+        shares = [s.flatten(0, 1) for s in samples.split(size)]  # one shape: one compiled graph
+        return torch.cat(threads.map(fn, shares))[:n]  # (N,)
+
     def _loop_returns(self, q0: Tensor, qd0: Tensor, actions: Tensor, step: Tensor) -> Tensor:
-        """The compiled loop on the whole batch, or with `rollout_threads` on as many shares
-        of its samples (each with its P particles), one per worker thread, all of one size
-        (a batch of a new size compiles once, not once per share size). (N,)"""
+        """The compiled loop on the whole batch, or with `rollout_threads` in shares (`_shared`).
+        (N,)"""
         if self._compiled_loop is None:
             self._compiled_loop = CompiledLoop(self._looped_returns)
         loop = self._compiled_loop
         if self._threads is None:
             return loop(q0, qd0, actions, step)
-        samples = actions.unflatten(0, (-1, self.particles))  # (N, P, H, nu)
-        n, k = samples.shape[0], self._threads.threads
-        size = -(-n // k)  # samples per share, the last share padded with copies of the last
-        if size * k > n:
-            samples = torch.cat([samples, samples[-1:].expand(size * k - n, *samples.shape[1:])])
-        shares = [s.flatten(0, 1) for s in samples.split(size)]  # one shape: one compiled graph
-        scores = self._threads.map(lambda share: loop(q0, qd0, share, step), shares)
+        scores = self._shared(self._threads, lambda share: loop(q0, qd0, share, step), actions)
         if loop.ran_eagerly:  # eager kernels on one thread each, serialised by the GIL
             log.warning(
-                "the compiled rollout loop ran uncompiled for a share of %d rows (the "
+                "the compiled rollout loop ran uncompiled for a share of the batch (the "
                 "compiler's recompile limit: too many batch sizes); rollouts go back to one "
-                "batch on torch's threads",
-                shares[0].shape[0],
+                "batch on torch's threads"
             )
             self.close()
             self._threads = None
-        return torch.cat(scores)[:n]  # (N,)
+        return scores
 
     @property
     def rollout_threads(self) -> int:
@@ -180,8 +191,8 @@ class ModelObjectiveFactory:
         return self.compile and self._loop_compiles and cpu
 
     def _in_shares(self) -> bool:
-        """Whether the rollouts run in shares: the compiled loop, on the CPU."""
-        if self._threads is None or not self._loop_compiles:
+        """Whether the rollouts run in shares: compiled (the loop or per step), on the CPU."""
+        if self._threads is None:
             return False
         return self.placement(torch.device("cpu")).device.type == "cpu"
 
@@ -302,9 +313,10 @@ def model_objective_factory(
             from a CUDA graph captured once per batch shape (`GraphedCalls`); with
             `compile`, the graph replays the compiled steps' kernels.
         rollout_threads: with `compile` on CPU and a deterministic model (DeLaN), the
-            compiled loop runs on this many shares of the samples at once, each in its own
-            worker thread with one intra-op thread (`RolloutThreads`); 1 runs the whole batch
-            on torch's intra-op threads. None: torch's thread count at construction.
+            compiled rollouts (the loop, or one compiled call per step) run on this many
+            shares of the samples at once, each in its own worker thread with one intra-op
+            thread (`RolloutThreads`); 1 runs the whole batch on torch's intra-op threads.
+            None: torch's thread count at construction.
         compile_loop: with `compile` on CPU, the H steps as one compiled loop where the model
             allows it (`WorldModel.loops_compile`); False: one compiled call per step.
     """
