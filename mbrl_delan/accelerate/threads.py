@@ -18,10 +18,10 @@ class RolloutThreads:
     intra-op threads synchronises the cores and moves data between them at every kernel. (On
     the 2-core CI machines, the pendulum's loop at N 1024: 8.4-9.5 ms in shares, 9.0-9.7 ms as
     one batch, and 12.6-13.3 ms in the processes where the host made the cores slow to
-    share data.) The compiled rollout loop and a compiled step release the GIL while they run (the
-    humanoid tree's step: 60 calls of 32 states in 156 to 183 ms on two workers, 239 to
-    302 ms on one; a development measurement). The caller's own
-    intra-op threads should stay idle meanwhile (`ModelObjectiveFactory.planning_threads`).
+    share data.) The compiled rollout loop and a compiled step release the GIL while they
+    run (the humanoid tree's step: 60 calls of 32 states in 156 to 183 ms on two workers,
+    239 to 302 ms on one; a development measurement). The caller's own intra-op threads
+    should stay idle meanwhile (`ModelObjectiveFactory.planning_threads`).
     """
 
     def __init__(self, threads: int) -> None:

@@ -123,7 +123,9 @@ class ModelObjectiveFactory:
         """
         if self.cuda_graph and actions.is_cuda:
             return self._graphs(q0, qd0, actions, step)
-        if self.compile and not actions.is_cuda and self._loop_compiles:
+        if not self.compile or actions.is_cuda:
+            return self._returns(q0, qd0, actions, step)
+        if self._loop_compiles:
             try:
                 return self._loop_returns(q0, qd0, actions, step)
             except torch._dynamo.exc.TorchDynamoException as err:
@@ -132,10 +134,10 @@ class ModelObjectiveFactory:
                 self._loop_compiles = False
                 reason = str(err).strip().splitlines()[0]
                 log.warning("no compiled rollout loop (%s): one compiled call per step", reason)
-        if self.compile and not actions.is_cuda and self._threads is not None:
-            shared = lambda share: self._returns(q0, qd0, share, step)  # noqa: E731
-            return self._shared(self._threads, shared, actions)
-        return self._returns(q0, qd0, actions, step)
+        if self._threads is None:
+            return self._returns(q0, qd0, actions, step)
+        shared = lambda share: self._returns(q0, qd0, share, step)  # noqa: E731
+        return self._shared(self._threads, shared, actions)
 
     def _shared(
         self, threads: RolloutThreads, fn: Callable[[Tensor], Tensor], actions: Tensor
