@@ -84,7 +84,7 @@ def _models(values: list[str] | None, suite: str) -> tuple[str, ...] | None:
 def _check_lists(cfg: DictConfig) -> None:
     """The lists that must not be empty (the rules on their elements are the schema's)."""
     lists = ("nv", "batch", "planners", "num_samples", "horizons", "iterations", "transitions",
-             "robots", "friction", "samples")  # fmt: skip
+             "robots", "friction", "samples", "seeds")  # fmt: skip
     for name in lists:
         if cfg[name] is not None and len(cfg[name]) == 0:
             raise ConfigError(f"{name}=[] is not valid; give at least one value (or null)")
@@ -170,6 +170,10 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         save_models=v["save_models"],
         tasks=tuples("tasks"),
         overrides=tuple(v["overrides"]),
+        seeds=tuples("seeds"),
+        starts=v["starts"],
+        push=v["push"],
+        push_step=v["push_step"],
         runs=tuple(v["runs"]),
         robots=tuples("robots"),
         friction=tuples("friction"),

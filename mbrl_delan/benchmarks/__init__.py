@@ -132,6 +132,11 @@ class SuiteOptions:
     # suite realtime
     tasks: tuple[str, ...] | None = None  # of REALTIME_TASKS (None: all)
     overrides: tuple[str, ...] = ()  # train-config overrides of every case
+    # suite robust (None: the suite's default, or its quick size under `quick`)
+    seeds: tuple[int, ...] | None = None  # planner seeds
+    starts: int | None = None  # episodes per seed
+    push: float | None = None  # m/s added to the whole body's x velocity at push_step
+    push_step: int = 200
     # suite fidelity
     runs: tuple[str, ...] = ()  # train run dirs whose final world models are scored
     env: str | None = None  # of FIDELITY_ENVS (None: humanoid_stand)

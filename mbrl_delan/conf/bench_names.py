@@ -11,6 +11,7 @@ SUITES = {
     "planner": "mbrl_delan.benchmarks.planner:run_planner_suite",
     "humanoid": "mbrl_delan.benchmarks.humanoid:run_humanoid_suite",
     "realtime": "mbrl_delan.benchmarks.realtime:run_realtime_suite",
+    "robust": "mbrl_delan.benchmarks.robust:run_robust_suite",
     "fit_arrays": "mbrl_delan.benchmarks.fit_arrays:run_fit_arrays_suite",
     "soak": "mbrl_delan.benchmarks.soak:run_soak_suite",
     "fidelity": "mbrl_delan.benchmarks.fidelity:run_fidelity_suite",

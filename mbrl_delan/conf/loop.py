@@ -48,6 +48,7 @@ from mbrl_delan.planners.humanoid_residual import HUMANOID_ILQR, humanoid_ilqr_p
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, tracking_ilqr_policy
 from mbrl_delan.systems.system import System
+from mbrl_delan.tasks.balance import BalanceCost
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.humanoid import HumanoidTask
 from mbrl_delan.tasks.tracking import MotionTracking
@@ -92,17 +93,33 @@ def _planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPla
         raise ConfigError(f"planner={cfg.planner.name}: {err}") from err
 
 
+def planning_task(cfg: DictConfig, system: System, task: Task) -> Task:
+    """What the sampling planners maximise: `task`'s own reward (`env.plan_cost=reward`) or
+    a humanoid's balance cost (`balance`, `BalanceCost` over `system`'s MJCF)."""
+    if cfg.env.plan_cost == "reward":
+        return task
+    if not isinstance(task, HumanoidTask):
+        raise ConfigError(
+            f"env.plan_cost={cfg.env.plan_cost} needs a humanoid env (humanoid_stand, "
+            f"humanoid_walk, humanoid_stand_exo), got env={cfg.env.name}"
+        )
+    try:
+        return BalanceCost(system.mj_model(), task)
+    except ValueError as err:
+        raise ConfigError(f"env.plan_cost=balance on env={cfg.env.name}: {err}") from err
+
+
 def build_oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy:
-    """The oracle policy of `budget.oracle_planner`: `same` (the loop's planner on MuJoCo) or
-    `ilqr` (iLQR over `env.oracle_horizon`, null: the planner's, on MuJoCo's derivatives, with
-    the tracking residuals on cmu_track and the humanoid residuals on humanoid_stand and
-    humanoid_walk)."""
+    """The oracle policy of `budget.oracle_planner`: `same` (the loop's planner on MuJoCo,
+    maximising `planning_task`) or `ilqr` (iLQR over `env.oracle_horizon`, null: the
+    planner's, on MuJoCo's derivatives, with the tracking residuals on cmu_track and the
+    humanoid residuals on humanoid_stand and humanoid_walk)."""
     physics = PlanPhysics(cfg.env.oracle_substeps, cfg.env.oracle_integrator)
     if cfg.budget.oracle_planner == "ilqr":
         return _ilqr_oracle(cfg, system, task, physics)
     log.info("oracle: the loop's planner (%s) on MuJoCo's dynamics", cfg.planner.name)
     oracle_factory = mujoco_objective_factory(
-        system, task, discount=cfg.planner.discount, physics=physics
+        system, planning_task(cfg, system, task), discount=cfg.planner.discount, physics=physics
     )
     return _policy(
         cfg.planner, _planner(cfg, system, torch.float64), oracle_factory, cfg.seed,
@@ -136,10 +153,12 @@ def _ilqr_oracle(
 def build_policy(
     cfg: DictConfig, system: System, task: Task, model: WorldModel, generator: torch.Generator
 ) -> PlannerPolicy:
-    """The loop's policy: its planner over `model`'s imagined returns of `task` (compiled,
-    replayed from CUDA graphs or on rollout threads as ``accel.*`` says), in the model's
-    device and dtype; `generator` draws the model's noise."""
+    """The loop's policy: its planner over `model`'s imagined returns of `task` (or of the
+    balance cost, `planning_task`; compiled, replayed from CUDA graphs or on rollout threads
+    as ``accel.*`` says), in the model's device and dtype; `generator` draws the model's
+    noise."""
     place = model_placement(model)
+    task = planning_task(cfg, system, task)
     factory = model.objective_factory(task, cfg.planner.discount) or model_objective_factory(
         model,
         task,

@@ -32,6 +32,7 @@ from mbrl_delan.conf.bench_names import (
     SUITE_NAMES,
 )
 from mbrl_delan.planners.spline import INTERPOLATIONS
+from mbrl_delan.tasks.balance import PLAN_COSTS
 from mbrl_delan.training.fit import FitConfig
 from mbrl_delan.training.recorder import LOGGERS, WANDB_MODES
 
@@ -127,6 +128,7 @@ class EnvConfig:
     mppi_samples: int = rule(256, low=1)  # planner=mppi's num_samples on this env
     plan_knots: int | None = rule(None, low=1)  # mppi, cem, icem: spline knots (None: every step)
     plan_interpolation: str = rule("linear", choices=INTERPOLATIONS)
+    plan_cost: str = rule("reward", choices=PLAN_COSTS)  # planners' objective (balance: humanoids)
     oracle_planner: str = rule("same", choices=("same", "ilqr"))
     oracle_substeps: int | None = rule(None, low=1)  # null: frame_skip
     oracle_integrator: str | None = rule(None, choices=ORACLE_INTEGRATORS)  # null: the MJCF's
@@ -422,6 +424,10 @@ class BenchConfig:
     data_run: str | None = None  # suite humanoid: a train run dir whose buffer gives the data
     tasks: list[str] | None = rule(None, choices=REALTIME_TASKS)
     overrides: list[str] = field(default_factory=list)
+    seeds: list[int] | None = rule(None, low=0)  # suite robust: planner seeds
+    starts: int | None = rule(None, low=1)  # suite robust: episodes per seed
+    push: float | None = None  # suite robust: m/s added to the body's x velocity at push_step
+    push_step: int = rule(200, low=0)
     runs: list[str] = field(default_factory=list)  # suite fidelity: train run dirs to score
     env: str | None = rule(None, choices=FIDELITY_ENVS)  # suite fidelity: its env
     save_models: str | None = None  # suite fidelity: keep each fitted case in <this>/<case>_s<seed>

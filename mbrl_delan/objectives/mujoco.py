@@ -4,12 +4,18 @@ Rolls out a batch of open-loop action sequences with `mujoco.rollout` (multi-thr
 MjData reused across calls), holds each control for `system.frame_skip` MuJoCo steps, and
 scores the reached states with the task's torch reward. This is the upper bound every
 learned-model result is compared with.
+
+A task that reads more of a state than q and qd (a `SensedTask`: the humanoid's balance cost
+reads the centre of mass) may have MuJoCo compute it during the rollouts: it adds sensors to
+the planning model and scores their values, instead of the torch kinematics of every reached
+state after them.
 """
 
 from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import mujoco
 import numpy as np
@@ -82,6 +88,24 @@ def state_offset(model: mujoco.MjModel, component: int) -> int:
     return mujoco.mj_stateSize(model, lower)
 
 
+@runtime_checkable
+class SensedTask(Protocol):
+    """A task whose reward the oracle scores from sensors of its planning model."""
+
+    def add_sensors(self, spec: mujoco.MjSpec) -> None:
+        """Append the sensors the reward reads to the planning model's spec."""
+
+    def sensed_reward(self, sensed: Tensor, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
+        """The reward from the sensor values (..., nsensordata) of the reached states."""
+
+
+def sensed_model(system: System, task: SensedTask) -> mujoco.MjModel:
+    """`system`'s MjModel with `task`'s sensors (and the sites they need) appended."""
+    spec = mujoco.MjSpec.from_file(str(system.xml_path))
+    task.add_sensors(spec)
+    return spec.compile()
+
+
 class HeldControlRollout:
     """MuJoCo rollouts of piecewise-constant controls, each held for `frame_skip` physics
     steps, with `mujoco.rollout` (multi-threaded, MjData reused across calls).
@@ -127,15 +151,30 @@ class HeldControlRollout:
     def __call__(self, states: np.ndarray, ctrl: np.ndarray) -> np.ndarray:
         """Hold ctrl (N, T, nu) from states (N, nstate), or one state (nstate,) for all N.
         -> the states after each control step (N, T, nstate)."""
+        return self._run(states, ctrl, sensed=False)[0]
+
+    def with_sensors(self, states: np.ndarray, ctrl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`__call__`'s states and the model's sensor values at each of them (N, T,
+        nsensordata). MuJoCo computes a step's sensors from the state it starts from, so the
+        rollout takes one more step (the last control held) for those of the last state."""
+        return self._run(states, ctrl, sensed=True)
+
+    def _run(self, states: np.ndarray, ctrl: np.ndarray, sensed: bool
+             ) -> tuple[np.ndarray, np.ndarray | None]:  # fmt: skip
         if self._pool is None:
             raise RuntimeError("the MuJoCo rollout was closed")
-        skip = self.frame_skip
-        control = np.ascontiguousarray(np.repeat(ctrl, skip, axis=1))  # (N, T*skip, nu)
+        skip, horizon = self.frame_skip, ctrl.shape[1]
+        control = np.repeat(ctrl, skip, axis=1)  # (N, T*skip, nu)
+        if sensed:
+            control = np.concatenate([control, control[:, -1:]], axis=1)
+        control = np.ascontiguousarray(control)
         n, nstep = control.shape[0], control.shape[1]
         init = np.ascontiguousarray(np.broadcast_to(states, (n, self.nstate)))
         out = np.empty((n, nstep, self.nstate), dtype=np.float64)
-        self._pool.rollout(self.model, self._datas, init, control, state=out)
-        return out[:, skip - 1 :: skip]
+        sensors = np.empty((n, nstep, self.model.nsensordata)) if sensed else None
+        self._pool.rollout(self.model, self._datas, init, control, state=out, sensordata=sensors)
+        reached = out[:, skip - 1 : horizon * skip : skip]
+        return reached, None if sensors is None else sensors[:, skip::skip]
 
 
 @dataclass
@@ -144,14 +183,16 @@ class OracleRollout:
 
     states: State  # q (N, H, nq), qd (N, H, nv), float64, after each control step
     actions: Tensor  # (N, H, nu) float64, clipped to the control range
+    sensors: Tensor | None = None  # (N, H, nsensordata) at those states (a `SensedTask`'s)
 
 
 class MujocoObjectiveFactory:
     """Builds oracle objectives for start states; owns the MjModel, MjData and threads.
 
     Use as `factory(q0, qd0)(actions)`. `model`: the MjModel to plan on and its steps per
-    control step (None: the system's at `physics`). Call `close()` (or use `with`) to stop the
-    thread pool early; it is also closed when the factory is garbage-collected.
+    control step (None: the system's at `physics`, with the task's sensors for a
+    `SensedTask`). Call `close()` (or use `with`) to stop the thread pool early; it is also
+    closed when the factory is garbage-collected.
     """
 
     def __init__(
@@ -172,6 +213,9 @@ class MujocoObjectiveFactory:
         self.system = system
         self.task = task
         self.discount = discount
+        self.sensed = model is None and isinstance(task, SensedTask)
+        if self.sensed:
+            model = physics.apply(sensed_model(system, task), system)
         self.model, substeps = model or physics.model(system)
         self.sim = HeldControlRollout(self.model, substeps, nthread)
         self.ctrl_low = system.ctrl_low.numpy()
@@ -209,13 +253,18 @@ class MujocoObjectiveFactory:
         ctrl = np.clip(
             actions.detach().to("cpu", torch.float64).numpy(), self.ctrl_low, self.ctrl_high
         )  # (N, H, nu)
-        q, qd = self.sim.qv(self.sim(initial_state, ctrl))  # (N, H, nq), (N, H, nv)
+        if self.sensed:
+            states, sensors = self.sim.with_sensors(initial_state, ctrl)
+        else:
+            states, sensors = self.sim(initial_state, ctrl), None
+        q, qd = self.sim.qv(states)  # (N, H, nq), (N, H, nv)
         return OracleRollout(
             states=State(
                 q=torch.from_numpy(np.ascontiguousarray(q)),
                 qd=torch.from_numpy(np.ascontiguousarray(qd)),
             ),
             actions=torch.from_numpy(ctrl),
+            sensors=None if sensors is None else torch.from_numpy(sensors),
         )
 
     def returns(self, initial_state: np.ndarray, actions: Tensor, step: int = 0) -> Tensor:
@@ -224,7 +273,10 @@ class MujocoObjectiveFactory:
         result = self.rollout(initial_state, actions)
         q, qd = result.states.q, result.states.qd
         steps = step + torch.arange(actions.shape[1])  # (H,)
-        rewards = self.task.reward_at(q, qd, result.actions, steps)  # (N, H)
+        if result.sensors is not None:
+            rewards = self.task.sensed_reward(result.sensors, q, qd, result.actions)  # (N, H)
+        else:
+            rewards = self.task.reward_at(q, qd, result.actions, steps)  # (N, H)
         terminated = self.task.terminated_at(q, qd, steps)  # (N, H)
         return discounted_masked_return(rewards.to(torch.float64), terminated, self.discount)
 

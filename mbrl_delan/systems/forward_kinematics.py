@@ -221,7 +221,7 @@ class ForwardKinematics(nn.Module):
                 axes += [(mat[..., :, k], pos) for k in range(3)]
             return pos, mat
         p = self.parent[b]
-        pos = xpos[p] + _turn(xmat[p], c.body_pos[b])
+        pos = xpos[p] + turn(xmat[p], c.body_pos[b])
         mat = _compose(xmat[p], c.body_mat[b])
         for joint, const in zip(joints, c.joints[b], strict=True):
             pos, mat = self._joint(q, joint, const, pos, mat, axes)
@@ -236,14 +236,14 @@ class ForwardKinematics(nn.Module):
         (axis, anchor) appended to `axes` unless None."""
         value = q[..., joint.qpos_adr : joint.qpos_adr + 1] - joint.qpos0  # (..., 1)
         if joint.kind == SLIDE:
-            axis = _turn(mat, const.axis)
+            axis = turn(mat, const.axis)
             if axes is not None:
-                axes.append((axis, pos + _turn(mat, const.anchor)))
+                axes.append((axis, pos + turn(mat, const.anchor)))
             return pos + axis * value, mat
-        anchor = pos + _turn(mat, const.anchor)  # stays in place
+        anchor = pos + turn(mat, const.anchor)  # stays in place
         if joint.kind == HINGE:
             if axes is not None:
-                axes.append((_turn(mat, const.axis), anchor))
+                axes.append((turn(mat, const.axis), anchor))
             angle = value.unsqueeze(-1)  # (..., 1, 1)
             local = const.eye + torch.sin(angle) * const.skew
             local = local + (1.0 - torch.cos(angle)) * const.skew_sq
@@ -254,7 +254,7 @@ class ForwardKinematics(nn.Module):
         mat = _compose(mat, local)
         if axes is not None and joint.kind == BALL:
             axes += [(mat[..., :, k], anchor) for k in range(3)]
-        return anchor - _turn(mat, const.anchor), mat
+        return anchor - turn(mat, const.anchor), mat
 
     def _sites(self, xpos: Tensor, xmat: Tensor, c: _Placed) -> Tensor:
         """(..., nbody, 3), (..., nbody, 3, 3) -> site positions (..., nsite, 3)."""
@@ -262,18 +262,21 @@ class ForwardKinematics(nn.Module):
             return xpos[..., :0, :]
         body_pos = xpos.index_select(-2, c.site_body)
         body_mat = xmat.index_select(-3, c.site_body)
-        return body_pos + _turn(body_mat, c.site_pos)
+        return body_pos + turn(body_mat, c.site_pos)
 
 
-def _turn(mat: Tensor, vec: Tensor) -> Tensor:
-    """mat @ vec for rotations (..., 3, 3) and vectors (..., 3) or (3,), as broadcast products
-    (they fuse when compiled). -> (..., 3)"""
-    return (mat * vec.unsqueeze(-2)).sum(-1)
+def turn(mat: Tensor, vec: Tensor) -> Tensor:
+    """mat @ vec for rotations (..., 3, 3) and vectors (..., 3) or (3,), as three products of
+    columns (elementwise: they fuse when compiled, and run eagerly several times faster than a
+    reduction over a dimension of 3). -> (..., 3)"""
+    return mat[..., 0] * vec[..., 0:1] + mat[..., 1] * vec[..., 1:2] + mat[..., 2] * vec[..., 2:3]
 
 
 def _compose(a: Tensor, b: Tensor) -> Tensor:
-    """a @ b for 3x3 matrices (..., 3, 3), as broadcast products. -> (..., 3, 3)"""
-    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+    """a @ b for 3x3 matrices (..., 3, 3), as three outer products of a's columns and b's
+    rows (elementwise, as `turn`). -> (..., 3, 3)"""
+    column = lambda k: a[..., :, k : k + 1] * b[..., k : k + 1, :]  # noqa: E731
+    return column(0) + column(1) + column(2)
 
 
 def quat_to_mat(quat: Tensor) -> Tensor:

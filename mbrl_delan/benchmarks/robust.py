@@ -1,0 +1,279 @@
+"""Suite `robust`: does the oracle's planner stand whole episodes, and how fast does it plan.
+
+For each task in `tasks` (default `humanoid_stand`) and each planner seed in `seeds` (default
+0, 1, 2), the loop's oracle (`train.build_oracle` on the config ``python -m mbrl_delan.train
+env=<task>`` composes, with the suite's `overrides`, e.g. ``env.plan_cost=balance``) runs
+`starts` episodes (default 10) of `oracle_steps` control steps (default the task's 1,000) on the
+real env, episode i from the reset seed ``1000 (seed + 1) + i`` (distinct starts for every seed
+and episode). Per episode it keeps the fall step (the control step at which the task
+terminated, None if it stood to the end), the return and the planning ms per control step
+(the policy's calls only).
+
+The push test (`push` m/s, at control step `push_step`): the whole body's velocity is changed
+by `push` m/s along +x at that step (the free root's linear velocity; an impulse of `push`
+times the total mass at the centre of mass, 42.1 N s per m/s on Humanoid-v5); the planner
+sees the pushed state at its next call.
+
+Records, per task and seed, with fields `task`, `dynamics` (`mujoco`), `planner`,
+`num_samples`, `iterations`, `horizon`, `knots`, `episodes`, `plan_cost`, `seed`, `push`,
+`push_step` and `per_episode` (each episode's `start`, `fall_step`, `return`,
+`plan_ms_per_control_step`):
+
+- `falls`: the episodes that terminated (count);
+- `plan_ms_per_control_step`: the mean over all control steps of all its episodes (ms);
+- `return_mean`: the mean episode return.
+
+`python -m mbrl_delan.benchmarks.robust FILE [FILE ...] --out PNG` draws the share of episodes
+that fell against the planning ms per control step, one point per setting (`setting_label`:
+the plan cost and the planner's samples, iterations and horizon; pushed runs apart), over
+all its seeds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from matplotlib.ticker import NullFormatter
+from omegaconf import DictConfig
+
+from mbrl_delan.benchmarks import SuiteOptions, host_fields
+from mbrl_delan.benchmarks.figures import read_record_files
+from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.checks import compose_train_config
+from mbrl_delan.envs.real import MujocoTaskEnv
+from mbrl_delan.figure_style import page_figure, save_figure
+from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.systems.system import State
+
+log = logging.getLogger(__name__)
+
+SUITE = "robust"
+TASKS = ("humanoid_stand",)
+SEEDS = (0, 1, 2)
+STARTS = 10  # episodes per seed
+QUICK = {"starts": 1, "steps": 5, "seeds": (0,)}
+START_SEED = 1000  # episode i of planner seed s starts from the reset seed 1000 (s + 1) + i
+
+
+@dataclass(frozen=True)
+class Push:
+    """A change of the whole body's velocity by `speed` m/s along +x at control step `step`."""
+
+    speed: float
+    step: int
+
+
+@dataclass
+class Episode:
+    """One robustness episode: where it started, when it fell (None: it stood), its return
+    and its planning ms per control step."""
+
+    start: int
+    steps: int  # control steps run
+    fall_step: int | None
+    episode_return: float
+    plan_ms: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"start": self.start, "fall_step": self.fall_step,
+                "return": round(self.episode_return, 3),
+                "plan_ms_per_control_step": round(self.plan_ms, 2)}  # fmt: skip
+
+
+def _push(env: MujocoTaskEnv, push: Push) -> None:
+    """Add `push.speed` to the free root's x velocity (every body moves with it)."""
+    state = env.get_state()
+    qd = state.qd.clone()
+    qd[0] += push.speed
+    env.set_state(State(q=state.q, qd=qd))
+
+
+def run_robust_episode(
+    policy: PlannerPolicy, env: MujocoTaskEnv, start: int, steps: int, push: Push | None = None
+) -> Episode:
+    """One episode of at most `steps` control steps from the reset seed `start`."""
+    env.reset(seed=start)
+    policy.reset()
+    total, seconds = 0.0, 0.0
+    for t in range(steps):
+        if push is not None and t == push.step:
+            _push(env, push)
+        state = env.get_state()
+        began = time.perf_counter()
+        action = policy.act(state.q.float(), state.qd.float())
+        seconds += time.perf_counter() - began
+        _, reward, terminated, _, _ = env.step(action.detach().cpu().numpy())
+        total += reward
+        if terminated:
+            return Episode(start, t + 1, t + 1, total, 1e3 * seconds / (t + 1))
+    return Episode(start, steps, None, total, 1e3 * seconds / steps)
+
+
+@dataclass(frozen=True)
+class RobustConfig:
+    """What the suite runs (module docstring)."""
+
+    tasks: tuple[str, ...] = TASKS
+    seeds: tuple[int, ...] = SEEDS
+    starts: int = STARTS
+    steps: int | None = None  # control steps per episode (None: the task's)
+    overrides: tuple[str, ...] = ()
+    push: Push | None = None
+
+    @classmethod
+    def from_options(cls, opts: SuiteOptions) -> RobustConfig:
+        quick = QUICK if opts.quick else {}
+        push = None if opts.push is None else Push(opts.push, opts.push_step)
+        return cls(
+            tasks=opts.tasks or TASKS,
+            seeds=opts.seeds or quick.get("seeds", SEEDS),
+            starts=opts.starts or quick.get("starts", STARTS),
+            steps=opts.oracle_steps or quick.get("steps"),
+            overrides=opts.overrides,
+            push=push,
+        )
+
+
+def _fields(cfg: DictConfig, task: str, rc: RobustConfig, seed: int) -> dict[str, Any]:
+    planner = cfg.planner
+    return dict(
+        task=task, dynamics="mujoco", planner=planner.name,
+        num_samples=planner.get("num_samples"), iterations=planner.get("iterations"),
+        horizon=planner.horizon, knots=planner.get("knots"), plan_cost=cfg.env.plan_cost,
+        oracle_substeps=cfg.env.oracle_substeps, episodes=rc.starts, seed=seed,
+        push=None if rc.push is None else rc.push.speed,
+        push_step=None if rc.push is None else rc.push.step, overrides=list(rc.overrides),
+    )  # fmt: skip
+
+
+def seed_episodes(task: str, seed: int, rc: RobustConfig) -> tuple[DictConfig, list[Episode]]:
+    """The oracle of planner seed `seed` on `task`: its `starts` episodes."""
+    from mbrl_delan.conf.loop import build_oracle
+
+    cfg = compose_train_config([f"env={task}", f"seed={seed}", *rc.overrides])
+    env = MujocoTaskEnv(task, episode_len=rc.steps)
+    policy = build_oracle(cfg, env.env_parts.physics, env.env_parts.task)
+    steps = env.episode_len
+    episodes = []
+    try:
+        for i in range(rc.starts):
+            episode = run_robust_episode(policy, env, START_SEED * (seed + 1) + i, steps, rc.push)
+            log.info("robust: %s seed %d start %d: %s", task, seed, i, episode.to_dict())
+            episodes.append(episode)
+    finally:
+        env.close()
+        policy.objective_factory.close()
+    return cfg, episodes
+
+
+def run_robust_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
+    rc = RobustConfig.from_options(opts)
+    host = host_fields(torch.device("cpu"))
+    for task in rc.tasks:
+        for seed in rc.seeds:
+            cfg, episodes = seed_episodes(task, seed, rc)
+            fields = _fields(cfg, task, rc, seed) | host
+            fields["per_episode"] = [e.to_dict() for e in episodes]
+            falls = sum(e.fall_step is not None for e in episodes)
+            steps = np.array([e.steps for e in episodes])
+            plan_ms = float(np.dot([e.plan_ms for e in episodes], steps) / steps.sum())
+            mean_return = float(np.mean([e.episode_return for e in episodes]))
+            case = f"{task}-mujoco-s{seed}"
+            yield BenchRecord(SUITE, case, "falls", falls, "episodes", "cpu", fields)
+            yield BenchRecord(SUITE, case, "plan_ms_per_control_step", plan_ms, "ms", "cpu",
+                              fields)  # fmt: skip
+            yield BenchRecord(SUITE, case, "return_mean", mean_return, "return", "cpu", fields)
+
+
+def setting_label(record: dict[str, Any]) -> str:
+    """A robust record's setting: plan cost, planner, samples x iterations, horizon, push."""
+    label = (f"{record['plan_cost']}: {record['planner']} N {record['num_samples']} x "
+             f"{record['iterations']}, H {record['horizon']}")  # fmt: skip
+    return label if record.get("push") is None else f"{label}, push {record['push']} m/s"
+
+
+@dataclass
+class SettingPoint:
+    """One setting over all its seeds: falls of episodes and the mean planning ms."""
+
+    falls: int = 0
+    episodes: int = 0
+    ms_sum: float = 0.0  # sum of the seeds' ms x their episodes
+
+    @property
+    def ms(self) -> float:
+        return self.ms_sum / max(self.episodes, 1)
+
+
+def setting_points(records: list[dict[str, Any]]) -> dict[str, SettingPoint]:
+    """Setting label -> its point, from the `falls` and `plan_ms_per_control_step` records of
+    suite robust (other records left out)."""
+    points: dict[str, SettingPoint] = defaultdict(SettingPoint)
+    for r in records:
+        if r.get("suite") != SUITE or r.get("value") is None:
+            continue
+        point = points[setting_label(r)]
+        if r["metric"] == "falls":
+            point.falls += int(r["value"])
+            point.episodes += int(r["episodes"])
+        elif r["metric"] == "plan_ms_per_control_step":
+            point.ms_sum += float(r["value"]) * int(r["episodes"])
+    return dict(points)
+
+
+def plot_falls(points: dict[str, SettingPoint], path: Path, title: str,
+               control_ms: float | None = None) -> Path:  # fmt: skip
+    """Falls (% of episodes) against planning ms per control step, one labelled point per
+    setting; a dashed line at the control period `control_ms`."""
+    fig, axes = page_figure(4.6)
+    ax = axes[0, 0]
+    for label, p in sorted(points.items(), key=lambda item: item[1].ms):
+        share = 100.0 * p.falls / max(p.episodes, 1)
+        marker = "x" if "push" in label else "o"  # pushed runs: shorter episodes, a push
+        ax.plot(p.ms, share, marker=marker, markersize=9, linestyle="none",
+                label=f"{label} ({p.falls}/{p.episodes})")  # fmt: skip
+    if control_ms is not None:
+        ax.axvline(control_ms, color="grey", linestyle="--", label="control period")
+    ax.set_xscale("log")
+    ticks = [t for t in (10, 15, 20, 30, 50, 100, 200, 500, 1000)
+             if ax.get_xlim()[0] <= t <= ax.get_xlim()[1]]  # fmt: skip
+    ax.set_xticks(ticks, [str(t) for t in ticks])
+    ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.set_xlabel("planning ms per control step (2 cores)")
+    ax.set_ylabel("episodes that fell (%)")
+    ax.grid(True, which="both", alpha=0.3)
+    fig.suptitle(title)
+    fig.legend(loc="outside lower center", ncols=1, frameon=False)
+    return save_figure(fig, path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="falls against planning time, suite robust")
+    parser.add_argument("files", nargs="+", type=Path, help="records of suite robust (JSONL)")
+    parser.add_argument("--out", type=Path, required=True, help="the figure to write (PNG)")
+    parser.add_argument("--title", default="humanoid_stand: the oracle's falls and plan time")
+    parser.add_argument("--control-ms", type=float, default=15.0, help="the control period")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    records = read_record_files(args.files)
+    points = setting_points(records or [])
+    if not points:
+        log.error("no suite robust records in %s", ", ".join(map(str, args.files)))
+        return 2
+    for label, p in points.items():
+        log.info("%s: %d of %d fell, %.1f ms per control step", label, p.falls, p.episodes, p.ms)
+    log.info("figure: %s", plot_falls(points, args.out, args.title, args.control_ms))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

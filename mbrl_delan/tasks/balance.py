@@ -1,0 +1,245 @@
+"""A humanoid's planning cost with balance (`BalanceCost`), apart from the task's reward.
+
+The stand and walk rewards (`HumanoidTask`) are products of saturating factors: near upright
+they barely change, so a sampling planner with few samples cannot tell a plan that keeps the
+body over its feet from one that starts a fall it sees too late. `BalanceCost` is a task for
+planning only: its reward is minus a sum of weighted squared terms of the reached state and the
+action, each with its unit (`BalanceWeights`), and it never terminates (a fall keeps costing):
+
+- height: (h_head - z_feet - H)^2, H the head's height above the feet at the model's
+  standing pose `qpos0` (m);
+- balance: |x_cp - x_feet|^2 over x, y, the capture point x_cp = x_com + v_com sqrt(z / g) of
+  the centre of mass at height z above the feet, x_feet the feet's midpoint (m): where the
+  body would have to step to stop, kept between the feet;
+- upright: 1 - u_z, u_z the world z of the torso's up axis (0 upright, 2 upside down);
+- com_velocity: |v_com,xy - v_target|^2 (m/s), v_target 0 to stand, (`speed`, 0) to walk
+  along x;
+- joint_velocity: mean over the joints of qd^2 ((rad/s)^2);
+- posture: mean over the joints of (q - q_0)^2 (rad^2), q_0 the standing pose;
+- control: mean of (a / a_max)^2.
+
+The centre of mass and its velocity come from the MJCF's body masses and centres (the nominal
+model a user has) over the package's torch forward kinematics, so every world model's imagined
+states are scored by it: the momentum is sum_v qd_v (a_v x (h_v - m_v p_v)) for a DoF turning
+about axis a_v through p_v, or qd_v m_v a_v for one sliding along a_v, m_v and h_v the mass and
+first moment (sum of m_b c_b) of the bodies the DoF moves; the velocity is that over the total
+mass. On MuJoCo (the oracle) the same body state comes from sensors of the planning model
+(`add_sensors`), computed during the rollouts.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import mujoco
+import numpy as np
+import torch
+from torch import Tensor
+
+from mbrl_delan.systems.forward_kinematics import Poses, turn
+from mbrl_delan.systems.system import State
+from mbrl_delan.tasks.base import Task
+from mbrl_delan.tasks.common import PlacedConstants
+from mbrl_delan.tasks.humanoid import HumanoidTask
+
+PLAN_COSTS = ("reward", "balance")  # what planners maximise: the task's reward, or this cost
+
+
+@dataclass(frozen=True)
+class BalanceWeights:
+    """Weights of `BalanceCost`'s terms, each per squared unit of its term."""
+
+    height: float = 30.0  # per m^2
+    balance: float = 30.0  # per m^2
+    upright: float = 3.0  # per unit of 1 - u_z
+    com_velocity: float = 1.0  # per (m/s)^2
+    joint_velocity: float = 0.01  # per (rad/s)^2
+    posture: float = 0.1  # per rad^2
+    control: float = 0.1  # per (a / a_max)^2
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"balance weight {f.name} must be finite and >= 0, got {value}")
+
+
+@dataclass
+class CentreOfMass:
+    """The whole body's centre of mass (..., 3) and its velocity (..., 3), world frame."""
+
+    position: Tensor
+    velocity: Tensor
+
+
+@dataclass
+class BodyState:
+    """What the cost reads of a configuration besides q, qd: the head's height (...), the world
+    z of the torso's up axis (...), the feet's midpoint (..., 3) and the centre of mass."""
+
+    head_z: Tensor
+    up_z: Tensor
+    feet: Tensor
+    com: CentreOfMass
+
+
+SENSOR_PREFIX = "balance_"  # the sites and sensors `add_sensors` puts in a planning model
+
+
+class BalanceCost(Task):
+    """Minus the balance cost of a humanoid `task` (module docstring), for planning only.
+
+    The body state comes from the torch forward kinematics (`body_state`) or, on MuJoCo, from
+    sensors the oracle's planning model carries (`add_sensors`, `sensed_reward`: the same
+    values, computed by MuJoCo during its rollouts instead of by torch after them).
+
+    Args:
+        model: the humanoid's MuJoCo model (the masses and the standing pose it gives).
+        task: the evaluated task (its head, torso, feet, speed, control range and episode).
+        weights: the terms' weights.
+    """
+
+    def __init__(
+        self, model: mujoco.MjModel, task: HumanoidTask, weights: BalanceWeights = BalanceWeights()
+    ) -> None:
+        names = task.body.feet
+        feet = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f) for f in names]
+        if not feet or min(feet) < 0:
+            raise ValueError(f"the task's foot bodies {names} are not all in the model")
+        self.task, self.weights, self.feet = task, weights, feet
+        self.name, self.episode_len = f"{task.name}_balance", task.episode_len
+        self.gravity = float(np.linalg.norm(model.opt.gravity))
+        if self.gravity <= 0:
+            raise ValueError("a balance cost needs gravity (the capture point's sqrt(z / g))")
+        self.total_mass = float(model.body_mass.sum())
+        moves = np.array([[_below(model.body_parentid, b, self.task.fk.dof_body[v])
+                           for b in range(model.nbody)] for v in range(model.nv)])  # fmt: skip
+        self.constants = PlacedConstants(
+            mass=torch.from_numpy(model.body_mass.copy()),  # (nbody,)
+            centre=torch.from_numpy(model.body_ipos.copy()),  # (nbody, 3) in the body frame
+            moves=torch.from_numpy(moves.astype(np.float64)),  # (nv, nbody)
+            rotational=torch.tensor(task.fk.rotational),  # (nv,) bool
+            qpos0=task.qpos0.clone(),  # (nq,)
+            target_velocity=torch.tensor([task.speed or 0.0, 0.0], dtype=torch.float64),
+        )
+        q0 = task.qpos0.unsqueeze(0)
+        standing = self.body_state(q0, q0.new_zeros(1, model.nv))
+        self.stand_height = float(standing.head_z[0] - standing.feet[0, 2])
+
+    def centre_of_mass(self, q: Tensor, qd: Tensor, poses: Poses | None = None,
+                       axes: tuple[Tensor, Tensor] | None = None) -> CentreOfMass:  # fmt: skip
+        """The centre of mass and its velocity at (q (..., nq), qd (..., nv))."""
+        if poses is None or axes is None:
+            poses, dof = self.task.fk.dof_axes(q)
+            axes = (dof.axis, dof.anchor)
+        c = self.constants.on(q)
+        centres = poses.xpos + turn(poses.xmat, c["centre"])  # (..., nbody, 3)
+        moment = c["mass"].unsqueeze(-1) * centres  # (..., nbody, 3)
+        axis, anchor = axes  # (..., nv, 3) each
+        moved_moment = torch.einsum("vb,...bk->...vk", c["moves"], moment)  # (..., nv, 3)
+        moved_mass = (c["moves"] * c["mass"]).sum(-1).unsqueeze(-1)  # (nv, 1)
+        spin = torch.linalg.cross(axis, moved_moment - moved_mass * anchor, dim=-1)
+        per_dof = torch.where(c["rotational"].unsqueeze(-1), spin, moved_mass * axis)
+        momentum = (per_dof * qd.unsqueeze(-1)).sum(-2)  # (..., 3)
+        return CentreOfMass(moment.sum(-2) / self.total_mass, momentum / self.total_mass)
+
+    def body_state(self, q: Tensor, qd: Tensor) -> BodyState:
+        """The body state at (q (..., nq), qd (..., nv)) by the torch forward kinematics."""
+        poses, dof = self.task.fk.dof_axes(q)
+        com = self.centre_of_mass(q, qd, poses, (dof.axis, dof.anchor))
+        feet = poses.xpos[..., self.feet, :].mean(-2)
+        return BodyState(self.task._head_z(poses), self.task._up_z(poses), feet, com)
+
+    def add_sensors(self, spec: mujoco.MjSpec) -> None:
+        """Put the body state's sensors last in a planning model's `spec`: the head point and
+        the torso's up axis (sites on the torso), the centre of mass and its velocity (of the
+        root's subtree) and each foot's origin; `sensed_state` reads them."""
+        body, site = self.task.body, mujoco.mjtObj.mjOBJ_SITE
+        head = spec.body(body.head_body).add_site(
+            name=f"{SENSOR_PREFIX}head", pos=list(body.head_offset)
+        )
+        up = spec.body(body.torso_body).add_site(
+            name=f"{SENSOR_PREFIX}up", quat=_z_to(np.asarray(body.torso_up, float))
+        )
+        root = spec.bodies[1].name
+        sensors = [
+            (mujoco.mjtSensor.mjSENS_FRAMEPOS, site, head.name),
+            (mujoco.mjtSensor.mjSENS_FRAMEZAXIS, site, up.name),
+            (mujoco.mjtSensor.mjSENS_SUBTREECOM, mujoco.mjtObj.mjOBJ_BODY, root),
+            (mujoco.mjtSensor.mjSENS_SUBTREELINVEL, mujoco.mjtObj.mjOBJ_BODY, root),
+        ] + [(mujoco.mjtSensor.mjSENS_FRAMEPOS, mujoco.mjtObj.mjOBJ_XBODY, f)
+             for f in body.feet]  # fmt: skip
+        for i, (kind, objtype, name) in enumerate(sensors):
+            spec.add_sensor(name=f"{SENSOR_PREFIX}{i}", type=kind, objtype=objtype, objname=name)
+
+    @property
+    def sensor_size(self) -> int:
+        """The sensor values `add_sensors` adds."""
+        return 3 * (4 + len(self.feet))
+
+    def sensed_state(self, sensed: Tensor) -> BodyState:
+        """The body state from the last `sensor_size` sensor values (..., nsensordata)."""
+        values = sensed[..., -self.sensor_size :]
+        feet = values[..., 12:].unflatten(-1, (len(self.feet), 3)).mean(-2)
+        com = CentreOfMass(values[..., 6:9], values[..., 9:12])
+        return BodyState(values[..., 2], values[..., 5], feet, com)
+
+    def capture_point(self, com: CentreOfMass, ground: Tensor) -> Tensor:
+        """x, y of the capture point x_com + v_com sqrt(z / g), z the centre of mass's height
+        above `ground` (...). -> (..., 2)"""
+        z = torch.clamp(com.position[..., 2] - ground, min=0.0)
+        lead = torch.sqrt(z / self.gravity).unsqueeze(-1)
+        return com.position[..., :2] + com.velocity[..., :2] * lead
+
+    def terms_of(self, body: BodyState, q: Tensor, qd: Tensor, action: Tensor
+                 ) -> dict[str, Tensor]:  # fmt: skip
+        """Each term of the cost, unweighted, at a body state. -> {name: (...)}"""
+        c = self.constants.on(q)
+        capture = self.capture_point(body.com, body.feet[..., 2])
+        return {
+            "height": (body.head_z - body.feet[..., 2] - self.stand_height).square(),
+            "balance": (capture - body.feet[..., :2]).square().sum(-1),
+            "upright": 1.0 - body.up_z,
+            "com_velocity": (body.com.velocity[..., :2] - c["target_velocity"]).square().sum(-1),
+            "joint_velocity": qd[..., 6:].square().mean(-1),
+            "posture": (q[..., 7:] - c["qpos0"][7:]).square().mean(-1),
+            "control": (action / self.task.ctrl_max).square().mean(-1),
+        }
+
+    def terms(self, q: Tensor, qd: Tensor, action: Tensor) -> dict[str, Tensor]:
+        """Each term of the cost, unweighted. (..., nq), (..., nv), (..., nu) -> {name: (...)}"""
+        return self.terms_of(self.body_state(q, qd), q, qd, action)
+
+    def _weighted(self, terms: dict[str, Tensor]) -> Tensor:
+        return sum(getattr(self.weights, name) * value for name, value in terms.items())
+
+    def cost(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
+        """The weighted sum of the terms. -> (...)"""
+        return self._weighted(self.terms(q, qd, action))
+
+    def reward(self, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
+        return -self.cost(q, qd, action)
+
+    def sensed_reward(self, sensed: Tensor, q: Tensor, qd: Tensor, action: Tensor) -> Tensor:
+        """`reward` with the body state from the planning model's sensors (..., nsensordata)."""
+        return -self._weighted(self.terms_of(self.sensed_state(sensed), q, qd, action))
+
+    def initial_state(self, batch_shape: tuple[int, ...], generator: torch.Generator) -> State:
+        return self.task.initial_state(batch_shape, generator)
+
+
+def _z_to(axis: np.ndarray) -> list[float]:
+    """The unit quaternion (w, x, y, z) that turns +z onto the unit vector `axis`."""
+    z = np.array([0.0, 0.0, 1.0])
+    quat = np.concatenate([[1.0 + z @ axis], np.cross(z, axis)])
+    if np.linalg.norm(quat) < 1e-9:  # axis = -z: half a turn about x
+        return [0.0, 1.0, 0.0, 0.0]
+    return list(quat / np.linalg.norm(quat))
+
+
+def _below(parent: np.ndarray, body: int, ancestor: int) -> bool:
+    """Is `body` `ancestor` itself or below it in the tree."""
+    while body > 0 and body != ancestor:
+        body = int(parent[body])
+    return body == ancestor
