@@ -26,6 +26,11 @@ def cost(v5) -> BalanceCost:
     return BalanceCost(v5, HumanoidTask(v5, HUMANOID_V5_BODY, ctrl_max=0.4))
 
 
+@pytest.fixture(scope="module")
+def walk(v5) -> BalanceCost:
+    return BalanceCost(v5, HumanoidTask(v5, HUMANOID_V5_BODY, speed=1.0, ctrl_max=0.4))
+
+
 def rest(model: mujoco.MjModel) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     return torch.from_numpy(model.qpos0.copy()), torch.zeros(model.nv), torch.zeros(model.nu)
 
@@ -41,6 +46,13 @@ def test_centre_of_mass_and_its_velocity_equal_mujocos(v5, cost) -> None:
         com = cost.centre_of_mass(torch.tensor(data.qpos), torch.tensor(data.qvel))
         np.testing.assert_allclose(com.position.numpy(), data.subtree_com[0], atol=1e-12)
         np.testing.assert_allclose(com.velocity.numpy(), data.subtree_linvel[0], atol=1e-12)
+        feet = cost.body_state(torch.tensor(data.qpos), torch.tensor(data.qvel)).feet_velocity
+        velocity = np.zeros(6)
+        expected = np.zeros(3)
+        for foot in cost.feet:  # each foot's origin: MuJoCo's (angular, linear) of the xbody
+            mujoco.mj_objectVelocity(v5, data, mujoco.mjtObj.mjOBJ_XBODY, foot, velocity, 0)
+            expected += velocity[3:] / len(cost.feet)
+        np.testing.assert_allclose(feet.numpy(), expected, atol=1e-12)
 
 
 def test_capture_point_of_a_body_moving_at_a_known_velocity(v5, cost) -> None:
@@ -75,12 +87,44 @@ def test_upright_and_still_is_the_minimum_and_a_tilted_pose_costs_more(v5, cost)
     assert cost.reward(tilted, qd, a) < cost.reward(q, qd, a) <= 0
 
 
-def test_walking_velocity_is_measured_against_the_speed(v5) -> None:
-    walk = BalanceCost(v5, HumanoidTask(v5, HUMANOID_V5_BODY, speed=1.0, ctrl_max=0.4))
+def test_walking_velocity_is_measured_against_the_speed(v5, walk) -> None:
     q, qd, a = rest(v5)
     assert walk.terms(q, qd, a)["com_velocity"].item() == pytest.approx(1.0)
-    qd[0] = 1.0
-    assert walk.terms(q, qd, a)["com_velocity"].item() == pytest.approx(0.0, abs=1e-12)
+    qd[0] = 1.0  # every body at 1 m/s: the feet go along with the centre of mass
+    terms = walk.terms(q, qd, a)
+    assert terms["com_velocity"].item() == pytest.approx(0.0, abs=1e-12)
+    assert terms["feet_velocity"].item() == pytest.approx(0.0, abs=1e-12)
+    qd[:] = 0.0
+    qd[11] = 1.0  # the right hip's flexion at 1 rad/s: the foot swings, the body barely moves
+    assert walk.terms(q, qd, a)["feet_velocity"].item() > 0.01
+
+
+def test_heading_is_the_torso_facing_away_from_x(v5, walk) -> None:
+    q, qd, a = rest(v5)
+    assert walk.terms(q, qd, a)["heading"].item() == pytest.approx(0.0, abs=1e-12)
+    for degrees, expected in ((90, 1.0), (180, 2.0)):
+        turned = q.clone()  # the whole body turned about z: still upright
+        half = math.radians(degrees / 2)
+        turned[3:7] = torch.tensor([math.cos(half), 0.0, 0.0, math.sin(half)])
+        terms = walk.terms(turned, qd, a)
+        assert terms["heading"].item() == pytest.approx(expected)
+        assert terms["upright"].item() == pytest.approx(0.0, abs=1e-12)
+
+
+def test_the_support_is_the_midpoint_or_the_segment_between_the_feet(v5, cost, walk) -> None:
+    """Feet at y = +-0.1: standing (span 0) supports the midpoint only; walking (span 1) the
+    whole segment, so a capture point between the feet costs nothing and one beyond a foot
+    is measured from that foot."""
+    feet = torch.tensor([[0.0, -0.1, 0.0], [0.0, 0.1, 0.0]], dtype=torch.float64)
+    inside = torch.tensor([0.0, 0.05], dtype=torch.float64)
+    beyond = torch.tensor([0.03, 0.3], dtype=torch.float64)
+    middle = torch.zeros(2, dtype=torch.float64)
+    torch.testing.assert_close(cost.support_point(feet, inside), middle)
+    torch.testing.assert_close(walk.support_point(feet, inside), inside)
+    torch.testing.assert_close(walk.support_point(feet, beyond),
+                               torch.tensor([0.0, 0.1], dtype=torch.float64))  # fmt: skip
+    with pytest.raises(ValueError, match="support_span"):
+        BalanceCost(v5, walk.task, support_span=1.5)
 
 
 def test_bad_weights_and_a_model_without_the_feet_are_refused(v5) -> None:
@@ -115,10 +159,12 @@ def test_a_sampling_planner_on_the_cost_finds_the_worked_optimum(v5, cost) -> No
     assert objective(plan.mean.unsqueeze(0)) > objective(start.unsqueeze(0))
 
 
-def test_the_oracle_scores_from_sensors_what_torch_scores_from_the_states(v5, cost) -> None:
+@pytest.mark.parametrize("env", ["humanoid_stand", "humanoid_walk"])
+def test_the_oracle_scores_from_sensors_what_torch_scores_from_the_states(v5, env) -> None:
     """The planning model's sensors give the body state of each reached state (one step
     later in MuJoCo's own order: the rollout takes one more step for the last one)."""
-    parts = make_env_parts("humanoid_stand")
+    parts = make_env_parts(env)
+    cost = BalanceCost(v5, parts.task)
     factory = MujocoObjectiveFactory(parts.system, cost, nthread=1, physics=PlanPhysics(2))
     assert factory.sensed and factory.model.nsensordata == cost.sensor_size
     start = parts.task.initial_state((), torch.Generator().manual_seed(0))
@@ -126,7 +172,7 @@ def test_the_oracle_scores_from_sensors_what_torch_scores_from_the_states(v5, co
     result = factory.rollout(factory.initial_state(start.q, start.qd), actions.double())
     q, qd = result.states.q, result.states.qd
     sensed, computed = cost.sensed_state(result.sensors), cost.body_state(q, qd)
-    for name in ("head_z", "up_z", "feet"):
+    for name in ("head_z", "up_z", "forward_x", "feet", "feet_velocity"):
         torch.testing.assert_close(getattr(sensed, name), getattr(computed, name))
     torch.testing.assert_close(sensed.com.velocity, computed.com.velocity)
     torch.testing.assert_close(cost.sensed_reward(result.sensors, q, qd, result.actions),

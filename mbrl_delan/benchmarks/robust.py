@@ -16,8 +16,9 @@ sees the pushed state at its next call.
 
 Records, per task and seed, with fields `task`, `dynamics` (`mujoco`), `planner`,
 `num_samples`, `iterations`, `horizon`, `knots`, `episodes`, `plan_cost`, `seed`, `push`,
-`push_step` and `per_episode` (each episode's `start`, `fall_step`, `return`,
-`plan_ms_per_control_step`):
+`push_step`, `speed_mean` (the episodes' mean of `speed`) and `per_episode` (each episode's
+`start`, `fall_step`, `return`, `plan_ms_per_control_step` and `speed`: the root's x
+displacement over the episode's duration, m/s):
 
 - `falls`: the episodes that terminated (count);
 - `plan_ms_per_control_step`: the mean over all control steps of all its episodes (ms);
@@ -82,11 +83,13 @@ class Episode:
     fall_step: int | None
     episode_return: float
     plan_ms: float
+    speed: float  # the root's mean velocity along +x over the episode (m/s)
 
     def to_dict(self) -> dict[str, Any]:
         return {"start": self.start, "fall_step": self.fall_step,
                 "return": round(self.episode_return, 3),
-                "plan_ms_per_control_step": round(self.plan_ms, 2)}  # fmt: skip
+                "plan_ms_per_control_step": round(self.plan_ms, 2),
+                "speed": round(self.speed, 3)}  # fmt: skip
 
 
 def _push(env: MujocoTaskEnv, push: Push) -> None:
@@ -103,7 +106,13 @@ def run_robust_episode(
     """One episode of at most `steps` control steps from the reset seed `start`."""
     env.reset(seed=start)
     policy.reset()
+    x0 = float(env.get_state().q[0])
     total, seconds = 0.0, 0.0
+
+    def episode(run: int, fall_step: int | None) -> Episode:
+        speed = (float(env.get_state().q[0]) - x0) / (run * env.env_parts.system.control_dt)
+        return Episode(start, run, fall_step, total, 1e3 * seconds / run, speed)
+
     for t in range(steps):
         if push is not None and t == push.step:
             _push(env, push)
@@ -114,8 +123,8 @@ def run_robust_episode(
         _, reward, terminated, _, _ = env.step(action.detach().cpu().numpy())
         total += reward
         if terminated:
-            return Episode(start, t + 1, t + 1, total, 1e3 * seconds / (t + 1))
-    return Episode(start, steps, None, total, 1e3 * seconds / steps)
+            return episode(t + 1, t + 1)
+    return episode(steps, None)
 
 
 @dataclass(frozen=True)
@@ -183,6 +192,7 @@ def run_robust_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
             cfg, episodes = seed_episodes(task, seed, rc)
             fields = _fields(cfg, task, rc, seed) | host
             fields["per_episode"] = [e.to_dict() for e in episodes]
+            fields["speed_mean"] = round(float(np.mean([e.speed for e in episodes])), 3)
             falls = sum(e.fall_step is not None for e in episodes)
             steps = np.array([e.steps for e in episodes])
             plan_ms = float(np.dot([e.plan_ms for e in episodes], steps) / steps.sum())

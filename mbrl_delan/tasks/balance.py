@@ -8,12 +8,19 @@ action, each with its unit (`BalanceWeights`), and it never terminates (a fall k
 
 - height: (h_head - z_feet - H)^2, H the head's height above the feet at the model's
   standing pose `qpos0` (m);
-- balance: |x_cp - x_feet|^2 over x, y, the capture point x_cp = x_com + v_com sqrt(z / g) of
-  the centre of mass at height z above the feet, x_feet the feet's midpoint (m): where the
-  body would have to step to stop, kept between the feet;
+- balance: |x_cp - x_s|^2 over x, y, the capture point x_cp = x_com + v_com sqrt(z / g) of
+  the centre of mass at height z above the feet (where the body would have to step to stop),
+  x_s the nearest point to it of the support: the stretch of `support_span` times the segment
+  between two feet about their midpoint (0: the midpoint itself, the stand's; 1: the whole
+  segment, the walk's, so a step forward carries the support ahead) (m);
 - upright: 1 - u_z, u_z the world z of the torso's up axis (0 upright, 2 upside down);
 - com_velocity: |v_com,xy - v_target|^2 (m/s), v_target 0 to stand, (`speed`, 0) to walk
   along x;
+- heading: 1 - f_x, f_x the world x of the torso's body x axis (Humanoid-v5's forward: 0
+  facing the walk's +x, 2 facing back);
+- feet_velocity: |v_feet,xy - v_com,xy|^2 ((m/s)^2), v_feet the velocity of the feet's
+  midpoint: on a walk, the feet go along with the body (stepping) instead of the body leaning
+  ahead of them;
 - joint_velocity: mean over the joints of qd^2 ((rad/s)^2);
 - posture: mean over the joints of (q - q_0)^2 (rad^2), q_0 the standing pose;
 - control: mean of (a / a_max)^2.
@@ -23,8 +30,12 @@ model a user has) over the package's torch forward kinematics, so every world mo
 states are scored by it: the momentum is sum_v qd_v (a_v x (h_v - m_v p_v)) for a DoF turning
 about axis a_v through p_v, or qd_v m_v a_v for one sliding along a_v, m_v and h_v the mass and
 first moment (sum of m_b c_b) of the bodies the DoF moves; the velocity is that over the total
-mass. On MuJoCo (the oracle) the same body state comes from sensors of the planning model
-(`add_sensors`), computed during the rollouts.
+mass. A foot's velocity is sum_v qd_v (a_v x (x_f - p_v)) (turning) or qd_v a_v (sliding) over
+the DoFs that move it. On MuJoCo (the oracle) the same body state comes from sensors of the
+planning model (`add_sensors`), computed during the rollouts.
+
+The weights (`BalanceWeights`) are the stand's (`STAND_WEIGHTS`) or, for a task with a speed,
+the walk's (`WALK_WEIGHTS`: the speed weighs more, the torso faces +x and the feet go along).
 """
 
 from __future__ import annotations
@@ -53,7 +64,9 @@ class BalanceWeights:
     height: float = 30.0  # per m^2
     balance: float = 30.0  # per m^2
     upright: float = 3.0  # per unit of 1 - u_z
+    heading: float = 0.0  # per unit of 1 - f_x
     com_velocity: float = 1.0  # per (m/s)^2
+    feet_velocity: float = 0.0  # per (m/s)^2
     joint_velocity: float = 0.01  # per (rad/s)^2
     posture: float = 0.1  # per rad^2
     control: float = 0.1  # per (a / a_max)^2
@@ -63,6 +76,11 @@ class BalanceWeights:
             value = getattr(self, f.name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"balance weight {f.name} must be finite and >= 0, got {value}")
+
+
+# the weights measured on humanoid_stand and humanoid_walk (docs/humanoid.md)
+STAND_WEIGHTS = BalanceWeights()
+WALK_WEIGHTS = BalanceWeights(heading=10.0, com_velocity=20.0, feet_velocity=2.0)
 
 
 @dataclass
@@ -76,11 +94,14 @@ class CentreOfMass:
 @dataclass
 class BodyState:
     """What the cost reads of a configuration besides q, qd: the head's height (...), the world
-    z of the torso's up axis (...), the feet's midpoint (..., 3) and the centre of mass."""
+    z of the torso's up axis (...) and the world x of its forward axis (...), each foot's
+    origin (..., nfeet, 3), the velocity of their midpoint (..., 3), and the centre of mass."""
 
     head_z: Tensor
     up_z: Tensor
+    forward_x: Tensor
     feet: Tensor
+    feet_velocity: Tensor
     com: CentreOfMass
 
 
@@ -97,17 +118,29 @@ class BalanceCost(Task):
     Args:
         model: the humanoid's MuJoCo model (the masses and the standing pose it gives).
         task: the evaluated task (its head, torso, feet, speed, control range and episode).
-        weights: the terms' weights.
+        weights: the terms' weights (None: the stand's, or the walk's for a task with a speed).
+        support_span: the share of the segment between the feet that supports the capture
+            point at no cost (None: 0 to stand, 1 to walk; module docstring).
     """
 
     def __init__(
-        self, model: mujoco.MjModel, task: HumanoidTask, weights: BalanceWeights = BalanceWeights()
+        self,
+        model: mujoco.MjModel,
+        task: HumanoidTask,
+        weights: BalanceWeights | None = None,
+        support_span: float | None = None,
     ) -> None:
         names = task.body.feet
         feet = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f) for f in names]
         if not feet or min(feet) < 0:
             raise ValueError(f"the task's foot bodies {names} are not all in the model")
-        self.task, self.weights, self.feet = task, weights, feet
+        walk = task.speed is not None
+        if weights is None:
+            weights = WALK_WEIGHTS if walk else STAND_WEIGHTS
+        span = (1.0 if walk else 0.0) if support_span is None else support_span
+        if not 0.0 <= span <= 1.0:
+            raise ValueError(f"support_span must be in [0, 1], got {support_span}")
+        self.task, self.weights, self.feet, self.support_span = task, weights, feet, span
         self.name, self.episode_len = f"{task.name}_balance", task.episode_len
         self.gravity = float(np.linalg.norm(model.opt.gravity))
         if self.gravity <= 0:
@@ -119,13 +152,14 @@ class BalanceCost(Task):
             mass=torch.from_numpy(model.body_mass.copy()),  # (nbody,)
             centre=torch.from_numpy(model.body_ipos.copy()),  # (nbody, 3) in the body frame
             moves=torch.from_numpy(moves.astype(np.float64)),  # (nv, nbody)
+            foot_moves=torch.from_numpy(moves[:, feet].astype(np.float64)),  # (nv, nfeet)
             rotational=torch.tensor(task.fk.rotational),  # (nv,) bool
             qpos0=task.qpos0.clone(),  # (nq,)
             target_velocity=torch.tensor([task.speed or 0.0, 0.0], dtype=torch.float64),
         )
         q0 = task.qpos0.unsqueeze(0)
         standing = self.body_state(q0, q0.new_zeros(1, model.nv))
-        self.stand_height = float(standing.head_z[0] - standing.feet[0, 2])
+        self.stand_height = float(standing.head_z[0] - standing.feet[0, :, 2].mean())
 
     def centre_of_mass(self, q: Tensor, qd: Tensor, poses: Poses | None = None,
                        axes: tuple[Tensor, Tensor] | None = None) -> CentreOfMass:  # fmt: skip
@@ -144,17 +178,33 @@ class BalanceCost(Task):
         momentum = (per_dof * qd.unsqueeze(-1)).sum(-2)  # (..., 3)
         return CentreOfMass(moment.sum(-2) / self.total_mass, momentum / self.total_mass)
 
+    def feet_velocity(self, feet: Tensor, qd: Tensor, axes: tuple[Tensor, Tensor]) -> Tensor:
+        """The mean velocity (..., 3) of the feet's origins `feet` (..., nfeet, 3) at qd
+        (..., nv), each DoF's world axis and anchor `axes` ((..., nv, 3) each)."""
+        c = self.constants.on(qd)
+        axis, anchor = axes
+        lever = feet.unsqueeze(-3) - anchor.unsqueeze(-2)  # (..., nv, nfeet, 3)
+        spin = torch.linalg.cross(axis.unsqueeze(-2).expand_as(lever), lever, dim=-1)
+        slide = axis.unsqueeze(-2).expand_as(lever)
+        per_dof = torch.where(c["rotational"][:, None, None], spin, slide)
+        moved = per_dof * (c["foot_moves"].unsqueeze(-1) * qd[..., None, None])
+        return moved.sum(-3).mean(-2)
+
     def body_state(self, q: Tensor, qd: Tensor) -> BodyState:
         """The body state at (q (..., nq), qd (..., nv)) by the torch forward kinematics."""
         poses, dof = self.task.fk.dof_axes(q)
-        com = self.centre_of_mass(q, qd, poses, (dof.axis, dof.anchor))
-        feet = poses.xpos[..., self.feet, :].mean(-2)
-        return BodyState(self.task._head_z(poses), self.task._up_z(poses), feet, com)
+        axes = (dof.axis, dof.anchor)
+        com = self.centre_of_mass(q, qd, poses, axes)
+        feet = poses.xpos[..., self.feet, :]  # (..., nfeet, 3)
+        forward_x = poses.xmat[..., self.task.torso, 0, 0]
+        return BodyState(self.task._head_z(poses), self.task._up_z(poses), forward_x, feet,
+                         self.feet_velocity(feet, qd, axes), com)  # fmt: skip
 
     def add_sensors(self, spec: mujoco.MjSpec) -> None:
         """Put the body state's sensors last in a planning model's `spec`: the head point and
         the torso's up axis (sites on the torso), the centre of mass and its velocity (of the
-        root's subtree) and each foot's origin; `sensed_state` reads them."""
+        root's subtree), each foot's origin and its velocity, and the torso's forward axis;
+        `sensed_state` reads them."""
         body, site = self.task.body, mujoco.mjtObj.mjOBJ_SITE
         head = spec.body(body.head_body).add_site(
             name=f"{SENSOR_PREFIX}head", pos=list(body.head_offset)
@@ -168,22 +218,26 @@ class BalanceCost(Task):
             (mujoco.mjtSensor.mjSENS_FRAMEZAXIS, site, up.name),
             (mujoco.mjtSensor.mjSENS_SUBTREECOM, mujoco.mjtObj.mjOBJ_BODY, root),
             (mujoco.mjtSensor.mjSENS_SUBTREELINVEL, mujoco.mjtObj.mjOBJ_BODY, root),
-        ] + [(mujoco.mjtSensor.mjSENS_FRAMEPOS, mujoco.mjtObj.mjOBJ_XBODY, f)
+        ] + [(kind, mujoco.mjtObj.mjOBJ_XBODY, f)
+             for kind in (mujoco.mjtSensor.mjSENS_FRAMEPOS, mujoco.mjtSensor.mjSENS_FRAMELINVEL)
              for f in body.feet]  # fmt: skip
+        sensors.append((mujoco.mjtSensor.mjSENS_FRAMEXAXIS, mujoco.mjtObj.mjOBJ_XBODY,
+                        body.torso_body))  # fmt: skip
         for i, (kind, objtype, name) in enumerate(sensors):
             spec.add_sensor(name=f"{SENSOR_PREFIX}{i}", type=kind, objtype=objtype, objname=name)
 
     @property
     def sensor_size(self) -> int:
         """The sensor values `add_sensors` adds."""
-        return 3 * (4 + len(self.feet))
+        return 3 * (5 + 2 * len(self.feet))
 
     def sensed_state(self, sensed: Tensor) -> BodyState:
         """The body state from the last `sensor_size` sensor values (..., nsensordata)."""
         values = sensed[..., -self.sensor_size :]
-        feet = values[..., 12:].unflatten(-1, (len(self.feet), 3)).mean(-2)
+        feet = values[..., 12:-3].unflatten(-1, (2, len(self.feet), 3))  # (..., 2, nfeet, 3)
         com = CentreOfMass(values[..., 6:9], values[..., 9:12])
-        return BodyState(values[..., 2], values[..., 5], feet, com)
+        return BodyState(values[..., 2], values[..., 5], values[..., -3], feet[..., 0, :, :],
+                         feet[..., 1, :, :].mean(-2), com)  # fmt: skip
 
     def capture_point(self, com: CentreOfMass, ground: Tensor) -> Tensor:
         """x, y of the capture point x_com + v_com sqrt(z / g), z the centre of mass's height
@@ -192,16 +246,30 @@ class BalanceCost(Task):
         lead = torch.sqrt(z / self.gravity).unsqueeze(-1)
         return com.position[..., :2] + com.velocity[..., :2] * lead
 
+    def support_point(self, feet: Tensor, point: Tensor) -> Tensor:
+        """The point of the support (module docstring) nearest to `point` (..., 2), x, y, for
+        the feet's origins `feet` (..., nfeet, 3). -> (..., 2)"""
+        middle = feet[..., :2].mean(-2)
+        if self.support_span == 0.0 or feet.shape[-2] != 2:
+            return middle
+        half = 0.5 * (feet[..., 1, :2] - feet[..., 0, :2])  # (..., 2)
+        along = ((point - middle) * half).sum(-1) / half.square().sum(-1).clamp(min=1e-12)
+        reach = torch.clamp(along, -self.support_span, self.support_span)
+        return middle + reach.unsqueeze(-1) * half
+
     def terms_of(self, body: BodyState, q: Tensor, qd: Tensor, action: Tensor
                  ) -> dict[str, Tensor]:  # fmt: skip
         """Each term of the cost, unweighted, at a body state. -> {name: (...)}"""
         c = self.constants.on(q)
-        capture = self.capture_point(body.com, body.feet[..., 2])
+        ground = body.feet[..., 2].mean(-1)
+        capture = self.capture_point(body.com, ground)
         return {
-            "height": (body.head_z - body.feet[..., 2] - self.stand_height).square(),
-            "balance": (capture - body.feet[..., :2]).square().sum(-1),
+            "height": (body.head_z - ground - self.stand_height).square(),
+            "balance": (capture - self.support_point(body.feet, capture)).square().sum(-1),
             "upright": 1.0 - body.up_z,
+            "heading": 1.0 - body.forward_x,
             "com_velocity": (body.com.velocity[..., :2] - c["target_velocity"]).square().sum(-1),
+            "feet_velocity": (body.feet_velocity - body.com.velocity)[..., :2].square().sum(-1),
             "joint_velocity": qd[..., 6:].square().mean(-1),
             "posture": (q[..., 7:] - c["qpos0"][7:]).square().mean(-1),
             "control": (action / self.task.ctrl_max).square().mean(-1),
