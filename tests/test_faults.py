@@ -93,13 +93,15 @@ def test_runs_killed_at_ten_random_moments_resume_to_the_uninterrupted_result(
         assert not leftovers, (phase, n, leftovers)
 
 
+@pytest.mark.parametrize("budget", ["budget.iterations=2", "budget.env_steps=30"])
 def test_a_run_killed_in_its_last_evaluation_episode_resumes_with_that_episode_alone(
-    tmp_path: Path,
+    tmp_path: Path, budget: str
 ) -> None:
     """Killed in the third of three final evaluation episodes (10 env steps each): the resume
     collects nothing, steps only that episode again, and ends with the uninterrupted run's
-    records and summary."""
-    run = [*RUN, "budget.final_eval_episodes=3"]
+    records and summary; also when the run ends at an env-step budget, which the last round's
+    collected steps already reach while its evaluation is under way."""
+    run = [*RUN, "budget.iterations=5", budget, "budget.final_eval_episodes=3"]
     ref_dir, ref_log = tmp_path / "reference", tmp_path / "reference.log"
     assert start([*run, f"hydra.run.dir={ref_dir}"], None, ref_log) == 0, ref_log.read_text()
     evaluated = json.loads(Path(f"{ref_log}.counts.json").read_text())["evaluate"]

@@ -388,9 +388,10 @@ class MBRLLoop:
             hooks.after_round(metrics)
 
     def finished(self, schedule: Schedule) -> bool:
-        """Whether the rounds of `schedule` are done (a run has at least one round)."""
+        """Whether the rounds of `schedule` are done (a run has at least one round; a round
+        whose evaluation is under way, `pending`, is not: its env steps are counted)."""
         k = self.counters.iteration
-        return k > 0 and schedule.is_last(k, self.counters.env_steps)
+        return self.pending is None and k > 0 and schedule.is_last(k, self.counters.env_steps)
 
     def evaluate_zero(self, episodes: int) -> list[float]:
         """The zero-control baseline's returns from the evaluation starts (kept)."""
