@@ -89,19 +89,35 @@ def test_the_figure_counts_falls_per_setting(tmp_path: Path) -> None:
         base = dict(suite="robust", case=f"humanoid_stand-mujoco-s{seed}", metric=metric,
                     value=value, unit="", device="cpu", plan_cost="balance", planner="mppi",
                     num_samples=32, iterations=1, horizon=20, episodes=10, seed=seed,
-                    push=None)  # fmt: skip
+                    push=None, oracle_substeps=2)  # fmt: skip
         return base | extra
 
     records = [record("falls", 1, 0), record("plan_ms_per_control_step", 20.0, 0),
                record("falls", 0, 1), record("plan_ms_per_control_step", 30.0, 1),
                record("falls", 3, 0, plan_cost="reward", num_samples=64, iterations=2),
+               record("falls", 2, 0, oracle_substeps=1),
                record("return_mean", 900.0, 0)]  # fmt: skip
     points = setting_points(records)
-    balance = points["balance: mppi N 32 x 1, H 20"]
+    balance = points["balance: mppi N 32 x 1, H 20, 2 physics steps"]
     assert (balance.falls, balance.episodes, balance.ms) == (1, 20, 25.0)
-    assert points["reward: mppi N 64 x 2, H 20"].falls == 3
+    assert points["reward: mppi N 64 x 2, H 20, 2 physics steps"].falls == 3
+    assert points["balance: mppi N 32 x 1, H 20, 1 physics step"].falls == 2  # apart
+    # timed apart: that setting's ms from those records alone, its falls still the runs'
+    timing = [record("plan_ms_per_control_step", 12.0, 0, episodes=2),
+              record("falls", 5, 0, episodes=2)]  # fmt: skip
+    apart = setting_points(records, timing)["balance: mppi N 32 x 1, H 20, 2 physics steps"]
+    assert (apart.falls, apart.episodes, apart.ms) == (1, 20, 12.0)
     path = tmp_path / "robust.jsonl"
     path.write_text("\n".join(json.dumps(r) for r in records))
     assert robust_figure([str(path), "--out", str(tmp_path / "falls.png")]) == 0
+    (tmp_path / "timing.jsonl").write_text("\n".join(json.dumps(r) for r in timing))
+    timed = [
+        str(path),
+        "--out",
+        str(tmp_path / "timed.png"),
+        "--timing",
+        str(tmp_path / "timing.jsonl"),
+    ]
+    assert robust_figure(timed) == 0
     assert (tmp_path / "falls.png").stat().st_size > 0
     assert robust_figure([str(tmp_path / "missing.jsonl"), "--out", str(tmp_path / "x.png")]) == 2

@@ -24,10 +24,11 @@ displacement over the episode's duration, m/s):
 - `plan_ms_per_control_step`: the mean over all control steps of all its episodes (ms);
 - `return_mean`: the mean episode return.
 
-`python -m mbrl_delan.benchmarks.robust FILE [FILE ...] --out PNG` draws the share of episodes
-that fell against the planning ms per control step, one point per setting (`setting_label`:
-the plan cost and the planner's samples, iterations and horizon; pushed runs apart), over
-all its seeds.
+`python -m mbrl_delan.benchmarks.robust FILE [FILE ...] --out PNG [--timing FILE ...]` draws
+the share of episodes that fell against the planning ms per control step, one point per
+setting (`setting_label`: the plan cost, the planner's samples, iterations and horizon and
+the oracle's physics steps per control step; pushed runs apart) over all its seeds; a setting
+in the `--timing` records (runs timed apart, e.g. with the host idle) takes its ms from them.
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ from mbrl_delan.systems.system import State
 log = logging.getLogger(__name__)
 
 SUITE = "robust"
+METRIC_MS = "plan_ms_per_control_step"
 TASKS = ("humanoid_stand",)
 SEEDS = (0, 1, 2)
 STARTS = 10  # episodes per seed
@@ -199,15 +201,18 @@ def run_robust_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
             mean_return = float(np.mean([e.episode_return for e in episodes]))
             case = f"{task}-mujoco-s{seed}"
             yield BenchRecord(SUITE, case, "falls", falls, "episodes", "cpu", fields)
-            yield BenchRecord(SUITE, case, "plan_ms_per_control_step", plan_ms, "ms", "cpu",
+            yield BenchRecord(SUITE, case, METRIC_MS, plan_ms, "ms", "cpu",
                               fields)  # fmt: skip
             yield BenchRecord(SUITE, case, "return_mean", mean_return, "return", "cpu", fields)
 
 
 def setting_label(record: dict[str, Any]) -> str:
-    """A robust record's setting: plan cost, planner, samples x iterations, horizon, push."""
+    """A robust record's setting: plan cost, planner, samples x iterations, horizon, the
+    oracle's physics steps per control step, push."""
+    steps = record["oracle_substeps"]
     label = (f"{record['plan_cost']}: {record['planner']} N {record['num_samples']} x "
-             f"{record['iterations']}, H {record['horizon']}")  # fmt: skip
+             f"{record['iterations']}, H {record['horizon']}, "
+             f"{steps} physics step{'' if steps == 1 else 's'}")  # fmt: skip
     return label if record.get("push") is None else f"{label}, push {record['push']} m/s"
 
 
@@ -217,27 +222,44 @@ class SettingPoint:
 
     falls: int = 0
     episodes: int = 0
-    ms_sum: float = 0.0  # sum of the seeds' ms x their episodes
+    ms_sum: float = 0.0  # sum of the timed records' ms x their episodes
+    ms_episodes: int = 0  # the episodes those records timed
 
     @property
     def ms(self) -> float:
-        return self.ms_sum / max(self.episodes, 1)
+        return self.ms_sum / max(self.ms_episodes, 1)
 
 
-def setting_points(records: list[dict[str, Any]]) -> dict[str, SettingPoint]:
+def setting_points(
+    records: list[dict[str, Any]], timing: list[dict[str, Any]] | None = None
+) -> dict[str, SettingPoint]:
     """Setting label -> its point, from the `falls` and `plan_ms_per_control_step` records of
-    suite robust (other records left out)."""
+    suite robust (other records left out). A setting that `timing` (robust records of runs
+    timed apart, e.g. with the host idle) has takes its ms from those records alone."""
     points: dict[str, SettingPoint] = defaultdict(SettingPoint)
-    for r in records:
-        if r.get("suite") != SUITE or r.get("value") is None:
-            continue
+    for r in _robust(records, "falls"):
         point = points[setting_label(r)]
-        if r["metric"] == "falls":
-            point.falls += int(r["value"])
-            point.episodes += int(r["episodes"])
-        elif r["metric"] == "plan_ms_per_control_step":
+        point.falls += int(r["value"])
+        point.episodes += int(r["episodes"])
+    own, apart = _by_setting(_robust(records, METRIC_MS)), _by_setting(_robust(timing, METRIC_MS))
+    for label, point in points.items():
+        for r in apart.get(label) or own.get(label, []):
             point.ms_sum += float(r["value"]) * int(r["episodes"])
+            point.ms_episodes += int(r["episodes"])
     return dict(points)
+
+
+def _robust(records: list[dict[str, Any]] | None, metric: str) -> list[dict[str, Any]]:
+    """The records of suite robust with `metric` and a value."""
+    return [r for r in records or [] if r.get("suite") == SUITE and r.get("metric") == metric
+            and r.get("value") is not None]  # fmt: skip
+
+
+def _by_setting(records: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+    grouped: dict[str, list[dict[str, Any]]] = defaultdict(list)
+    for r in records:
+        grouped[setting_label(r)].append(r)
+    return grouped
 
 
 def plot_falls(points: dict[str, SettingPoint], path: Path, title: str,
@@ -272,10 +294,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="the figure to write (PNG)")
     parser.add_argument("--title", default="humanoid_stand: the oracle's falls and plan time")
     parser.add_argument("--control-ms", type=float, default=15.0, help="the control period")
+    parser.add_argument(
+        "--timing", nargs="*", type=Path, default=[], help="runs timed apart: their settings' ms"
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    records = read_record_files(args.files)
-    points = setting_points(records or [])
+    records, timing = read_record_files(args.files), read_record_files(args.timing)
+    if records is None or timing is None:
+        return 2
+    points = setting_points(records, timing)
     if not points:
         log.error("no suite robust records in %s", ", ".join(map(str, args.files)))
         return 2

@@ -184,8 +184,8 @@ class BalanceCost(Task):
         c = self.constants.on(qd)
         axis, anchor = axes
         lever = feet.unsqueeze(-3) - anchor.unsqueeze(-2)  # (..., nv, nfeet, 3)
-        spin = torch.linalg.cross(axis.unsqueeze(-2).expand_as(lever), lever, dim=-1)
         slide = axis.unsqueeze(-2).expand_as(lever)
+        spin = torch.linalg.cross(slide, lever, dim=-1)
         per_dof = torch.where(c["rotational"][:, None, None], spin, slide)
         moved = per_dof * (c["foot_moves"].unsqueeze(-1) * qd[..., None, None])
         return moved.sum(-3).mean(-2)
