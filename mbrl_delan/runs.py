@@ -16,6 +16,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
+from mbrl_delan.conf.checks import migrate
 from mbrl_delan.training.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from mbrl_delan.training.recorder import RUN_CONFIG, SUMMARY_FILE, WEIGHTS_FILE
 
@@ -101,7 +102,7 @@ def oracle_of_run(run_dir: str | Path, cfg: DictConfig) -> OracleEpisodes:
     for path in (config_path, checkpoint_path):
         if not path.is_file():
             raise FileNotFoundError(f"budget.oracle_from: {path} does not exist")
-    source = OmegaConf.load(config_path)
+    source = migrate(OmegaConf.load(config_path))
     for key in ORACLE_KEYS:
         theirs, ours = OmegaConf.select(source, key), OmegaConf.select(cfg, key)
         if isinstance(ours, DictConfig):

@@ -99,6 +99,17 @@ def test_walking_velocity_is_measured_against_the_speed(v5, walk) -> None:
     assert walk.terms(q, qd, a)["feet_velocity"].item() > 0.01
 
 
+def test_a_planning_speed_replaces_the_tasks_and_only_on_a_walk(v5, cost, walk) -> None:
+    q, qd, a = rest(v5)
+    faster = BalanceCost(v5, walk.task, speed=1.25)
+    qd[0] = 1.0  # moving at the task's speed: short of the planning speed by 0.25 m/s
+    assert walk.terms(q, qd, a)["com_velocity"].item() == pytest.approx(0.0, abs=1e-12)
+    assert faster.terms(q, qd, a)["com_velocity"].item() == pytest.approx(0.25**2)
+    for task, speed in ((cost.task, 1.0), (walk.task, -1.0), (walk.task, math.nan)):
+        with pytest.raises(ValueError, match="planning speed"):
+            BalanceCost(v5, task, speed=speed)
+
+
 def test_heading_is_the_torso_facing_away_from_x(v5, walk) -> None:
     q, qd, a = rest(v5)
     assert walk.terms(q, qd, a)["heading"].item() == pytest.approx(0.0, abs=1e-12)

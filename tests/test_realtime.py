@@ -56,6 +56,17 @@ def test_an_ilqr_oracle_case_is_recorded_as_ilqr() -> None:
     assert stand["planner"] == "mppi" and stand["num_samples"] == 64 and stand["knots"] == 4
 
 
+def test_a_case_records_its_integrator_steps() -> None:
+    """Records tell apart settings that differ only in the physics steps per control step."""
+    one = ("env.oracle_substeps=1", "model.substeps=1")
+    for dynamics in ("mujoco", "tree"):
+        default = _fields(case_config("humanoid_stand", dynamics, ()), "humanoid_stand",
+                          dynamics, 0.015)  # fmt: skip
+        cheap = _fields(case_config("humanoid_stand", dynamics, one), "humanoid_stand",
+                        dynamics, 0.015)  # fmt: skip
+        assert (default["substeps"], cheap["substeps"]) == (2, 1)
+
+
 def test_the_delan_case_plans_with_the_loops_policy() -> None:
     """The DeLaN case (eager here: compiling takes 5-40 s) times the loop's own policy."""
     cfg = case_config("pendulum", "delan", ("accel.compile=false", "planner.num_samples=16"))

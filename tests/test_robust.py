@@ -84,6 +84,21 @@ def test_plan_cost_balance_plans_the_balance_cost_and_only_on_humanoids() -> Non
         compose_train_config(["env=humanoid_stand", "env.plan_cost=lean"])
 
 
+def test_plan_speed_sets_the_walks_target_and_is_refused_to_stand() -> None:
+    walk = make_env_parts("humanoid_walk")
+    cfg = compose_train_config(["env=humanoid_walk", "env.plan_cost=balance",
+                                "env.plan_speed=1.25"])  # fmt: skip
+    task = planning_task(cfg, walk.system, walk.task)
+    assert task.constants.values["target_velocity"].tolist() == [1.25, 0.0]
+    stand = make_env_parts("humanoid_stand")
+    cfg = compose_train_config(["env=humanoid_stand", "env.plan_cost=balance",
+                                "env.plan_speed=1.0"])  # fmt: skip
+    with pytest.raises(ConfigError, match="planning speed"):
+        planning_task(cfg, stand.system, stand.task)
+    with pytest.raises(ConfigError, match="plan_speed"):
+        compose_train_config(["env=humanoid_walk", "env.plan_speed=-1"])
+
+
 def test_the_figure_counts_falls_per_setting(tmp_path: Path) -> None:
     def record(metric: str, value: float, seed: int, **extra) -> dict:
         base = dict(suite="robust", case=f"humanoid_stand-mujoco-s{seed}", metric=metric,

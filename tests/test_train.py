@@ -481,6 +481,16 @@ def test_tiny_tree_run_pairs_its_final_evaluation_and_keeps_its_weights(tmp_path
     for key in ("oracle_return_mean", "oracle_falls", "zero_torque_return_mean"):
         assert theirs[key] == summary[key], key
     assert records(other)[-1]["oracle_episode_steps"] == last["oracle_episode_steps"]
+    # a run saved before a key was added (here without env.plan_speed) is read migrated
+    from omegaconf import OmegaConf
+
+    from mbrl_delan.runs import oracle_of_run
+
+    older = OmegaConf.load(run_dir / "config.yaml")
+    del older.env["plan_speed"]
+    OmegaConf.save(older, run_dir / "config.yaml")
+    taken = oracle_of_run(run_dir, OmegaConf.load(other / "config.yaml"))
+    assert taken.steps == last["oracle_episode_steps"]
     refused = train(tmp_path / "seed1", "env=humanoid_stand", "model=tree", "seed=1",
                     "budget.iterations=1", "budget.final_eval_episodes=2",
                     "budget.paired=true", f"budget.oracle_from={run_dir}")  # fmt: skip

@@ -20,8 +20,9 @@ For each task in `tasks` (`humanoid_stand`, `humanoid_walk`, `pendulum`) and eac
 
 Every record carries `task`, `dynamics`, `threads` (torch's, which are also MuJoCo's rollout
 threads), the planner and its `num_samples`, `iterations`, `knots`, `interpolation`,
-`horizon` and `replan_every` (control steps per plan), and the control period
-`control_dt_ms`.
+`horizon` and `replan_every` (control steps per plan), `substeps` (the model's integrator
+steps per control step; for `mujoco` the oracle's physics steps, `env.oracle_substeps`), and
+the control period `control_dt_ms`.
 """
 
 from __future__ import annotations
@@ -124,9 +125,10 @@ def _fields(cfg: DictConfig, task: str, dynamics: str, control_dt: float) -> dic
         name = "ilqr"
         planner.update(num_samples=None, knots=None, interpolation=None, replan_every=1)
         planner["iterations"] = HUMANOID_ILQR.iterations
+    substeps = cfg.env.oracle_substeps if dynamics == "mujoco" else cfg.model.get("substeps")
     return dict(
         task=task, dynamics=dynamics, threads=torch.get_num_threads(),
-        planner=name, **planner, control_dt_ms=1e3 * control_dt,
+        planner=name, **planner, substeps=substeps, control_dt_ms=1e3 * control_dt,
     )  # fmt: skip
 
 

@@ -229,6 +229,7 @@ MIGRATIONS: dict[str, Any] = {
     "env.oracle_substeps": None,  # the oracle planned on the env's own physics
     "env.oracle_integrator": None,
     "env.oracle_horizon": None,  # the iLQR oracle planned over the planner's horizon
+    "env.plan_speed": None,  # the balance cost's target speed was the task's
     "budget.collect_envs": 1,
 }
 

@@ -95,7 +95,8 @@ def _planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPla
 
 def planning_task(cfg: DictConfig, system: System, task: Task) -> Task:
     """What the sampling planners maximise: `task`'s own reward (`env.plan_cost=reward`) or
-    a humanoid's balance cost (`balance`, `BalanceCost` over `system`'s MJCF)."""
+    a humanoid's balance cost (`balance`, `BalanceCost` over `system`'s MJCF, its target
+    speed `env.plan_speed` where set, else the task's)."""
     if cfg.env.plan_cost == "reward":
         return task
     if not isinstance(task, HumanoidTask):
@@ -104,7 +105,7 @@ def planning_task(cfg: DictConfig, system: System, task: Task) -> Task:
             f"humanoid_walk, humanoid_stand_exo), got env={cfg.env.name}"
         )
     try:
-        return BalanceCost(system.mj_model(), task)
+        return BalanceCost(system.mj_model(), task, speed=cfg.env.plan_speed)
     except ValueError as err:
         raise ConfigError(f"env.plan_cost=balance on env={cfg.env.name}: {err}") from err
 

@@ -129,6 +129,7 @@ class EnvConfig:
     plan_knots: int | None = rule(None, low=1)  # mppi, cem, icem: spline knots (None: every step)
     plan_interpolation: str = rule("linear", choices=INTERPOLATIONS)
     plan_cost: str = rule("reward", choices=PLAN_COSTS)  # planners' objective (balance: humanoids)
+    plan_speed: float | None = rule(None, low=0)  # balance: target speed, m/s (null: the task's)
     oracle_planner: str = rule("same", choices=("same", "ilqr"))
     oracle_substeps: int | None = rule(None, low=1)  # null: frame_skip
     oracle_integrator: str | None = rule(None, choices=ORACLE_INTEGRATORS)  # null: the MJCF's

@@ -14,8 +14,9 @@ action, each with its unit (`BalanceWeights`), and it never terminates (a fall k
   between two feet about their midpoint (0: the midpoint itself, the stand's; 1: the whole
   segment, the walk's, so a step forward carries the support ahead) (m);
 - upright: 1 - u_z, u_z the world z of the torso's up axis (0 upright, 2 upside down);
-- com_velocity: |v_com,xy - v_target|^2 (m/s), v_target 0 to stand, (`speed`, 0) to walk
-  along x;
+- com_velocity: |v_com,xy - v_target|^2 (m/s), v_target 0 to stand, (speed, 0) to walk
+  along x, the speed the task's or one given (a planner that falls short of a speed asks for
+  more);
 - heading: 1 - f_x, f_x the world x of the torso's body x axis (Humanoid-v5's forward: 0
   facing the walk's +x, 2 facing back);
 - feet_velocity: |v_feet,xy - v_com,xy|^2 ((m/s)^2), v_feet the velocity of the feet's
@@ -121,6 +122,8 @@ class BalanceCost(Task):
         weights: the terms' weights (None: the stand's, or the walk's for a task with a speed).
         support_span: the share of the segment between the feet that supports the capture
             point at no cost (None: 0 to stand, 1 to walk; module docstring).
+        speed: the com_velocity term's target speed along x, m/s (None: the task's, 0 to
+            stand); only a task with a speed (a walk) takes one.
     """
 
     def __init__(
@@ -129,15 +132,20 @@ class BalanceCost(Task):
         task: HumanoidTask,
         weights: BalanceWeights | None = None,
         support_span: float | None = None,
+        speed: float | None = None,
     ) -> None:
         names = task.body.feet
         feet = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f) for f in names]
         if not feet or min(feet) < 0:
             raise ValueError(f"the task's foot bodies {names} are not all in the model")
         walk = task.speed is not None
+        if speed is not None and not (walk and math.isfinite(speed) and speed >= 0):
+            raise ValueError(f"a planning speed needs a walking task and a finite speed >= 0, "
+                             f"got {speed} for {task.name}")  # fmt: skip
         if weights is None:
             weights = WALK_WEIGHTS if walk else STAND_WEIGHTS
         span = (1.0 if walk else 0.0) if support_span is None else support_span
+        target = (task.speed or 0.0) if speed is None else speed
         if not 0.0 <= span <= 1.0:
             raise ValueError(f"support_span must be in [0, 1], got {support_span}")
         self.task, self.weights, self.feet, self.support_span = task, weights, feet, span
@@ -155,7 +163,7 @@ class BalanceCost(Task):
             foot_moves=torch.from_numpy(moves[:, feet].astype(np.float64)),  # (nv, nfeet)
             rotational=torch.tensor(task.fk.rotational),  # (nv,) bool
             qpos0=task.qpos0.clone(),  # (nq,)
-            target_velocity=torch.tensor([task.speed or 0.0, 0.0], dtype=torch.float64),
+            target_velocity=torch.tensor([target, 0.0], dtype=torch.float64),
         )
         q0 = task.qpos0.unsqueeze(0)
         standing = self.body_state(q0, q0.new_zeros(1, model.nv))
