@@ -15,8 +15,8 @@ action, each with its unit (`BalanceWeights`), and it never terminates (a fall k
   segment, the walk's, so a step forward carries the support ahead) (m);
 - upright: 1 - u_z, u_z the world z of the torso's up axis (0 upright, 2 upside down);
 - com_velocity: |v_com,xy - v_target|^2 (m/s), v_target 0 to stand, (speed, 0) to walk
-  along x, the speed the task's or one given (a planner that falls short of a speed asks for
-  more);
+  along x: the task's speed, or the one given (a planner that falls short of the task's speed
+  can ask for more);
 - heading: 1 - f_x, f_x the world x of the torso's body x axis (Humanoid-v5's forward: 0
   facing the walk's +x, 2 facing back);
 - feet_velocity: |v_feet,xy - v_com,xy|^2 ((m/s)^2), v_feet the velocity of the feet's
