@@ -179,3 +179,40 @@ def test_a_fit_from_the_geometric_start_moves_m_towards_mujocos() -> None:
     fit_model(delan, optimizer, samples[:-64], settings, torch.Generator().manual_seed(1))
     after = error()
     assert before > 0.3 and after < 0.1 * before, (before, after)  # measured: 0.465 -> 0.005
+
+
+def test_residual_penalty_adds_the_residuals_share_of_the_torque_to_the_loss() -> None:
+    """model=tree_delan with `residual_penalty`: the loss grows by the penalty times the
+    residual's inverse-dynamics torque per unit of torque scale, squared and averaged, at the
+    batch's finite-difference accelerations; the plain tree refuses a penalty."""
+    from tensordict import TensorDict
+
+    from mbrl_delan import keys
+    from mbrl_delan.conf.builders import build_model as build
+    from mbrl_delan.conf.checks import ConfigError
+
+    parts = make_env_parts("humanoid_stand")
+    overrides = ["env=humanoid_stand", "model=tree_delan", "model.start_level=0.3"]
+    models = {}
+    for penalty in (0.0, 2.5):
+        cfg = compose_train_config([*overrides, f"model.residual_penalty={penalty}"]).model
+        torch.manual_seed(0)
+        models[penalty] = build(cfg, parts.system)
+    plain, penalised = models[0.0], models[2.5]
+    q, qd = random_states(parts.system.mj_model(), 8, seed=4)
+    q_t, qd_t = torch.from_numpy(q).float(), torch.from_numpy(qd).float()
+    action = torch.rand(8, parts.system.nu) * 0.8 - 0.4
+    next_qd = qd_t + 0.01 * torch.randn(8, qd_t.shape[-1])
+    batch = TensorDict({keys.Q: q_t, keys.QD: qd_t, keys.ACTION: action,
+                        keys.NEXT_Q: q_t, keys.NEXT_QD: next_qd}, [8])  # fmt: skip
+    qdd = (next_qd - qd_t) / penalised.control_dt
+    share = penalised.dynamics.residual.inverse_dynamics(q_t, qd_t, qdd) / penalised.tau_scale
+    expected = share.pow(2).mean().detach()
+    assert float(expected) > 1e-6  # a residual of start_level 0.3 is not negligible
+    out, base = penalised.loss(batch), plain.loss(batch)
+    assert out.metrics["residual_mse"] == pytest.approx(float(expected), rel=1e-5)
+    assert float(out.loss) == pytest.approx(float(base.loss) + 2.5 * float(expected), rel=1e-5)
+    with pytest.raises(ConfigError, match="residual_penalty"):
+        tree_cfg = compose_train_config(["env=humanoid_stand", "model=tree",
+                                         "model.residual_penalty=1.0"]).model  # fmt: skip
+        build(tree_cfg, parts.system)

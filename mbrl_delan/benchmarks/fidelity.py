@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -58,6 +58,7 @@ from mbrl_delan.models.contact import ContactModel, JointLimits
 from mbrl_delan.models.rigid_contact import RigidContactModel
 from mbrl_delan.models.whitebox import WhiteBoxModel
 from mbrl_delan.objectives.mujoco import PlanPhysics
+from mbrl_delan.systems.external import add_exoskeleton
 from mbrl_delan.training.fidelity import (
     CandidateRecorder,
     FidelityReference,
@@ -96,6 +97,9 @@ FIT_CASES = {
 }  # fmt: skip
 
 
+SpecEdit = Callable[[mujoco.MjSpec, np.random.Generator], None]  # a change of an MJCF's spec
+
+
 @dataclass(frozen=True)
 class Perturbation:
     """A MuJoCo model off the env's: `multipliers` (a white-box multiplier kind -> factor for
@@ -105,7 +109,7 @@ class Perturbation:
     what: str
     multipliers: dict[str, float] = field(default_factory=dict)
     mass_spread: float = 0.0
-    edit: Callable[[mujoco.MjSpec, np.random.Generator], None] | None = None
+    edit: SpecEdit | None = None
 
 
 def _move_com(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
@@ -121,7 +125,7 @@ def _move_com(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
     spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_AUTO
 
 
-def _gear(factor: float) -> Callable[[mujoco.MjSpec, np.random.Generator], None]:
+def _gear(factor: float) -> SpecEdit:
     """An edit that scales every actuator's gear by `factor`."""
 
     def edit(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
@@ -142,6 +146,16 @@ def _no_contacts(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
     spec.option.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
 
 
+def _exoskeleton(springs: bool, friction: bool) -> SpecEdit:
+    """An edit that adds the exoskeleton's springs, its hinge friction or both
+    (`systems.external.EXOSKELETON`; on `humanoid_stand_exo`, both is the env's physics)."""
+
+    def edit(spec: mujoco.MjSpec, rng: np.random.Generator) -> None:
+        add_exoskeleton(spec, springs=springs, friction=friction)
+
+    return edit
+
+
 PERTURBATIONS = {
     "mujoco": Perturbation("the oracle's planning physics"),
     "mass_x0.5": Perturbation("every mass and inertia x0.5", {"mass": 0.5}),
@@ -160,6 +174,18 @@ PERTURBATIONS = {
     "contact_10x_softer": Perturbation("contact solref time constant x10", {"timeconst": 10.0}),
     "foot_x0.7": Perturbation("foot spheres x0.7", edit=_small_feet),
     "contacts_off": Perturbation("no contacts", edit=_no_contacts),
+    "exo_springs": Perturbation(
+        "the exoskeleton's hip and knee springs added",
+        edit=_exoskeleton(springs=True, friction=False),
+    ),
+    "exo_friction": Perturbation(
+        "the exoskeleton's 5 N m hinge friction added",
+        edit=_exoskeleton(springs=False, friction=True),
+    ),
+    "exo": Perturbation(
+        "the exoskeleton's springs and friction added",
+        edit=_exoskeleton(springs=True, friction=True),
+    ),
 }
 WHITEBOX_START = "whitebox_start"  # the white-box model's documented wrong start, no data
 # MuJoCo's rigid body (contacts and limits off) with the learned-contact structure at its
@@ -255,12 +281,18 @@ def _run_model(run_dir: str) -> tuple[DictConfig, WorldModel, str]:
     return run.config, run.model, data
 
 
+def _planning_overrides(overrides: Sequence[str]) -> list[str]:
+    """The suite's overrides the reference episode reads: all but the models' keys (a key
+    one model has, e.g. tree_delan's `residual_penalty`, is not the default model's)."""
+    return [o for o in overrides if not o.lstrip("+~").startswith("model.")]
+
+
 def run_fidelity_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
     seed = opts.seed or 0
     steps = opts.oracle_steps or (QUICK_STEPS if opts.quick else STEPS)
     nthread = max(1, torch.get_num_threads())
     task = opts.env or TASK
-    cfg = compose_train_config([f"env={task}", *opts.overrides])
+    cfg = compose_train_config([f"env={task}", *_planning_overrides(opts.overrides)])
     parts = make_env_parts(task, None, None)
     reference = reference_episode(cfg, parts, steps, seed, nthread)
     host = host_fields(torch.device("cpu"))

@@ -58,6 +58,7 @@ FIDELITY_CASES = (
     "mujoco", "mass_x0.5", "mass_x0.8", "mass_x1.25", "mass_x1.5", "mass_x2", "mass_random",
     "com_2cm", "gear_x0.8", "gear_x0.65", "gear_x0.5", "damping_x2",
     "friction_0.2", "contact_3x_softer", "contact_10x_softer", "foot_x0.7", "contacts_off",
+    "exo_springs", "exo_friction", "exo",
     "whitebox_start", "rigid_contact_start",
     "tree", "tree_delan", "delan", "whitebox", "ensemble",
 )  # fmt: skip

@@ -136,6 +136,11 @@ def _tree(cfg: DictConfig, system: System) -> DeLaN:
     DeLaN's networks beside it started near zero. What the tree's start knows stands in for
     the MJCF's inertial numbers wherever the DeLaN would read them (a free root's units and
     weight, the contact law's weight unit)."""
+    if cfg.residual_penalty > 0 and not cfg.lagrangian_residual:
+        raise ConfigError(
+            f"model.residual_penalty={cfg.residual_penalty} penalises a residual Lagrangian: "
+            "it needs model.lagrangian_residual=true (model=tree_delan)"
+        )
     tree = RigidBodyTree.from_mujoco(system.mj_model(), tree_start(cfg, system))
     gravity = float(np.linalg.norm(system.mj_model().opt.gravity))
     weight = float(tree.total_mass().detach()) * gravity
@@ -148,7 +153,8 @@ def _tree(cfg: DictConfig, system: System) -> DeLaN:
     arguments = _delan_arguments(cfg, system) | {"structure": delan_structure(cfg, system,
                                                                               **fixed)}  # fmt: skip
     return DeLaN(**arguments, contact=contact, limits=limits, tree=tree,
-                 tree_residual=cfg.lagrangian_residual)  # fmt: skip
+                 tree_residual=cfg.lagrangian_residual,
+                 residual_penalty=cfg.residual_penalty)  # fmt: skip
 
 
 def tree_start(cfg: DictConfig, system: System) -> TreeStart:

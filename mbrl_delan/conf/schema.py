@@ -195,6 +195,7 @@ class TreeConfig(DeLaNConfig):
     total_mass: float | None = rule(None, low=0, above=True)  # kg; None: geometry at 1,000 kg/m^3
     lagrangian_residual: bool = False
     start_level: float = rule(2e-3, low=0, above=True)  # the residual's L diagonal, of its unit
+    residual_penalty: float = rule(0.0, low=0)  # x the residual's torque share in the loss
 
 
 @dataclass

@@ -137,6 +137,7 @@ class DeLaN(WorldModel):
         limits: JointLimits | None = None,
         tree: RigidBodyTree | None = None,
         tree_residual: bool = False,
+        residual_penalty: float = 0.0,
     ) -> None:
         super().__init__()
         if integrator not in INTEGRATORS:
@@ -161,6 +162,11 @@ class DeLaN(WorldModel):
             self.dynamics = TreeDynamics(tree, self.dynamics.actuation, residual)
         elif tree_residual:
             raise ValueError("tree_residual needs a tree")
+        if residual_penalty < 0 or (residual_penalty > 0 and not tree_residual):
+            raise ValueError(
+                f"residual_penalty must be >= 0 and needs a tree residual, got {residual_penalty}"
+            )
+        self.residual_penalty = residual_penalty
         self.contact, self.limits = contact, limits
         n = layout.nv
         for name in ("q_scale", "qd_scale", "tau_scale"):
@@ -405,6 +411,8 @@ class DeLaN(WorldModel):
         terms |= self.transition_losses(**inputs, forward=not windows)
         forward_term = "rollout_mse" if windows else "forward_mse"
         total = sum(terms[k] for k in (forward_term, "inverse_mse") if k in terms)
+        if "residual_mse" in terms:
+            total = total + self.residual_penalty * terms["residual_mse"]
         metrics = {name: float(value.detach()) for name, value in terms.items()}
         metrics["loss"] = float(total.detach())
         return LossOutput(loss=total, metrics=metrics)
@@ -420,14 +428,20 @@ class DeLaN(WorldModel):
         forward: bool = True,
     ) -> dict[str, Tensor]:
         """The loss terms of transitions (B,) as scalars: `forward_mse` (when `forward` and
-        the loss has it) and `inverse_mse`, at `qdd` or else the finite difference."""
+        the loss has it), `inverse_mse`, at `qdd` or else the finite difference, and with a
+        `residual_penalty`, `residual_mse`: the tree residual's share of the inverse
+        dynamics, ||(M_res qdd + c_res + g_res + d_res) / tau_scale||^2 per DoF, which the
+        loss adds times the penalty so that the residual takes only what the tree cannot."""
         terms = {}
         if forward and self.loss_kind in ("forward", "both"):
             next_q, next_qd = _needed(next_q, keys.NEXT_Q), _needed(next_qd, keys.NEXT_QD)
             terms["forward_mse"] = self._state_mse(self.step(q, qd, action), next_q, next_qd)
+        if qdd is None and (self.residual_penalty > 0 or self.loss_kind != "forward"):
+            qdd = (_needed(next_qd, keys.NEXT_QD) - qd) / self.control_dt
+        if self.residual_penalty > 0:
+            residual = self.dynamics.residual.inverse_dynamics(q, qd, qdd)  # (B, nv)
+            terms["residual_mse"] = (residual / self.tau_scale).pow(2).mean()
         if self.loss_kind in ("inverse", "both"):
-            if qdd is None:
-                qdd = (_needed(next_qd, keys.NEXT_QD) - qd) / self.control_dt
             tau = self.applied_force(q, qd, action)
             e_tau = (self.dynamics.inverse_dynamics(q, qd, qdd) - tau) / self.tau_scale
             terms["inverse_mse"] = e_tau.pow(2).mean()

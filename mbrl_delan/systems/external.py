@@ -64,17 +64,19 @@ class Exoskeleton:
 EXOSKELETON = Exoskeleton()
 
 
-def humanoid_v5_exo_xml(exo: Exoskeleton = EXOSKELETON) -> Path:
-    """Humanoid-v5 in an exoskeleton (`Exoskeleton`): its MJCF written once per content to the
-    system's temporary folder, for the env's physics; models of it get the plain MJCF, so no
-    inertial parameter can express the difference."""
-    spec = mujoco.MjSpec.from_file(str(humanoid_v5_xml()))
+def add_exoskeleton(
+    spec: mujoco.MjSpec, exo: Exoskeleton = EXOSKELETON, springs: bool = True,
+    friction: bool = True,
+) -> None:  # fmt: skip
+    """`exo`'s springs and hinge friction added to a Humanoid-v5 spec in place (either alone
+    where the other is off)."""
     unit = 180.0 / np.pi if spec.compiler.degree else 1.0  # the MJCF's angles: Humanoid-v5 degrees
     for joint in spec.joints:
         if joint.type != mujoco.mjtJoint.mjJNT_HINGE:
             continue
-        joint.frictionloss = exo.frictionloss
-        for suffix, stiffness, rest in exo.stiffness:
+        if friction:
+            joint.frictionloss = exo.frictionloss
+        for suffix, stiffness, rest in exo.stiffness if springs else ():
             if joint.name.endswith(suffix):
                 coefficients = np.array(joint.stiffness, dtype=float)  # [linear, higher orders]
                 own, reference = float(coefficients[0]), float(joint.springref)
@@ -82,6 +84,14 @@ def humanoid_v5_exo_xml(exo: Exoskeleton = EXOSKELETON) -> Path:
                 coefficients[0] = total
                 joint.stiffness = coefficients
                 joint.springref = (own * reference + stiffness * rest * unit) / total
+
+
+def humanoid_v5_exo_xml(exo: Exoskeleton = EXOSKELETON) -> Path:
+    """Humanoid-v5 in an exoskeleton (`Exoskeleton`): its MJCF written once per content to the
+    system's temporary folder, for the env's physics; models of it get the plain MJCF, so no
+    inertial parameter can express the difference."""
+    spec = mujoco.MjSpec.from_file(str(humanoid_v5_xml()))
+    add_exoskeleton(spec, exo)
     text = spec.to_xml()
     digest = hashlib.sha256(text.encode()).hexdigest()[:12]
     path = Path(tempfile.gettempdir()) / "mbrl_delan" / f"humanoid_exo_{digest}.xml"

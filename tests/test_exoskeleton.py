@@ -1,0 +1,63 @@
+"""The exoskeleton of `humanoid_stand_exo` (`systems.external`): its springs act as the sum of
+the MJCF's and the added ones, its friction is at every hinge, and the fidelity suite's
+edits add either alone."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+from mbrl_delan.systems.external import (
+    EXOSKELETON,
+    add_exoskeleton,
+    humanoid_v5_exo_xml,
+    humanoid_v5_xml,
+)
+
+
+def spring_force(model: mujoco.MjModel, qpos: np.ndarray) -> np.ndarray:
+    """MuJoCo's passive spring force at rest at `qpos`. (nv,)"""
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos
+    mujoco.mj_forward(model, data)
+    return data.qfrc_spring.copy()
+
+
+def test_the_exoskeletons_springs_add_to_the_mjcfs_own() -> None:
+    """At random joint angles the env's spring force minus Humanoid-v5's is -k (q - rest) of
+    the added springs alone, joint by joint; the masses are the MJCF's and every hinge has
+    the exoskeleton's friction."""
+    plain = mujoco.MjModel.from_xml_path(str(humanoid_v5_xml()))
+    exo = mujoco.MjModel.from_xml_path(str(humanoid_v5_exo_xml()))
+    rng = np.random.default_rng(0)
+    qpos = plain.qpos0.copy()
+    hinges = [j for j in range(plain.njnt) if plain.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE]
+    for j in hinges:
+        qpos[plain.jnt_qposadr[j]] = rng.uniform(-0.5, 0.5)
+    added = spring_force(exo, qpos) - spring_force(plain, qpos)
+    expected = np.zeros(plain.nv)
+    for j in hinges:
+        name = mujoco.mj_id2name(plain, mujoco.mjtObj.mjOBJ_JOINT, j)
+        for suffix, stiffness, rest in EXOSKELETON.stiffness:
+            if name.endswith(suffix):
+                angle = qpos[plain.jnt_qposadr[j]]
+                expected[plain.jnt_dofadr[j]] = -stiffness * (angle - rest)
+    assert np.abs(expected).max() > 50  # the hips' and knees' springs are there
+    # the env's MJCF text keeps each weighted rest angle and geom size to its printed digits
+    # (about 1e-6 relative)
+    np.testing.assert_allclose(added, expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(exo.body_mass, plain.body_mass, rtol=1e-5)
+    dofs = plain.jnt_dofadr[hinges]
+    np.testing.assert_array_equal(exo.dof_frictionloss[dofs], EXOSKELETON.frictionloss)
+
+
+@pytest.mark.parametrize(("springs", "friction"), [(True, False), (False, True)])
+def test_either_part_of_the_exoskeleton_alone(springs: bool, friction: bool) -> None:
+    """`add_exoskeleton` with one part off leaves that part as the MJCF has it."""
+    plain = mujoco.MjModel.from_xml_path(str(humanoid_v5_xml()))
+    spec = mujoco.MjSpec.from_file(str(humanoid_v5_xml()))
+    add_exoskeleton(spec, springs=springs, friction=friction)
+    edited = spec.compile()
+    assert (edited.dof_frictionloss.max() == EXOSKELETON.frictionloss) == friction
+    assert (not np.array_equal(edited.jnt_stiffness, plain.jnt_stiffness)) == springs
