@@ -65,7 +65,7 @@ def _train_model(run_dir: Path, weights: Path) -> tuple[DictConfig, nn.Module]:
     from mbrl_delan.conf.checks import DTYPES, load_config_plugins
     from mbrl_delan.conf.loop import build_world_model, env_parts
 
-    cfg = OmegaConf.load(run_dir / RUN_CONFIG)
+    cfg = migrate(OmegaConf.load(run_dir / RUN_CONFIG))  # a run saved before newer keys too
     load_config_plugins(cfg)  # a plugin's env or model, as the run had it
     system = env_parts(cfg).system
     model = build_world_model(cfg, system, torch.device("cpu"), DTYPES[cfg.dtype])

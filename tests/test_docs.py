@@ -37,7 +37,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig
 
-from mbrl_delan import bench, evaluate, fit_report, report
+from mbrl_delan import bench, evaluate, fit_report, report, rescore
 from mbrl_delan.benchmarks import figures, own_arm, robust
 from mbrl_delan.conf.builders import build_model, build_planner
 from mbrl_delan.conf.checks import DTYPES, validate_train_config
@@ -110,6 +110,7 @@ ARGPARSE_ENTRY_POINTS: dict[str, Callable[[list[str]], Any]] = {
     "mbrl_delan.benchmarks.own_arm": own_arm.main,
     "mbrl_delan.benchmarks.robust": robust.main,
     "mbrl_delan.evaluate": evaluate.main,
+    "mbrl_delan.rescore": rescore.main,
 }
 
 # Commands in the docs that are not meant to be run as written. Keep this list short.

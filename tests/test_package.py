@@ -25,7 +25,7 @@ def test_console_scripts_name_the_entry_points_mains() -> None:
     None or an exit code (a script's return value becomes its exit status)."""
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
     assert set(scripts) == {
-        f"mbrl-delan-{n}" for n in ("train", "fit", "bench", "report", "evaluate")
+        f"mbrl-delan-{n}" for n in ("train", "fit", "bench", "report", "evaluate", "rescore")
     }
     for name, target in scripts.items():
         module, function = target.split(":")

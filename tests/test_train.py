@@ -449,6 +449,7 @@ def test_tiny_tree_run_pairs_its_final_evaluation_and_keeps_its_weights(tmp_path
     Another model's run takes its oracle (`budget.oracle_from`)."""
     import shutil
 
+    from mbrl_delan.rescore import rescore
     from mbrl_delan.runs import load_run
 
     run_dir = tmp_path / "tree"
@@ -464,11 +465,25 @@ def test_tiny_tree_run_pairs_its_final_evaluation_and_keeps_its_weights(tmp_path
     assert all(1 <= s <= 15 for s in last["eval_episode_steps"] + last["oracle_episode_steps"])
     record = tmp_path / "record"
     record.mkdir()
-    for name in ("config.yaml", "summary.json", "world_model.pt"):
+    for name in ("config.yaml", "summary.json", "world_model.pt", "metrics.jsonl"):
         shutil.copy(run_dir / name, record / name)
     saved = load_run(run_dir).model.state_dict()
     for key, value in load_run(record).model.state_dict().items():
         torch.testing.assert_close(value, saved[key])
+    # the record re-scored (its config as a record saved before `model.learn_springs` was
+    # added): the same episodes, step for step; the MJCF's rigid body under the fit plans
+    # the same starts
+    from omegaconf import OmegaConf
+
+    older = OmegaConf.load(record / "config.yaml")
+    del older.model["learn_springs"]
+    OmegaConf.save(older, record / "config.yaml")
+    again = rescore(record)
+    assert again["steps"] == last["eval_episode_steps"] == again["recorded_steps"]
+    assert again["returns"] == pytest.approx(last["eval_episode_returns"], rel=1e-6)
+    assert again["falls"] == summary["falls"] and again["paired_episodes"] == 2
+    exact = rescore(record, episodes=1, body="mjcf")
+    assert exact["paired_episodes"] == 1 and exact["body"] == "mjcf"
     # a second model takes this run's oracle and zero-torque episodes: the same figures, no
     # oracle episode planned again; a run of another seed is refused naming the key
     other = tmp_path / "tree_delan"
@@ -496,3 +511,17 @@ def test_tiny_tree_run_pairs_its_final_evaluation_and_keeps_its_weights(tmp_path
                     "budget.paired=true", f"budget.oracle_from={run_dir}")  # fmt: skip
     assert refused.returncode == 2, refused.stdout + refused.stderr
     assert "its seed is 0, this run's 1" in refused.stdout + refused.stderr
+
+
+def test_rescore_names_what_a_folder_lacks_in_one_line(tmp_path: Path, capsys, caplog) -> None:
+    """`python -m mbrl_delan.rescore` on a folder without a paired final evaluation, or with
+    a bad option, exits 2 naming the file or the option, without a traceback."""
+    from mbrl_delan.rescore import main
+
+    (tmp_path / "metrics.jsonl").write_text(json.dumps({"iteration": 1, "env_steps": 15}) + "\n")
+    assert main([str(tmp_path)]) == 2
+    assert "holds no paired final evaluation" in caplog.text
+    with pytest.raises(SystemExit) as stop:
+        main([str(tmp_path), "body"])
+    assert stop.value.code == 2
+    assert "the options are episodes=, body=, out=" in capsys.readouterr().err

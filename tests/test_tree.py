@@ -14,7 +14,7 @@ from mbrl_delan.conf.builders import build_model
 from mbrl_delan.conf.checks import compose_train_config
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.tree import RigidBodyTree, TreeStart, documented_start, geometric_start
-from mbrl_delan.systems.external import humanoid_v5_xml
+from mbrl_delan.systems.external import humanoid_v5_exo_xml, humanoid_v5_xml
 from mbrl_delan.systems.system import asset_path
 
 MODELS = {"humanoid_v5": humanoid_v5_xml, "panda": lambda: asset_path("panda")}
@@ -216,3 +216,42 @@ def test_residual_penalty_adds_the_residuals_share_of_the_torque_to_the_loss() -
         tree_cfg = compose_train_config(["env=humanoid_stand", "model=tree",
                                          "model.residual_penalty=1.0"]).model  # fmt: skip
         build(tree_cfg, parts.system)
+
+
+def test_learned_springs_start_at_the_mjcfs_and_fit_the_exoskeletons() -> None:
+    """With `learn_springs` the tree's springs start at Humanoid-v5's (a zero spring at the
+    floor share of the largest) and, fitted by gradient to MuJoCo's spring forces of the
+    exoskeleton's MJCF, reach its stiffness and rest angles at every sprung hinge."""
+    plain = mujoco.MjModel.from_xml_path(str(humanoid_v5_xml()))
+    exo = mujoco.MjModel.from_xml_path(str(humanoid_v5_exo_xml()))
+    tree = RigidBodyTree.from_mujoco(plain, learn_springs=True)
+    fixed = RigidBodyTree.from_mujoco(plain)
+    sprung = fixed.stiffness > 0
+    assert tree.spring_ref.requires_grad and tree.raw_stiffness.requires_grad
+    np.testing.assert_allclose(tree.spring_stiffness().detach()[sprung], fixed.stiffness[sprung])
+    q, _ = random_states(plain, 64, seed=1)
+    data = mujoco.MjData(exo)
+    target = []
+    for qpos in q:
+        data.qpos[:] = qpos
+        mujoco.mj_forward(exo, data)
+        target.append(-data.qfrc_spring.copy())  # the tree's k (q - q_s) resists
+    target_t, q_t = torch.from_numpy(np.stack(target)), torch.from_numpy(q)
+    springs = [tree.raw_stiffness, tree.spring_ref]
+    optimiser = torch.optim.LBFGS(springs, lr=1.0, max_iter=500, line_search_fn="strong_wolfe")
+
+    def closure() -> torch.Tensor:
+        optimiser.zero_grad()
+        loss = (tree.spring(q_t) - target_t).pow(2).mean()
+        loss.backward()
+        return loss
+
+    optimiser.step(closure)
+    truth = torch.tensor([exo.jnt_stiffness[exo.dof_jntid[v]] for v in range(exo.nv)])
+    rest = torch.tensor([exo.qpos_spring[exo.jnt_qposadr[exo.dof_jntid[v]]]
+                         for v in range(exo.nv)])  # fmt: skip
+    hinges = truth > 0
+    assert int(hinges.sum()) > int(sprung.sum())  # the right knee too, which the MJCF leaves free
+    learned = tree.spring_stiffness().detach()
+    np.testing.assert_allclose(learned[hinges], truth[hinges], rtol=1e-4)
+    np.testing.assert_allclose(tree.spring_ref.detach()[hinges], rest[hinges], atol=1e-4)

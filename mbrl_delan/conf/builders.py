@@ -141,7 +141,8 @@ def _tree(cfg: DictConfig, system: System) -> DeLaN:
             f"model.residual_penalty={cfg.residual_penalty} penalises a residual Lagrangian: "
             "it needs model.lagrangian_residual=true (model=tree_delan)"
         )
-    tree = RigidBodyTree.from_mujoco(system.mj_model(), tree_start(cfg, system))
+    tree = RigidBodyTree.from_mujoco(system.mj_model(), tree_start(cfg, system),
+                                     learn_springs=cfg.learn_springs)  # fmt: skip
     gravity = float(np.linalg.norm(system.mj_model().opt.gravity))
     weight = float(tree.total_mass().detach()) * gravity
     contact, limits = _floor_parts(cfg, system, weight)

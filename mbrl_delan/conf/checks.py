@@ -231,6 +231,7 @@ MIGRATIONS: dict[str, Any] = {
     "env.oracle_horizon": None,  # the iLQR oracle planned over the planner's horizon
     "env.plan_speed": None,  # the balance cost's target speed was the task's
     "model.residual_penalty": 0.0,  # a tree residual fitted without the penalty
+    "model.learn_springs": False,  # the tree's springs were the MJCF's
     "budget.collect_envs": 1,
 }
 

@@ -193,6 +193,7 @@ class TreeConfig(DeLaNConfig):
 
     start: str = rule("documented", choices=TREE_STARTS)
     total_mass: float | None = rule(None, low=0, above=True)  # kg; None: geometry at 1,000 kg/m^3
+    learn_springs: bool = False  # each joint's stiffness and rest learned, from the MJCF's
     lagrangian_residual: bool = False
     start_level: float = rule(2e-3, low=0, above=True)  # the residual's L diagonal, of its unit
     residual_penalty: float = rule(0.0, low=0)  # x the residual's torque share in the loss

@@ -12,7 +12,11 @@ geometry and learns those numbers by gradient, physically consistent for any val
   diagonal: J is positive definite for every raw value, which is exactly positive mass, a
   positive definite inertia about the centre of mass and its triangle inequalities;
 - each hinge's and slide's viscous damping and armature, exp(raw) (positive);
-- the joints' springs (MuJoCo's ``stiffness`` about ``springref``) are the MJCF's, fixed.
+- the joints' springs (MuJoCo's ``stiffness`` about ``springref``) are the MJCF's, fixed; or,
+  with ``learn_springs``, each hinge's and slide's stiffness exp(raw) (positive, started at
+  the MJCF's, a zero one at `SPRING_FLOOR` of the largest) and rest position learned too: a
+  robot whose passive springs the file does not hold (an exoskeleton, a cable) keeps one
+  spring per joint.
 
 The dynamics, in MuJoCo's coordinates (a free root's linear velocity in the world frame and
 its angular velocity in the body frame), from spatial vectors in world axes about the first
@@ -58,6 +62,7 @@ from mbrl_delan.systems.forward_kinematics import (
 
 _UPPER = torch.triu_indices(4, 4, 1)  # V's entries above the diagonal, row by row
 FLOOR = 1e-12  # a start's zero damping or armature starts at this share of the largest (log scale)
+SPRING_FLOOR = 1e-2  # a zero spring learned starts at this share of the largest (log scale)
 
 
 def spatial_cross(a: Tensor, b: Tensor) -> Tensor:
@@ -204,11 +209,13 @@ class RigidBodyTree(nn.Module):
             coordinate's value, hinges and slides only).
         spring_q: the q index of each DoF's coordinate (nv,; -1 where it has none).
         scalar: which DoFs are hinges or slides (damping and armature are learned there only).
+        learn_springs: learn each scalar DoF's stiffness and rest position from these starts.
     """
 
     def __init__(
         self, fk: ForwardKinematics, bodies: list[int], start: TreeStart, gravity: np.ndarray,
         stiffness: np.ndarray, spring_ref: np.ndarray, spring_q: np.ndarray, scalar: np.ndarray,
+        learn_springs: bool = False,
     ) -> None:  # fmt: skip
         super().__init__()
         self.fk, self.bodies = fk, bodies
@@ -223,8 +230,13 @@ class RigidBodyTree(nn.Module):
         self.raw_armature = nn.Parameter(self._log_start(start.armature, scalar))
         self.register_buffer("gravity_accel", torch.tensor(
             [0.0, 0.0, 0.0, *(-np.asarray(gravity, dtype=float))], dtype=f64))  # fmt: skip
-        self.register_buffer("stiffness", torch.tensor(stiffness, dtype=f64))
-        self.register_buffer("spring_ref", torch.tensor(spring_ref, dtype=f64))
+        self.learn_springs = learn_springs
+        if learn_springs:
+            self.raw_stiffness = nn.Parameter(self._log_start(stiffness, scalar, SPRING_FLOOR))
+            self.spring_ref = nn.Parameter(torch.tensor(spring_ref, dtype=f64))
+        else:
+            self.register_buffer("stiffness", torch.tensor(stiffness, dtype=f64))
+            self.register_buffer("spring_ref", torch.tensor(spring_ref, dtype=f64))
         self.register_buffer("spring_q", torch.tensor(np.maximum(spring_q, 0), dtype=torch.long))
         above = [_subtree_mask(fk.parent, b) for b in bodies]  # body b under body c: above[b][c]
         ancestry = [[above[i][fk.dof_body[v]] for v in range(nv)] for i in range(B)]
@@ -243,15 +255,18 @@ class RigidBodyTree(nn.Module):
         self.nv = nv
 
     @staticmethod
-    def _log_start(values: np.ndarray, scalar: np.ndarray) -> Tensor:
-        """log of a start (nv,), floored at `FLOOR` of the largest; 0 on DoFs not learned."""
+    def _log_start(values: np.ndarray, scalar: np.ndarray, share: float = FLOOR) -> Tensor:
+        """log of a start (nv,), floored at `share` of the largest; 0 on DoFs not learned."""
         values = np.asarray(values, dtype=float)
-        floor = FLOOR * max(float(values.max(initial=0.0)), 1.0)
+        floor = share * max(float(values.max(initial=0.0)), 1.0)
         return torch.tensor(np.where(scalar, np.log(np.maximum(values, floor)), 0.0))
 
     @classmethod
-    def from_mujoco(cls, model: mujoco.MjModel, start: TreeStart | None = None) -> RigidBodyTree:
-        """The tree of a compiled MuJoCo model; `start` None: the model's own numbers."""
+    def from_mujoco(
+        cls, model: mujoco.MjModel, start: TreeStart | None = None, learn_springs: bool = False
+    ) -> RigidBodyTree:
+        """The tree of a compiled MuJoCo model; `start` None: the model's own numbers; its
+        springs started at the model's where `learn_springs`."""
         kinds = [int(model.jnt_type[model.dof_jntid[v]]) for v in range(model.nv)]
         scalar = np.array([k in (HINGE, SLIDE) for k in kinds])
         spring_q = np.array(
@@ -264,7 +279,7 @@ class RigidBodyTree(nn.Module):
                               for v in range(model.nv)])  # fmt: skip
         return cls(ForwardKinematics.from_mujoco(model), moving_bodies(model),
                    start or TreeStart.of_model(model), model.opt.gravity.copy(), stiffness,
-                   spring_ref, spring_q, scalar)  # fmt: skip
+                   spring_ref, spring_q, scalar, learn_springs)  # fmt: skip
 
     # ------------------------------------------------------------------ the learned numbers
 
@@ -368,9 +383,16 @@ class RigidBodyTree(nn.Module):
         """Spring and damper force k (q - q_spring) + b qd (on the left: they resist). (..., nv)"""
         return self.spring(q) + self.damping.to(qd) * qd
 
+    def spring_stiffness(self) -> Tensor:
+        """Each DoF's spring stiffness k, learned or the MJCF's (0 off hinges and slides). (nv,)"""
+        if not self.learn_springs:
+            return self.stiffness
+        return torch.where(self.scalar, self.raw_stiffness.exp(), 0.0)
+
     def spring(self, q: Tensor) -> Tensor:
         """The joints' springs k (q - q_spring). (..., nv)"""
-        return self.stiffness.to(q) * (q.index_select(-1, self.spring_q) - self.spring_ref.to(q))
+        offset = q.index_select(-1, self.spring_q) - self.spring_ref.to(q)
+        return self.spring_stiffness().to(q) * offset
 
     def potential_energy(self, q: Tensor) -> Tensor:
         """Gravity's and the springs' energy. (...)"""
@@ -382,7 +404,7 @@ class RigidBodyTree(nn.Module):
         first = parts["mass"].unsqueeze(-1) * xpos + turned
         height = (first * self.gravity_accel[3:].to(q)).sum((-1, -2))
         offset = q.index_select(-1, self.spring_q) - self.spring_ref.to(q)
-        return height + 0.5 * (self.stiffness.to(q) * offset.square()).sum(-1)
+        return height + 0.5 * (self.spring_stiffness().to(q) * offset.square()).sum(-1)
 
 
 def world_inertia(parts: dict[str, Tensor], position: Tensor, rotation: Tensor) -> BodyInertia:
@@ -511,7 +533,7 @@ class TreeDynamics(nn.Module):
         d g_res,j / d q_j by central differences of `step` on its coordinate, the median over
         configurations q (S, nq). (nv,)"""
         tree = self.tree
-        stiffness = tree.stiffness.to(q).clone()
+        stiffness = tree.spring_stiffness().to(q).clone()
         if self.residual is None:
             return stiffness
         zero = torch.zeros(*q.shape[:-1], tree.nv, dtype=q.dtype, device=q.device)

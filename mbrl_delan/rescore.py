@@ -1,0 +1,152 @@
+"""``python -m mbrl_delan.rescore RUN_DIR [episodes=N] [body=fitted|mjcf] [out=FILE]``.
+
+A finished train run's paired final evaluation, again, from its record: its config, its
+final weights (``world_model.pt``, else the checkpoint's) and the oracle's episodes of its
+last paired evaluation in ``metrics.jsonl``. The model's planner meets the same starts with
+the same planner seeds, so ``body=fitted`` (the default) repeats the recorded episodes, and
+``body=mjcf`` puts the MJCF's own inertias, damping and armature under a tree model
+(`model=tree`, `tree_delan`) and keeps the rest of the fit (contact law, joint limits,
+springs, residual, scales): what the fitted rigid body costs the plans.
+
+JSON on stdout, or in ``out=FILE``: `paired_episodes`, `falls`, `oracle_falls`, `both_stood`,
+`standing_return_ratio` (as the run's summary), the episodes' `returns` and `steps`, the
+record's own `recorded_steps` and `body`.
+
+Exit codes: 0 done, 2 a folder that is not a finished paired run (one line naming what it
+lacks), a bad option, or ``body=mjcf`` on a model without a tree.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig
+
+from mbrl_delan.conf.checks import DTYPES, ConfigError
+from mbrl_delan.conf.loop import build_loop, build_world_model, env_parts
+from mbrl_delan.runs import load_run
+from mbrl_delan.training.checkpoint import CheckpointError, RunWriteError, atomic_write
+from mbrl_delan.training.loop import MBRLLoop
+from mbrl_delan.training.recorder import METRICS_FILE, read_metrics
+
+log = logging.getLogger("mbrl_delan.rescore")
+
+BODIES = ("fitted", "mjcf")
+RIGID_BODY = ("raw_inertia", "raw_damping", "raw_armature", "start_factor")  # the tree's
+OPTIONS = ("episodes", "body", "out")
+
+
+def recorded_evaluation(run_dir: Path) -> dict[str, Any]:
+    """The last record of `run_dir`'s ``metrics.jsonl`` with the oracle's paired episodes;
+    FileNotFoundError without one."""
+    records = [r for r in read_metrics(run_dir / METRICS_FILE) if "oracle_episode_steps" in r]
+    if not records:
+        raise FileNotFoundError(
+            f"{run_dir / METRICS_FILE} holds no paired final evaluation (oracle_episode_steps): "
+            "only a finished run with budget.paired=true can be re-scored"
+        )
+    return records[-1]
+
+
+def mjcf_body(cfg: DictConfig, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """`state` with its tree's inertias, damping and armature replaced by the MJCF's own;
+    a ValueError for a model without a tree."""
+    if cfg.model.name not in ("tree", "tree_delan"):
+        raise ValueError(f"body=mjcf needs a tree model (model=tree, tree_delan): {cfg.model.name}")
+    exact_cfg = cfg.copy()
+    exact_cfg.model.start = "mjcf"
+    exact = build_world_model(exact_cfg, env_parts(exact_cfg).system, torch.device("cpu"),
+                              DTYPES[cfg.dtype]).state_dict()  # fmt: skip
+    return state | {f"dynamics.tree.{k}": exact[f"dynamics.tree.{k}"] for k in RIGID_BODY}
+
+
+def rescore(run_dir: Path, episodes: int | None = None, body: str = "fitted") -> dict[str, Any]:
+    """The paired figures of `run_dir`'s final model on its recorded starts (module
+    docstring); `episodes` None: as many as the record holds."""
+    if body not in BODIES:
+        raise ValueError(f"body={body!r}: one of {', '.join(BODIES)}")
+    record = recorded_evaluation(run_dir)
+    run = load_run(run_dir)  # its config (migrated) and final weights
+    cfg = run.config
+    n = len(record["oracle_episode_steps"]) if episodes is None else episodes
+    if not 0 < n <= len(record["oracle_episode_steps"]):
+        raise ValueError(f"episodes={n}: the record holds {len(record['oracle_episode_steps'])}")
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    state = run.model.state_dict()
+    if body == "mjcf":
+        state = mjcf_body(cfg, state)
+    with tempfile.TemporaryDirectory() as scratch:  # the loop's buffer, never written here
+        loop, _ = build_loop(cfg, Path(scratch))
+        loop.model.load_state_dict(state)
+        return _paired(loop, record, n) | {"body": body, "run": str(run_dir)}
+
+
+def _paired(loop: MBRLLoop, record: dict[str, Any], n: int) -> dict[str, Any]:
+    """`n` paired episodes of the loop's planner against the record's oracle episodes."""
+    loop.oracle_returns = record["oracle_episode_returns"][:n]
+    loop.oracle_steps = record["oracle_episode_steps"][:n]
+    ev = loop.evaluate(loop.policy, n, paired=True)
+    figures = loop.paired_figures(ev)
+    return figures | {"returns": ev.returns, "steps": ev.steps,
+                      "recorded_steps": record.get("eval_episode_steps", [])[:n]}  # fmt: skip
+
+
+def _option(text: str) -> tuple[str, str]:
+    """A ``key=value`` option of `OPTIONS` (argparse type: a bad one exits 2 naming it)."""
+    key, sep, value = text.partition("=")
+    if not sep or key not in OPTIONS:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not an option; the options are {', '.join(k + '=' for k in OPTIONS)}"
+        )
+    return key, value
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m mbrl_delan.rescore",
+        description="A finished train run's paired final evaluation, again, from its record.",
+    )
+    p.add_argument("run_dir", type=Path, help="a finished train run's folder or record folder")
+    p.add_argument(
+        "options", nargs="*", type=_option,
+        help="episodes=N (default: the record's), body=fitted|mjcf, out=FILE",
+    )  # fmt: skip
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """The command line (module docstring); the exit code."""
+    args = parser().parse_args(argv)
+    options = dict(args.options)
+    logging.basicConfig(level=logging.INFO, format="[%(name)s][%(levelname)s] - %(message)s")
+    try:
+        text = options.get("episodes")
+        if text is not None and not text.isdigit():
+            raise ValueError(f"episodes={text}: a whole number of episodes")
+        episodes = None if text is None else int(text)
+        result = rescore(args.run_dir, episodes, options.get("body", "fitted"))
+        text = json.dumps(result, indent=1)
+        if "out" in options:
+            atomic_write(Path(options["out"]), lambda f: f.write(text.encode()), keep_prev=False)
+        else:
+            print(text)
+    except (FileNotFoundError, ValueError, ConfigError, CheckpointError, RunWriteError) as err:
+        log.error("%s", err)
+        return 2
+    log.info("%s: %d of %d fell (the oracle %d), %.4f of its return where both stood",
+             args.run_dir, result["falls"], result["paired_episodes"], result["oracle_falls"],
+             result["standing_return_ratio"])  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
