@@ -32,7 +32,7 @@ import json
 import logging
 import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -257,14 +257,21 @@ def _file_data(run: Run, path: Path) -> InverseData:
     )
 
 
-def _option(text: str) -> tuple[str, str]:
-    """A ``key=value`` option of `OPTIONS` (argparse type: a bad one exits 2 naming it)."""
-    key, sep, value = text.partition("=")
-    if not sep or key not in OPTIONS:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not an option; the options are {', '.join(k + '=' for k in OPTIONS)}"
-        )
-    return key, value
+def key_value_option(options: Sequence[str]) -> Callable[[str], tuple[str, str]]:
+    """An argparse type for ``key=value`` options with a key in `options`: a bad one exits 2
+    naming them."""
+
+    def option(text: str) -> tuple[str, str]:
+        key, sep, value = text.partition("=")
+        if not sep or key not in options:
+            known = ", ".join(k + "=" for k in options)
+            raise argparse.ArgumentTypeError(f"{text!r} is not an option; the options are {known}")
+        return key, value
+
+    return option
+
+
+_option = key_value_option(OPTIONS)
 
 
 def parser() -> argparse.ArgumentParser:

@@ -32,6 +32,7 @@ from omegaconf import DictConfig
 
 from mbrl_delan.conf.checks import DTYPES, ConfigError
 from mbrl_delan.conf.loop import build_loop, build_world_model, env_parts
+from mbrl_delan.evaluate import key_value_option
 from mbrl_delan.runs import load_run
 from mbrl_delan.training.checkpoint import CheckpointError, RunWriteError, atomic_write
 from mbrl_delan.training.loop import MBRLLoop
@@ -100,16 +101,6 @@ def _paired(loop: MBRLLoop, record: dict[str, Any], n: int) -> dict[str, Any]:
                       "recorded_steps": record.get("eval_episode_steps", [])[:n]}  # fmt: skip
 
 
-def _option(text: str) -> tuple[str, str]:
-    """A ``key=value`` option of `OPTIONS` (argparse type: a bad one exits 2 naming it)."""
-    key, sep, value = text.partition("=")
-    if not sep or key not in OPTIONS:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not an option; the options are {', '.join(k + '=' for k in OPTIONS)}"
-        )
-    return key, value
-
-
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m mbrl_delan.rescore",
@@ -117,7 +108,7 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument("run_dir", type=Path, help="a finished train run's folder or record folder")
     p.add_argument(
-        "options", nargs="*", type=_option,
+        "options", nargs="*", type=key_value_option(OPTIONS),
         help="episodes=N (default: the record's), body=fitted|mjcf, out=FILE",
     )  # fmt: skip
     return p
