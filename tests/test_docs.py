@@ -542,6 +542,7 @@ CONFIG_SECTIONS = {
     "train/model/*.yaml": ("mbrl_delan.train", "`model=`"),
     "train/planner/*.yaml": ("mbrl_delan.train", "`planner=`"),
     "train/logger/*.yaml": ("mbrl_delan.train", "`logger=`"),
+    "train/plan/*.yaml": ("mbrl_delan.train", "`plan=`"),
     "fit/config.yaml": ("mbrl_delan.fit", "Top level"),
     "fit/data/*.yaml": ("mbrl_delan.fit", "`data=`"),
     "fit/model/*.yaml": ("mbrl_delan.fit", "`model=`"),

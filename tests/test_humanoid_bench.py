@@ -185,13 +185,15 @@ def test_the_suite_builds_the_loops_model_and_oracle_planner() -> None:
     assert (quick.hidden, quick.layers, quick.ensemble_size) == (8, 1, 2)
     for env in cfg.oracle_tasks:
         planner = oracle_config(env, cfg).planner
-        spline = env != "cmu_track"  # standing and walking plan over 4 cubic knots
-        expected = (64, 30, 2, 4, "cubic") if spline else (256, 15, 2, None, "linear")
+        # standing and walking plan over 4 cubic knots, standing the balance cost
+        expected = {"humanoid_stand": (32, 30, 1, 4, "cubic", 1.0),
+                    "cmu_track": (256, 15, 2, None, "linear", 0.05)}.get(
+                        env, (64, 30, 2, 4, "cubic", 0.05))  # fmt: skip
         assert (
             planner.num_samples, planner.horizon, planner.iterations, planner.knots,
-            planner.interpolation,
+            planner.interpolation, planner.temperature,
         ) == expected  # fmt: skip
-        assert (planner.temperature, planner.noise_std, planner.smoothing) == (0.05, 0.3, 0.0)
+        assert (planner.noise_std, planner.smoothing) == (0.3, 0.0)
 
 
 def test_oracle_options() -> None:

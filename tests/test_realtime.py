@@ -53,18 +53,19 @@ def test_an_ilqr_oracle_case_is_recorded_as_ilqr() -> None:
     assert fields["planner"] == "ilqr" and fields["horizon"] == 30
     assert fields["num_samples"] is None and fields["knots"] is None
     stand = _fields(case_config("humanoid_stand", "mujoco", ()), "humanoid_stand", "mujoco", 0.015)
-    assert stand["planner"] == "mppi" and stand["num_samples"] == 64 and stand["knots"] == 4
+    assert stand["planner"] == "mppi" and stand["num_samples"] == 32 and stand["knots"] == 4
 
 
 def test_a_case_records_its_integrator_steps() -> None:
     """Records tell apart settings that differ only in the physics steps per control step."""
     one = ("env.oracle_substeps=1", "model.substeps=1")
+    two = ("env.oracle_substeps=2", "model.substeps=2")
     for dynamics in ("mujoco", "tree"):
-        default = _fields(case_config("humanoid_stand", dynamics, ()), "humanoid_stand",
-                          dynamics, 0.015)  # fmt: skip
+        fine = _fields(case_config("humanoid_stand", dynamics, two), "humanoid_stand",
+                       dynamics, 0.015)  # fmt: skip
         cheap = _fields(case_config("humanoid_stand", dynamics, one), "humanoid_stand",
                         dynamics, 0.015)  # fmt: skip
-        assert (default["substeps"], cheap["substeps"]) == (2, 1)
+        assert (fine["substeps"], cheap["substeps"]) == (2, 1)
 
 
 def test_the_delan_case_plans_with_the_loops_policy() -> None:
@@ -97,7 +98,7 @@ def test_realtime_options() -> None:
 
 def test_humanoid_oracle_plans_on_a_cheaper_mujoco() -> None:
     cfg = compose_train_config(["env=humanoid_stand"])
-    assert (cfg.env.oracle_substeps, cfg.env.oracle_integrator) == (2, "euler")
+    assert (cfg.env.oracle_substeps, cfg.env.oracle_integrator) == (1, "euler")
     system = make_env_parts("humanoid_stand").system
     model, substeps = PlanPhysics(2, "euler").model(system)
     assert substeps == 2 and model.opt.timestep == pytest.approx(system.control_dt / 2)

@@ -74,8 +74,15 @@ def test_plan_cost_balance_plans_the_balance_cost_and_only_on_humanoids() -> Non
     action = policy.act(start.q.float(), start.qd.float())  # a plan in the (untrained) DeLaN
     assert action.shape == (17,) and torch.isfinite(action).all()
     assert torch.isfinite(policy.last_result.best_return)
-    default = compose_train_config(["env=humanoid_stand"])
-    assert planning_task(default, parts.system, parts.task) is parts.task
+    default = compose_train_config(["env=humanoid_stand"])  # the env's planner: balance
+    assert isinstance(planning_task(default, parts.system, parts.task), BalanceCost)
+    assert (default.planner.num_samples, default.planner.iterations) == (32, 1)
+    assert (default.planner.temperature, default.env.oracle_substeps) == (1.0, 1)
+    reward = compose_train_config(["env=humanoid_stand", "plan=humanoid_reward"])
+    assert planning_task(reward, parts.system, parts.task) is parts.task
+    assert (reward.planner.num_samples, reward.planner.iterations) == (64, 2)
+    assert (reward.planner.temperature, reward.env.oracle_substeps) == (0.05, 2)
+    assert compose_train_config(["env=humanoid_walk"]).planner.iterations == 2
     pendulum = make_env_parts("pendulum")
     cfg = compose_train_config(["env=pendulum", "env.plan_cost=balance"])
     with pytest.raises(ConfigError, match="plan_cost=balance needs a humanoid env"):

@@ -229,6 +229,7 @@ MIGRATIONS: dict[str, Any] = {
     "env.oracle_substeps": None,  # the oracle planned on the env's own physics
     "env.oracle_integrator": None,
     "env.oracle_horizon": None,  # the iLQR oracle planned over the planner's horizon
+    "env.mppi_iterations": 2,  # MPPI's iterations were 2 on every env
     "env.plan_speed": None,  # the balance cost's target speed was the task's
     "model.residual_penalty": 0.0,  # a tree residual fitted without the penalty
     "model.learn_springs": False,  # the tree's springs were the MJCF's

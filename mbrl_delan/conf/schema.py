@@ -126,6 +126,7 @@ class EnvConfig:
     mppi_noise_std: float = rule(0.5, low=0, above=True)
     mppi_smoothing: float = rule(0.8, low=0, high=1, below=True)
     mppi_samples: int = rule(256, low=1)  # planner=mppi's num_samples on this env
+    mppi_iterations: int = rule(2, low=1)  # planner=mppi's iterations on this env
     plan_knots: int | None = rule(None, low=1)  # mppi, cem, icem: spline knots (None: every step)
     plan_interpolation: str = rule("linear", choices=INTERPOLATIONS)
     plan_cost: str = rule("reward", choices=PLAN_COSTS)  # planners' objective (balance: humanoids)
