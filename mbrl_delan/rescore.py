@@ -80,8 +80,6 @@ def rescore(run_dir: Path, episodes: int | None = None, body: str = "fitted") ->
     n = len(record["oracle_episode_steps"]) if episodes is None else episodes
     if not 0 < n <= len(record["oracle_episode_steps"]):
         raise ValueError(f"episodes={n}: the record holds {len(record['oracle_episode_steps'])}")
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
     state = run.model.state_dict()
     if body == "mjcf":
         state = mjcf_body(cfg, state)

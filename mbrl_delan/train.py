@@ -137,9 +137,6 @@ def train(cfg: DictConfig) -> dict[str, Any]:
         cfg = with_fit_structure(cfg)
     check_video(cfg)
     taken = None if state is not None else _oracle_from(cfg)  # checked before anything is made
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
-    torch.manual_seed(cfg.seed)
     run_dir.mkdir(parents=True, exist_ok=True)
     if cfg.resume is not None:
         remove_stale_temps(run_dir)

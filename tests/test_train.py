@@ -525,3 +525,32 @@ def test_rescore_names_what_a_folder_lacks_in_one_line(tmp_path: Path, capsys, c
         main([str(tmp_path), "body"])
     assert stop.value.code == 2
     assert "the options are episodes=, body=, out=" in capsys.readouterr().err
+
+
+def test_a_loop_built_from_python_takes_its_threads_and_seed(tmp_path: Path) -> None:
+    """`build_loop` sets torch's threads and seed as the command line does: a loop built from
+    Python with `threads=1` runs on one thread, and twice from the same seed it repeats its
+    rounds exactly (its model's weights too)."""
+    from mbrl_delan.conf.checks import compose_train_config
+    from mbrl_delan.conf.loop import build_loop, schedule_of
+    from mbrl_delan.training.loop import LoopHooks
+
+    cfg = compose_train_config([*TINY_TRAIN, "threads=1", "budget.iterations=2"])
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for attempt in range(2):
+            torch.set_num_threads(2)
+            torch.manual_seed(1000 + attempt)  # the caller's own seed does not leak in
+            loop, oracle = build_loop(cfg, tmp_path / str(attempt))
+            assert torch.get_num_threads() == 1
+            rounds: list[dict] = []
+            loop.run(schedule_of(cfg), oracle, LoopHooks(log_round=rounds.append))
+            drop = ("wall_time_s",)
+            results.append(([{k: v for k, v in r.items() if k not in drop} for r in rounds],
+                            loop.model.state_dict()))  # fmt: skip
+    finally:
+        torch.set_num_threads(before)
+    (first, first_state), (second, second_state) = results
+    assert first == second and len(first) == 2
+    assert all(torch.equal(first_state[k], second_state[k]) for k in first_state)

@@ -190,9 +190,19 @@ def build_world_model(
     return model
 
 
+def apply_run_settings(cfg: DictConfig) -> None:
+    """torch's intra-op threads (`threads`; null: torch's own) and its global seed (`seed`),
+    set as the entry points set them before they build anything."""
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+
+
 def build_loop(cfg: DictConfig, run_dir: Path) -> tuple[MBRLLoop, PlannerPolicy]:
     """The MBRL loop and the oracle policy (the same planner over MuJoCo's true dynamics, or
-    iLQR on MuJoCo's derivatives with `budget.oracle_planner=ilqr`)."""
+    iLQR on MuJoCo's derivatives with `budget.oracle_planner=ilqr`), built after
+    `apply_run_settings`: a loop built from Python runs on `threads` threads from `seed`."""
+    apply_run_settings(cfg)
     device, dtype = check_device(cfg.device), DTYPES[cfg.dtype]
     parts = env_parts(cfg)
     system, task = parts.system, parts.task
