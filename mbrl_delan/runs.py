@@ -78,6 +78,21 @@ def _train_model(run_dir: Path, weights: Path) -> tuple[DictConfig, nn.Module]:
 # met the same starts with the same planner (`oracle_of_run`)
 ORACLE_KEYS = ("env", "planner", "seed", "dtype", "budget.oracle_planner",
                "budget.oracle_episodes", "budget.final_eval_episodes", "budget.paired")  # fmt: skip
+# env keys that are only defaults of other groups: the planner's and the budget's are compared
+# where they land (`planner`, `budget.*`), the models' do not touch the oracle
+OTHER_GROUPS_ENV_KEYS = ("horizon", "random_episodes", "iterations", "env_steps", "eval_every",
+                         "eval_episodes", "final_eval_episodes", "paired_eval", "plan_knots",
+                         "plan_interpolation", "oracle_planner")  # fmt: skip
+
+
+def _oracle_part(key: str, node: DictConfig) -> dict[str, Any]:
+    """What of group `key`'s config the oracle's episodes depend on: all of it, but of `env`
+    not the defaults it gives the other groups (`OTHER_GROUPS_ENV_KEYS`, `model_*`, `mppi_*`)."""
+    values = OmegaConf.to_container(node, resolve=True)
+    if key != "env":
+        return values
+    return {k: v for k, v in values.items() if k not in OTHER_GROUPS_ENV_KEYS
+            and not k.startswith(("model_", "mppi_"))}  # fmt: skip
 
 
 @dataclass
@@ -106,8 +121,7 @@ def oracle_of_run(run_dir: str | Path, cfg: DictConfig) -> OracleEpisodes:
     for key in ORACLE_KEYS:
         theirs, ours = OmegaConf.select(source, key), OmegaConf.select(cfg, key)
         if isinstance(ours, DictConfig):
-            theirs = OmegaConf.to_container(theirs, resolve=True)
-            ours = OmegaConf.to_container(ours, resolve=True)
+            theirs, ours = (_oracle_part(key, c) for c in (theirs, ours))
         if theirs != ours:
             raise ValueError(
                 f"budget.oracle_from={run_dir}: its {key} is {theirs!r}, this run's {ours!r}"

@@ -503,6 +503,7 @@ def test_tiny_tree_run_pairs_its_final_evaluation_and_keeps_its_weights(tmp_path
 
     older = OmegaConf.load(run_dir / "config.yaml")
     del older.env["plan_speed"]
+    older.env.mppi_samples, older.env.model_substeps = 999, 7  # other groups' defaults only
     OmegaConf.save(older, run_dir / "config.yaml")
     taken = oracle_of_run(run_dir, OmegaConf.load(other / "config.yaml"))
     assert taken.steps == last["oracle_episode_steps"]
