@@ -183,6 +183,7 @@ def find_runs(roots: list[Path]) -> tuple[list[dict[str, Any]], list[Path]]:
     """Summaries of finished runs, and the run dirs without a usable ``summary.json``."""
     summaries, incomplete = [], []
     for run in run_dirs(roots):
+        read_metrics(run / METRICS_FILE)  # its damaged lines named once; later reads are quiet
         summary = _load_summary(run)
         if summary is None:
             incomplete.append(run)
@@ -196,7 +197,7 @@ def find_runs(roots: list[Path]) -> tuple[list[dict[str, Any]], list[Path]]:
 def incomplete_reason(run: Path) -> str:
     """Why a run has no usable summary, e.g. ``crashed: ValueError: bad (after iteration 2)``."""
     crash = read_crash(run)
-    done = last_iteration(run)
+    done = last_iteration(run, warn=False)
     after = f" (after iteration {done})" if done is not None else ""
     if crash is not None:
         return f"crashed: {crash.get('type', '?')}: {crash.get('message', '')}{after}"
@@ -301,7 +302,7 @@ def _row(group: Group, runs: list[dict[str, Any]]) -> dict[str, Any]:
         for seed_runs in by_seed.values():
             steps = [
                 steps_to_fraction(
-                    read_metrics(Path(r["run_dir"]) / METRICS_FILE),
+                    read_metrics(Path(r["run_dir"]) / METRICS_FILE, warn=False),
                     r.get("oracle_return_mean"),
                     fraction,
                 )
@@ -440,7 +441,7 @@ def _at(seeds: list[list[tuple[list[int], list[float]]]], step: int) -> list[flo
 def _series(metrics: Path, key: str) -> tuple[list[int], list[float]]:
     """(env steps, values) of metric ``key`` in a run's records, in logged order."""
     steps, values = [], []
-    for rec in read_metrics(metrics):
+    for rec in read_metrics(metrics, warn=False):
         if _finite([rec.get(key)]) and _finite([rec.get("env_steps")]):
             steps.append(int(rec["env_steps"]))
             values.append(float(rec[key]))
@@ -620,11 +621,22 @@ def default_out(root: Path) -> Path:
     return root / "report" if is_run_dir(root) else root
 
 
+def figure_path(figure: Path, out: Path) -> Path:
+    """Where ``--figure`` goes: a bare file name into the report's folder `out`, a path with
+    a folder where it says."""
+    return out / figure if figure.parent == Path(".") else figure
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("roots", nargs="+", type=Path, help="folders holding run dirs")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: DIR)")
-    parser.add_argument("--figure", type=Path, default=None, help="also write returns.png here")
+    parser.add_argument(
+        "--figure",
+        type=Path,
+        default=None,
+        help="also write the returns figure here (a bare file name: into --out)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     missing = [r for r in args.roots if not r.is_dir()]
@@ -632,6 +644,13 @@ def main(argv: list[str] | None = None) -> int:
         log.error("not a folder: %s", ", ".join(map(str, missing)))
         return 2
     summaries, incomplete = find_runs(args.roots)
+    if not summaries and not incomplete:
+        log.error(
+            "no runs in %s (a run dir holds config.yaml, summary.json or crash.json); "
+            "nothing written",
+            ", ".join(map(str, args.roots)),
+        )
+        return 2
     table_rows = rows(summaries)
     log.info("%s", markdown_table(table_rows))
     for run in incomplete:
@@ -639,7 +658,7 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or default_out(args.roots[0])
     paths = write_report(summaries, table_rows, incomplete, out)
     if args.figure is not None and summaries:
-        paths["figure"] = returns_figure(summaries, args.figure)
+        paths["figure"] = returns_figure(summaries, figure_path(args.figure, out))
     log.info("wrote %s", ", ".join(str(p) for p in paths.values()))
     return 0
 

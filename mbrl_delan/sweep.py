@@ -24,6 +24,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn, TypeVar
 
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.experimental.callback import Callback
@@ -32,7 +33,10 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mbrl_delan.conf.checks import (
     COMPOSE_ERRORS,
+    CONFIG_DIR,
     ConfigError,
+    compose_config,
+    config_error_line,
     exit_config_error,
     migrate,
     refuse_used_run_dir,
@@ -121,9 +125,11 @@ def crash_dir(cfg: DictConfig) -> Path | None:
     return run if run.is_dir() else None
 
 
-def last_iteration(run_dir: Path) -> int | None:
-    """The last loop iteration recorded in the run's ``metrics.jsonl``, or None."""
-    done = [r[ITERATION] for r in read_metrics(run_dir / METRICS_FILE) if ITERATION in r]
+def last_iteration(run_dir: Path, warn: bool = True) -> int | None:
+    """The last loop iteration recorded in the run's ``metrics.jsonl``, or None (`warn`:
+    name its damaged lines, `read_metrics`)."""
+    records = read_metrics(run_dir / METRICS_FILE, warn)
+    done = [r[ITERATION] for r in records if ITERATION in r]
     return max(done) if done else None
 
 
@@ -187,7 +193,8 @@ def _record_crash(cfg: DictConfig, err: BaseException) -> None:
         run = crash_dir(cfg)
         if run is not None:
             path = write_crash(run, err)
-            log.info("run failed (%s: %s); wrote %s", type(err).__name__, err, path)
+            if not isinstance(err, KeyboardInterrupt):  # Ctrl-C has its own line
+                log.info("run failed (%s: %s); wrote %s", type(err).__name__, err, path)
     except (OSError, ValueError) as write_err:
         log.warning("could not write %s: %s", CRASH_FILE, write_err)
 
@@ -229,6 +236,42 @@ class StartChecks(Callback):
         if self.lock is not None:
             self.lock.release()
 
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        """A sweep whose members' configs do not pass the checks runs none of them: one line
+        per bad member (its number and overrides, the error), exit 2, before the sweep's
+        folder is made. Sweeps the basic sweeper cannot split are left to each job."""
+        try:
+            members = sweep_members(config)
+        except COMPOSE_ERRORS:
+            return
+        bad = []
+        for number, (overrides, label) in enumerate(members):
+            try:
+                validate_train_config(compose_config(CONFIG_DIR, overrides))
+            except (ConfigError, *COMPOSE_ERRORS) as err:
+                bad.append((number, label, err))
+        for number, label, err in bad:
+            log.error(
+                "config error: sweep member #%d (%s): %s", number, label, config_error_line(err)
+            )
+        if bad:
+            sys.exit(2)
+
+
+def sweep_members(config: DictConfig) -> list[tuple[list[str], str]]:
+    """Each job of a basic-sweeper multirun, in Hydra's order: its overrides (the task's
+    command line expanded, with the sweeper's `params`; Hydra's search path kept so a
+    plugin's config groups are found) and its label (the swept keys' values)."""
+    params = config.hydra.sweeper.get("params") or {}
+    task = [*(f"{k}={v}" for k, v in params.items()), *config.hydra.overrides.task]
+    parsed = OverridesParser.create().parse_overrides(task)
+    swept = {o.get_key_element() for o in parsed if o.is_sweep_override()}
+    searchpath = [o for o in config.hydra.overrides.hydra if o.startswith("hydra.searchpath")]
+    members = [m for batch in BasicSweeper.split_arguments(parsed, None) for m in batch]
+    return [
+        ([*searchpath, *m], " ".join(o for o in m if o.split("=", 1)[0] in swept)) for m in members
+    ]
+
 
 class WritableRunDir(Callback):
     """Hydra callback of ``python -m mbrl_delan.fit`` and ``python -m mbrl_delan.bench``
@@ -254,10 +297,11 @@ class WritableRunDir(Callback):
 
 
 def discard_unstarted_run_dir(run_dir: Path, log_name: str) -> None:
-    """Remove `run_dir` when it holds only what Hydra and the run's lock put there before the
-    run wrote anything (``.hydra/``, the log `log_name`, ``.lock``): a run stopped by its
-    input leaves no folder. A folder with anything else in it is left as it is."""
-    traces = {".hydra", ".lock", log_name}
+    """Remove `run_dir` when it holds only what Hydra, the run's lock and a crash marker put
+    there before the run wrote anything (``.hydra/``, the log `log_name`, ``.lock``,
+    ``crash.json``): a run stopped by its input leaves no folder. A folder with anything else
+    in it is left as it is."""
+    traces = {".hydra", ".lock", log_name, CRASH_FILE}
     if run_dir.is_dir() and {path.name for path in run_dir.iterdir()} <= traces:
         shutil.rmtree(run_dir, ignore_errors=True)
 

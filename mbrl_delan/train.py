@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -33,11 +34,20 @@ from mbrl_delan.conf.videos import check_video, write_videos
 from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.runs import OracleEpisodes, oracle_of_run
-from mbrl_delan.sweep import exit_or_raise, marks_crash, resumed_config, with_sweep_group
+from mbrl_delan.sweep import (
+    crash_dir,
+    discard_unstarted_run_dir,
+    exit_or_raise,
+    last_iteration,
+    marks_crash,
+    resumed_config,
+    with_sweep_group,
+)
 from mbrl_delan.systems.external import MissingPackageError
 from mbrl_delan.training.checkpoint import (
     CHECKPOINT_FILE,
     CheckpointError,
+    RunWriteError,
     atomic_write,
     load_checkpoint,
     prev_path,
@@ -62,6 +72,7 @@ from mbrl_delan.training.recorder import (
 )
 
 log = logging.getLogger("mbrl_delan.train")
+LOG_FILE = "train.log"  # Hydra's log of the run, in its run dir (hydra.job.name)
 
 
 OmegaConf.register_new_resolver(
@@ -143,8 +154,8 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     loop, oracle = build_loop(cfg, run_dir)
     if state is None and cfg.model.get("init_from") is not None:
         start_mechanics(cfg.model, loop.model, loop.system)
-    # written once the run is built: an error found while building (a missing clip) leaves a
-    # folder that a corrected rerun can use; a resume's accepted overrides stay for later ones
+    # written once the run is built: an error found while building (a missing clip) leaves no
+    # folder (`_discard_refused`); a resume's accepted overrides stay for later ones
     if state is None or changed:
         text = OmegaConf.to_yaml(cfg, resolve=True).encode()
         atomic_write(run_dir / RUN_CONFIG, lambda f: f.write(text), keep_prev=False)
@@ -219,7 +230,8 @@ def _run(
     recorder: Recorder,
 ) -> None:
     """`loop.run` with the entry point's hooks: metrics to the recorder, an atomic checkpoint
-    after each stage, videos and a progress bar after each round."""
+    after each stage, videos and a progress bar after each round, and one over the oracle's
+    episodes (terminals only, as the round's bar)."""
     by_steps = cfg.budget.env_steps is not None  # the bar counts env steps, else rounds
     bar = tqdm(
         total=cfg.budget.env_steps if by_steps else cfg.budget.iterations,
@@ -238,14 +250,24 @@ def _run(
             oracle=f"{metrics['oracle_return_mean']:.1f}",
         )
 
+    oracle_bar = tqdm(desc="oracle", unit="episode", disable=None, delay=1.0)
+
+    def oracle_episode(done: int, total: int) -> None:
+        oracle_bar.total = total
+        oracle_bar.update(done - oracle_bar.n)
+        if done == total:
+            oracle_bar.close()
+
     hooks = LoopHooks(
         log_round=lambda metrics: recorder.log(metrics, loop.counters.iteration),
         checkpoint=lambda: _save(run_dir, loop),
         after_round=after_round,
+        oracle_episode=oracle_episode,
     )
     try:
         loop.run(schedule_of(cfg), oracle, hooks)
     finally:
+        oracle_bar.close()
         bar.close()
 
 
@@ -317,13 +339,46 @@ def _print_summary(run_dir: Path, s: dict[str, Any]) -> None:
     )
 
 
+EXIT_INTERRUPTED = 130  # a run stopped by Ctrl-C (SIGINT), as a shell reports it
+
+
+def _discard_refused(cfg: DictConfig) -> None:
+    """A new run stopped before it wrote its config (refused by its input, or Ctrl-C while it
+    was being built) leaves no folder; a resumed run's folder is never touched."""
+    run_dir = crash_dir(cfg)
+    if cfg.resume is None and run_dir is not None:
+        discard_unstarted_run_dir(run_dir, LOG_FILE)
+
+
+def _stopped_by_user(cfg: DictConfig) -> None:
+    """Ctrl-C's one line: the run dir and the command that continues it from its last
+    checkpoint; a new run stopped before its config was written leaves no folder."""
+    run_dir = crash_dir(cfg)
+    if run_dir is None or not (run_dir / RUN_CONFIG).is_file():
+        log.warning("stopped (Ctrl-C) before the run started: nothing was kept")
+        _discard_refused(cfg)
+        return
+    rounds = last_iteration(run_dir)
+    log.warning(
+        "stopped (Ctrl-C) after %s: %s keeps its last checkpoint; continue with "
+        "python -m mbrl_delan.train resume=%s",
+        f"round {rounds}" if rounds is not None else "no round",
+        run_dir,
+        run_dir,
+    )
+
+
 @hydra.main(version_base="1.3", config_path="configs/train", config_name="config")
 def run(cfg: DictConfig) -> float | None:
     """The Hydra task: the config was checked by `StartChecks` before the run dir existed."""
     try:
         summary = train(cfg)
+    except KeyboardInterrupt:
+        _stopped_by_user(cfg)
+        sys.exit(EXIT_INTERRUPTED)
     except ConfigError as err:
         log.error("config error: %s", err)
+        _discard_refused(cfg)
         exit_or_raise(2, err)
     except TrainingDivergedError as err:
         log.error("training diverged: %s (the last good checkpoint is kept)", err)
@@ -341,9 +396,16 @@ def run(cfg: DictConfig) -> float | None:
         exit_or_raise(1, err)
     except MissingPackageError as err:
         log.error("missing package: %s", err)
+        _discard_refused(cfg)
         exit_or_raise(2, err)
     except (CheckpointError, FileNotFoundError) as err:
         log.error("cannot resume: %s", err)
+        exit_or_raise(2, err)
+    except RunWriteError as err:
+        run_dir = crash_dir(cfg)
+        resumable = run_dir is not None and (run_dir / CHECKPOINT_FILE).is_file()
+        hint = f"; once it can be written, python -m mbrl_delan.train resume={run_dir}"
+        log.error("%s%s", err, hint if resumable else "")
         exit_or_raise(2, err)
     return summary["eval_return_mean"]
 

@@ -56,11 +56,15 @@ class _Torn:
 
 
 class _Injector:
-    """Counts the events of each phase; at `moment` SIGKILLs the process, or with `errno`
-    set raises that OSError from the write (checkpoint and metrics phases)."""
+    """Counts the events of each phase; at `moment` sends the process `sig` (SIGKILL; SIGINT
+    is Ctrl-C), or with `errno` set raises that OSError from the write (checkpoint and
+    metrics phases)."""
 
-    def __init__(self, moment: tuple[str, int] | None, errno: int | None) -> None:
+    def __init__(
+        self, moment: tuple[str, int] | None, errno: int | None, sig: int = signal.SIGKILL
+    ) -> None:
         self.moment, self.errno, self.counts, self.phase = moment, errno, Counter(), ""
+        self.sig = sig
 
     def event(self, phase: str) -> bool:
         """Count one event; True when it is the moment of the fault."""
@@ -69,7 +73,8 @@ class _Injector:
 
     def fail(self) -> None:
         if self.errno is None:
-            os.kill(os.getpid(), signal.SIGKILL)
+            os.kill(os.getpid(), self.sig)
+            return
         raise OSError(self.errno, os.strerror(self.errno))
 
     def install(self) -> None:
@@ -141,14 +146,15 @@ class _Injector:
 
 
 def _child(
-    argv: list[str], moment: tuple[str, int] | None, errno: int | None, log_file: str
+    argv: list[str], moment: tuple[str, int] | None, errno: int | None, log_file: str, sig: int
 ) -> None:
     """The forked process: output to `log_file`, the injector installed, the command run."""
     fd = os.open(log_file, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     os.dup2(fd, 1)
     os.dup2(fd, 2)
     os.environ.update(WANDB_MODE="disabled", HYDRA_MAIN_MODULE="__main__")
-    injector = _Injector(moment, errno)
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # Ctrl-C as in a shell
+    injector = _Injector(moment, errno, sig)
     injector.install()
     sys.argv = ["train", *argv]
     code = 0
@@ -163,14 +169,18 @@ def _child(
 
 
 def start(
-    argv: list[str], moment: tuple[str, int] | None, log_file: Path, errno: int | None = None
+    argv: list[str],
+    moment: tuple[str, int] | None,
+    log_file: Path,
+    errno: int | None = None,
+    sig: int = signal.SIGKILL,
 ) -> int:
-    """Run `python -m mbrl_delan.train *argv` in a forked process that dies of SIGKILL at
-    `moment`, or there fails to write with OSError `errno` (no moment: runs to its end).
-    -> its exit code (-9 when killed)."""
+    """Run `python -m mbrl_delan.train *argv` in a forked process that gets signal `sig` at
+    `moment` (SIGKILL: it dies; SIGINT: Ctrl-C), or there fails to write with OSError `errno`
+    (no moment: runs to its end). -> its exit code (-9 when killed)."""
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload(PRELOAD)
-    process = context.Process(target=_child, args=(argv, moment, errno, str(log_file)))
+    process = context.Process(target=_child, args=(argv, moment, errno, str(log_file), sig))
     process.start()
     process.join(timeout=300)
     if process.exitcode is None:

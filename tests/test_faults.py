@@ -15,6 +15,7 @@ import logging
 import os
 import random
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -181,6 +182,26 @@ def test_a_cut_checkpoint_resumes_from_the_previous_one_to_the_same_result(
 
 def _files(run_dir: Path) -> dict[str, bytes]:
     return {str(p.relative_to(run_dir)): p.read_bytes() for p in run_dir.rglob("*") if p.is_file()}
+
+
+def test_ctrl_c_is_one_line_naming_the_resume_and_the_resume_ends_as_the_run(
+    reference: tuple[Path, dict[str, int]], tmp_path: Path
+) -> None:
+    """SIGINT (Ctrl-C) in the middle of collecting: exit 130, no traceback, one line naming
+    the run dir and the resume command; that command ends where the uninterrupted run did."""
+    ref_dir, counts = reference
+    run_dir, log = tmp_path / "run", tmp_path / "run.log"
+    moment = ("collect", (counts["collect"] + 1) // 2)
+    code = start([*RUN, f"hydra.run.dir={run_dir}"], moment, log, sig=signal.SIGINT)
+    text = log.read_text()
+    assert code == 130 and "Traceback" not in text and "ERROR" not in text, text
+    stops = [line for line in text.splitlines() if "Ctrl-C" in line]
+    assert len(stops) == 1, text
+    assert f"python -m mbrl_delan.train resume={run_dir}" in stops[0], text
+    code, text = _resume(run_dir)
+    assert code == 0, text
+    assert _records(run_dir) == _records(ref_dir)
+    assert _summary(run_dir) == _summary(ref_dir)
 
 
 @pytest.mark.parametrize(
@@ -380,6 +401,9 @@ def test_a_write_that_fails_is_exit_2_naming_it_and_the_resume_ends_as_the_run(
     errors = [line for line in text.splitlines() if "ERROR" in line]
     assert len(errors) == 1, text
     assert f"cannot write {path}: {os.strerror(errno_)} (errno {errno_})" in errors[0], text
+    assert "Error executing job" not in text, text  # Hydra's own line: the task caught it
+    if phase == "checkpoint":  # the run has a checkpoint to continue from
+        assert f"python -m mbrl_delan.train resume={run_dir}" in errors[0], text
     code, text = _resume(run_dir)
     assert code == 0, text
     assert _records(run_dir) == _records(ref_dir)
@@ -416,7 +440,8 @@ def test_crash_at_final_replace_keeps_main_and_prev(tmp_path, monkeypatch):
         real_replace(src, dst)
 
     monkeypatch.setattr(os, "replace", crash_on_main)
-    with pytest.raises(RunWriteError, match="simulated crash; .* MB free there; its previous"):
+    kept = "simulated crash; .* MB free on the disk mounted at .*; kept as they were: ckpt.pt"
+    with pytest.raises(RunWriteError, match=kept):
         save_checkpoint(path, {"iteration": 2})
     monkeypatch.undo()
     assert load_checkpoint(path)["iteration"] == 1
@@ -535,7 +560,8 @@ def test_an_os_error_in_a_writer_names_the_file_and_keeps_its_last_version(
     monkeypatch.setattr(os, "fsync", real_fsync)
     message = str(caught.value)
     assert message.startswith(f"cannot write {path}: {os.strerror(errno_)} (errno {errno_})")
-    assert "MB free there; its previous version is kept" in message
+    assert "MB free on the disk mounted at " in message
+    assert f"kept as they were: {path.name}" in message
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
 
 

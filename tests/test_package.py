@@ -69,13 +69,14 @@ def test_without_the_mocap_extra_cmu_runs_stop_in_one_line(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, run_main
 ) -> None:
     """dm_control (the `mocap` extra) ships humanoid_CMU.xml: without it, env=cmu_track and
-    the mocap fit end with one line naming the extra, exit 2; the fit leaves no folder."""
+    the mocap fit end with one line naming the extra, exit 2, and leave no folder."""
     monkeypatch.setitem(sys.modules, "dm_control", None)  # find_spec: not installed
     hint = "dm_control is not installed; it ships humanoid_CMU.xml: pip install 'mbrl_delan[mocap]'"
     code, text = run_main(
         train.main, "env=cmu_track", "logger=none", f"hydra.run.dir={tmp_path / 't'}"
     )
     assert code == 2 and f"missing package: {hint}" in text and "Traceback" not in text, text
+    assert not (tmp_path / "t").exists()
     code, text = run_main(fit.main, "logger=none", f"hydra.run.dir={tmp_path / 'f'}")
     assert code == 2 and f"missing package: {hint}" in text and "Traceback" not in text, text
     assert not (tmp_path / "f").exists()

@@ -174,6 +174,34 @@ def test_missing_folder_is_an_error(tmp_path: Path) -> None:
     assert main([str(tmp_path / "nope")]) == 2
 
 
+def test_a_folder_without_runs_is_one_line_and_writes_nothing(tmp_path: Path, caplog) -> None:
+    (tmp_path / "notes").mkdir()
+    assert main([str(tmp_path)]) == 2
+    assert f"no runs in {tmp_path}" in caplog.text
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes"]
+
+
+def test_a_torn_metrics_line_is_named_once(tmp_path: Path, caplog) -> None:
+    """A run whose metrics.jsonl has a cut line: the report (which reads the file for the
+    table, both figures and the reach steps) warns once, naming the line."""
+    run = make_run(tmp_path, "r0", summary(0, 40.0, 42.0))
+    write_metrics(run, {200: 30.0, 400: 40.0}, 42.0)
+    with (run / "metrics.jsonl").open("a") as f:
+        f.write('{"iteration": 5, "env_st')
+    assert main([str(tmp_path)]) == 0
+    warnings = [r.getMessage() for r in caplog.records if "unreadable" in r.getMessage()]
+    assert warnings == [f"skipping unreadable line 5 of {run / 'metrics.jsonl'}"]
+
+
+def test_a_bare_figure_name_goes_into_the_reports_folder(tmp_path: Path, monkeypatch) -> None:
+    runs, elsewhere = tmp_path / "runs", tmp_path / "cwd"
+    make_run(runs, "r0", summary(0, 40.0, 42.0))
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    assert main([str(runs), "--out", str(tmp_path / "rep"), "--figure", "fig.png"]) == 0
+    assert (tmp_path / "rep" / "fig.png").is_file() and not any(elsewhere.iterdir())
+
+
 def test_figure_is_drawn_from_metrics(tmp_path: Path) -> None:
     for seed in (0, 1):
         run = make_run(tmp_path, f"r{seed}", summary(seed, 40.0, 42.0))

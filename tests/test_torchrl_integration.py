@@ -203,6 +203,33 @@ def test_torchrl_mppi_plans_on_a_delan_model_env_from_a_real_state() -> None:
     assert td.shape == (3,) and torch.isfinite(td[keys.NEXT_REWARD]).all()
 
 
+def test_return_to_go_is_each_candidates_reward_to_go_less_the_best_return() -> None:
+    """Worked: rewards (1, 2, 3) and (0, 0, 1) have rewards-to-go (6, 5, 3) and (1, 1, 1), the
+    best return 6, so the advantages are (0, -1, -3) and (-5, -5, -5)."""
+    from tensordict import TensorDict
+
+    reward = torch.tensor([[1.0, 2.0, 3.0], [0.0, 0.0, 1.0]]).unsqueeze(-1)  # (N, H, 1)
+    td = TensorDict({keys.NEXT_REWARD: reward}, batch_size=[2, 3])
+    advantage = ReturnToGo()(td)["advantage"].squeeze(-1)
+    torch.testing.assert_close(advantage, torch.tensor([[0.0, -1.0, -3.0], [-5.0, -5.0, -5.0]]))
+
+
+def test_torchrl_mppi_with_return_to_go_stays_finite_at_a_large_temperature() -> None:
+    """TorchRL's MPPI weighs by exp(temperature x advantage) with no maximum taken out: at
+    temperature 1e4 raw returns overflow; ReturnToGo's shifted advantages keep the plan finite."""
+    from torchrl.modules.planners import MPPIPlanner as TorchRLMPPIPlanner
+
+    parts = make_env_parts("pendulum", episode_len=10)
+    env = ModelEnv(_pendulum_models()["delan"], parts.task, parts.system)
+    planner = TorchRLMPPIPlanner(
+        env, ReturnToGo(), temperature=1e4, planning_horizon=5, optim_steps=2,
+        num_candidates=16, top_k=16,
+    )  # fmt: skip
+    start = make_real_env("pendulum", seed=0, episode_len=10).reset()
+    action = planner(start.clone())[keys.ACTION]
+    assert torch.isfinite(action).all() and action.abs().max() <= 1.0
+
+
 def test_collector_gathers_imagined_data_with_the_planner_policy() -> None:
     """A TorchRL Collector over the DeLaN ModelEnv (with a StepCounter for episode ends) and
     the project's PlannerPolicy on the same model's objective."""

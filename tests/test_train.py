@@ -371,16 +371,17 @@ def test_resume_of_a_finished_run_saved_without_newer_fields_completes_its_summa
     assert {k: completed[k] for k in older} == older
 
 
-def test_an_error_found_while_building_leaves_a_folder_a_corrected_rerun_uses(
+def test_an_error_found_while_building_leaves_no_folder_and_the_corrected_run_goes_there(
     tmp_path: Path,
 ) -> None:
     """A config error found once the run has started (a clip that does not exist) is exit 2
-    before the run's config is written, so the same folder takes the corrected command."""
+    and one line before the run's config is written, and leaves no folder; the corrected
+    command runs in the same folder."""
     run_dir = tmp_path / "run"
     out = train(run_dir, "env=cmu_track", "env.task.clip='99_99'")
     text = out.stdout + out.stderr
     assert out.returncode == 2 and "Traceback" not in text and "99_99" in text, text
-    assert not (run_dir / "config.yaml").exists() and (run_dir / "crash.json").exists()
+    assert not run_dir.exists()
     out = train(run_dir, "budget.iterations=1")
     assert out.returncode == 0, out.stdout + out.stderr
     assert (run_dir / "summary.json").is_file() and not (run_dir / "crash.json").exists()
@@ -555,3 +556,23 @@ def test_a_loop_built_from_python_takes_its_threads_and_seed(tmp_path: Path) -> 
     (first, first_state), (second, second_state) = results
     assert first == second and len(first) == 2
     assert all(torch.equal(first_state[k], second_state[k]) for k in first_state)
+
+
+def test_the_oracle_phase_reports_each_episode_once_checkpointed(tmp_path: Path) -> None:
+    """`LoopHooks.oracle_episode` (the oracle phase's progress bar) gets (done, total) after
+    each of the oracle's episodes, each after its checkpoint."""
+    from mbrl_delan.conf.checks import compose_train_config
+    from mbrl_delan.conf.loop import build_loop, schedule_of
+    from mbrl_delan.training.loop import LoopHooks
+
+    cfg = compose_train_config([*TINY_TRAIN, "budget.iterations=1", "budget.oracle_episodes=3"])
+    loop, oracle = build_loop(cfg, tmp_path)
+    events: list[object] = []
+    hooks = LoopHooks(
+        checkpoint=lambda: events.append("checkpoint"),
+        oracle_episode=lambda done, total: events.append((done, total)),
+    )
+    loop.run(schedule_of(cfg), oracle, hooks)
+    reports = [e for e in events if e != "checkpoint"]
+    assert reports == [(1, 3), (2, 3), (3, 3)]
+    assert all(events[events.index(r) - 1] == "checkpoint" for r in reports)

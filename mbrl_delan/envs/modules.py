@@ -89,13 +89,22 @@ class TaskReward(TensorDictModuleBase):
 
 
 class ReturnToGo(nn.Module):
-    """An advantage module for TorchRL's `MPPIPlanner`: the undiscounted sum of a rollout's
-    rewards from each step on, written to ``advantage`` (..., H, 1); MPPI reads its first step
-    (the candidate's return)."""
+    """An advantage module for TorchRL's `MPPIPlanner`: each candidate's undiscounted sum of
+    rewards from each step on, less the best candidate's return, written to ``advantage``
+    (..., N, H, 1); MPPI reads its first step, R_k - max_j R_j <= 0.
+
+    TorchRL's MPPI weighs candidate k by exp(temperature * advantage_k) with no maximum taken
+    out: on raw returns the weights overflow to inf (NaN actions) once temperature x return
+    passes about 88 in float32. The shift leaves the weights' ratios, the top-k and the plan
+    as they were (a softmax does not change under a common shift) and keeps every weight in
+    (0, 1], the best candidate's at 1.
+    """
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        reward = tensordict.get(keys.NEXT_REWARD)  # (..., H, 1), post-done rewards zeroed
-        tensordict.set("advantage", reward.flip(-2).cumsum(-2).flip(-2))
+        reward = tensordict.get(keys.NEXT_REWARD)  # (..., N, H, 1), post-done rewards zeroed
+        to_go = reward.flip(-2).cumsum(-2).flip(-2)  # (..., N, H, 1)
+        best = to_go[..., :1, :].amax(dim=-3, keepdim=True)  # (..., 1, 1, 1)
+        tensordict.set("advantage", to_go - best)
         return tensordict
 
 

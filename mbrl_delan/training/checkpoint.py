@@ -54,17 +54,30 @@ class RunWriteError(RuntimeError):
 
 
 def write_failure(path: Path, err: BaseException) -> RunWriteError:
-    """`RunWriteError` for `path` from the OS error or torch's (a full disk inside
-    ``torch.save`` is a RuntimeError "unexpected pos"), with the free space when known."""
+    """`RunWriteError` for `path`: the OS error's reason, or torch's (a full disk inside
+    ``torch.save`` is a RuntimeError "unexpected pos"), the disk and its free space when
+    known, and what was kept."""
     coded = isinstance(err, OSError) and err.strerror
     reason = f"{err.strerror} (errno {err.errno})" if coded else str(err)
     reason = reason.splitlines()[0] if reason else type(err).__name__
+    if "unexpected pos" in reason:
+        reason = f"the file came out short, as on a full disk (torch.save: {reason})"
     try:
-        free = f"; {shutil.disk_usage(path.parent).free / 2**20:.1f} MB free there"
+        free = shutil.disk_usage(path.parent).free / 2**20
+        disk = f"; {free:.1f} MB free on the disk mounted at {_mount_point(path.parent)}"
     except OSError:
-        free = ""
-    kept = "its previous version is kept" if path.exists() else "nothing was written"
-    return RunWriteError(f"cannot write {path}: {reason}{free}; {kept}")
+        disk = ""
+    kept = [p.name for p in (path, prev_path(path)) if p.exists()]
+    kept_text = f"kept as they were: {', '.join(kept)}" if kept else "nothing was written"
+    return RunWriteError(f"cannot write {path}: {reason}{disk}; {kept_text}")
+
+
+def _mount_point(folder: Path) -> Path:
+    """The mount point of the file system that holds `folder`."""
+    folder = folder.resolve()
+    while not os.path.ismount(folder) and folder != folder.parent:
+        folder = folder.parent
+    return folder
 
 
 def check_writable(folder: Path) -> None:

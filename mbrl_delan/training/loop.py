@@ -233,11 +233,15 @@ class LoopHooks:
     log_round(metrics): a round's metrics, before its checkpoint. checkpoint(): after the
     oracle, after the warm-up and after each round (the loop's state is then complete).
     after_round(metrics): once the round is checkpointed (videos, progress).
+    oracle_episode(done, total): after each of the oracle's episodes, once it is checkpointed
+    (progress of the oracle phase: `done` of `total` episodes, a resumed phase from where
+    it stood).
     """
 
     log_round: Callable[[dict[str, Any]], None] = _nothing
     checkpoint: Callable[[], None] = _nothing
     after_round: Callable[[dict[str, Any]], None] = _nothing
+    oracle_episode: Callable[[int, int], None] = _nothing
 
 
 @dataclass
@@ -365,8 +369,13 @@ class MBRLLoop:
                 "evaluating the oracle planner on MuJoCo's dynamics (%d episodes%s)",
                 episodes, ", paired" if schedule.paired else "",
             )  # fmt: skip
+
+            def episode_done() -> None:
+                hooks.checkpoint()
+                hooks.oracle_episode(len(self.oracle_done.steps), episodes)
+
             with self.timed():
-                ev = self._evaluate_oracle(oracle, episodes, schedule.paired, hooks.checkpoint)
+                ev = self._evaluate_oracle(oracle, episodes, schedule.paired, episode_done)
             self.oracle_returns, self.oracle_rollouts = ev.returns, ev.rollouts
             self.oracle_steps, self.oracle_done, self.oracle_state = ev.steps, None, None
             hooks.checkpoint()

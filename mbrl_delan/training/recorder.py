@@ -46,12 +46,13 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-def read_metrics(path: str | Path) -> list[dict[str, Any]]:
-    """Records of a ``metrics.jsonl`` file; a damaged line (e.g. cut by a crash) is skipped."""
+def read_metrics(path: str | Path, warn: bool = True) -> list[dict[str, Any]]:
+    """Records of a ``metrics.jsonl`` file; damaged lines (e.g. cut by a crash) are skipped,
+    with one warning naming them (`warn`; a caller that reads a file again passes False)."""
     path = Path(path)
     if not path.is_file():
         return []
-    records = []
+    records, damaged = [], []
     with path.open(encoding="utf-8") as f:
         for lineno, line in enumerate(f, start=1):
             if not line.strip():
@@ -59,10 +60,13 @@ def read_metrics(path: str | Path) -> list[dict[str, Any]]:
             try:
                 record = json.loads(line)
             except json.JSONDecodeError:
-                log.warning("skipping unreadable line %d of %s", lineno, path)
+                damaged.append(lineno)
                 continue
             if isinstance(record, dict):
                 records.append(record)
+    if damaged and warn:
+        lines = ", ".join(map(str, damaged))
+        log.warning("skipping unreadable line%s %s of %s", "s"[: len(damaged) > 1], lines, path)
     return records
 
 
@@ -193,6 +197,8 @@ class Recorder:
                 mode=options.mode or os.environ.get("WANDB_MODE", "offline"),
                 id=run_id,
                 resume="allow" if run_id else None,
+                # wandb's own lines (its run history and summary) only at DEBUG
+                settings={"silent": not log.isEnabledFor(logging.DEBUG)},
             )
             run.define_metric(self.step_key)
             run.define_metric("*", step_metric=self.step_key)
