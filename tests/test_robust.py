@@ -106,6 +106,20 @@ def test_plan_speed_sets_the_walks_target_and_is_refused_to_stand() -> None:
         compose_train_config(["env=humanoid_walk", "env.plan_speed=-1"])
 
 
+def test_plan_humanoid_walk_balance_makes_the_oracle_mppi_on_the_balance_cost() -> None:
+    """`plan=humanoid_walk_balance`: the walk's oracle becomes MPPI 128 x 1 over 40 steps on
+    one MuJoCo step per control step (not iLQR), scoring the balance cost at 1.05 m/s."""
+    walk = make_env_parts("humanoid_walk")
+    cfg = compose_train_config(["env=humanoid_walk", "plan=humanoid_walk_balance"])
+    oracle = build_oracle(cfg, walk.system, walk.task)
+    planner = oracle.planner
+    assert (planner.num_samples, planner.iterations, planner.horizon) == (128, 1, 40)
+    assert cfg.budget.oracle_planner == "same" and cfg.env.oracle_substeps == 1
+    task = planning_task(cfg, walk.system, walk.task)
+    assert isinstance(task, BalanceCost)
+    assert task.constants.values["target_velocity"].tolist() == [1.05, 0.0]
+
+
 def test_the_figure_counts_falls_per_setting(tmp_path: Path) -> None:
     def record(metric: str, value: float, seed: int, **extra) -> dict:
         base = dict(suite="robust", case=f"humanoid_stand-mujoco-s{seed}", metric=metric,

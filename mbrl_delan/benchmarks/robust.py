@@ -15,7 +15,8 @@ times the total mass at the centre of mass, 42.1 N s per m/s on Humanoid-v5); th
 sees the pushed state at its next call.
 
 Records, per task and seed, with fields `task`, `dynamics` (`mujoco`), `planner`,
-`num_samples`, `iterations`, `horizon`, `knots`, `episodes`, `plan_cost`, `seed`, `push`,
+`num_samples`, `iterations`, `horizon`, `knots`, `episodes`, `plan_cost`, `plan_speed` (the
+balance cost's target speed, null: the task's), `seed`, `push`,
 `push_step`, `speed_mean` (the episodes' mean of `speed`) and `per_episode` (each episode's
 `start`, `fall_step`, `return`, `plan_ms_per_control_step` and `speed`: the root's x
 displacement over the episode's duration, m/s):
@@ -160,6 +161,7 @@ def _fields(cfg: DictConfig, task: str, rc: RobustConfig, seed: int) -> dict[str
         task=task, dynamics="mujoco", planner=planner.name,
         num_samples=planner.get("num_samples"), iterations=planner.get("iterations"),
         horizon=planner.horizon, knots=planner.get("knots"), plan_cost=cfg.env.plan_cost,
+        plan_speed=cfg.env.get("plan_speed"),
         oracle_substeps=cfg.env.oracle_substeps, episodes=rc.starts, seed=seed,
         push=None if rc.push is None else rc.push.speed,
         push_step=None if rc.push is None else rc.push.step, overrides=list(rc.overrides),
