@@ -239,7 +239,9 @@ class StartChecks(Callback):
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         """A sweep whose members' configs do not pass the checks runs none of them: one line
         per bad member (its number and overrides, the error), exit 2, before the sweep's
-        folder is made. Sweeps the basic sweeper cannot split are left to each job."""
+        folder is made. Another sweeper's jobs are checked as each starts."""
+        if not str(config.hydra.sweeper.get("_target_", "")).endswith(".BasicSweeper"):
+            return  # another sweeper picks its own members
         try:
             members = sweep_members(config)
         except COMPOSE_ERRORS:
