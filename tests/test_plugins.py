@@ -251,3 +251,38 @@ def test_evaluate_names_a_plugin_the_run_saved_that_cannot_be_imported(
     (run_dir / "checkpoint.pt").write_bytes(b"")
     assert evaluate_main([str(run_dir)]) == 2
     assert "plugins: cannot import 'no_such_plugin'" in caplog.text, caplog.text
+
+
+def test_a_planner_without_warm_start_is_a_config_error_naming_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A registered builder whose planner lacks a method the planning policy calls (here
+    `warm_start`, as a planner written from an older how-to would) is refused when it is
+    built, before any episode: one config error naming the planner and the method."""
+    from mbrl_delan.conf.registry import Entry
+    from mbrl_delan.planners import CEMPlanner
+
+    class NoWarmStart:
+        def __init__(self, inner: CEMPlanner) -> None:
+            self.inner, self.horizon = inner, inner.horizon
+
+        def __getattr__(self, name: str):
+            if name == "warm_start":
+                raise AttributeError(name)
+            return getattr(self.inner, name)
+
+    def build(cfg, system, dtype):
+        return NoWarmStart(CEMPlanner(3, system.ctrl_low, system.ctrl_high))
+
+    def build_plain(cfg, system, dtype):
+        return CEMPlanner(3, system.ctrl_low, system.ctrl_high)
+
+    PLANNERS.names()  # the package's own entries registered first
+    monkeypatch.setitem(PLANNERS._entries, "no_warm_start", Entry("no_warm_start", build))
+    monkeypatch.setitem(PLANNERS._entries, "plain", Entry("plain", build_plain))
+    system = make_env_parts("pendulum").system
+    named = r"planner=no_warm_start: its NoWarmStart has no warm_start, which the planning"
+    with pytest.raises(ConfigError, match=named):
+        build_planner(OmegaConf.create({"name": "no_warm_start"}), system, torch.float32)
+    plain = build_planner(OmegaConf.create({"name": "plain"}), system, torch.float32)
+    assert isinstance(plain, CEMPlanner)

@@ -113,9 +113,23 @@ def build_model(cfg: DictConfig, system: System) -> WorldModel:
     return MODELS[cfg.name].build(cfg, system)
 
 
+# what `PlannerPolicy` calls on a planner (the `Planner` protocol, planners/base.py)
+PLANNER_METHODS = ("initial_mean", "shift", "carry", "warm_start", "plan")
+
+
 def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPlanner:
-    """The planner named by ``cfg.name`` (the planner group), built by its registry entry."""
-    return PLANNERS[cfg.name].build(cfg, system, dtype)
+    """The planner named by ``cfg.name`` (the planner group), built by its registry entry; a
+    planner without a method of the `Planner` protocol is a ConfigError naming it."""
+    planner = PLANNERS[cfg.name].build(cfg, system, dtype)
+    missing = [m for m in PLANNER_METHODS if not callable(getattr(planner, m, None))]
+    if not hasattr(planner, "horizon"):
+        missing.append("horizon")
+    if missing:
+        raise ConfigError(
+            f"planner={cfg.name}: its {type(planner).__name__} has no {', '.join(missing)}, "
+            "which the planning policy calls (the Planner protocol, mbrl_delan/planners/base.py)"
+        )
+    return planner
 
 
 @MODELS.register("delan", schema=MODEL_SCHEMAS["delan"])
