@@ -35,7 +35,7 @@ from mbrl_delan.models.tree import (
 )
 from mbrl_delan.models.whitebox import IdentifyConfig, WhiteBoxModel
 from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus
-from mbrl_delan.planners.base import SamplingPlanner
+from mbrl_delan.planners.base import PLANNER_METHODS, SamplingPlanner
 from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.mppi import MPPIPlanner
@@ -111,10 +111,6 @@ def _delan_arguments(cfg: DictConfig, system: System) -> dict[str, Any]:
 def build_model(cfg: DictConfig, system: System) -> WorldModel:
     """The world model named by ``cfg.name`` (the model group), built by its registry entry."""
     return MODELS[cfg.name].build(cfg, system)
-
-
-# what `PlannerPolicy` calls on a planner (the `Planner` protocol, planners/base.py)
-PLANNER_METHODS = ("initial_mean", "shift", "carry", "warm_start", "plan")
 
 
 def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPlanner:

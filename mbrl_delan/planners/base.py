@@ -100,6 +100,10 @@ def clean_returns(returns: Tensor, num_samples: int) -> Tensor:
     return torch.nan_to_num(returns, nan=-math.inf, posinf=big, neginf=-math.inf)
 
 
+# what `PlannerPolicy` calls on a planner, beside its `horizon` (the `Planner` protocol below)
+PLANNER_METHODS = ("initial_mean", "shift", "carry", "warm_start", "plan")
+
+
 class Planner(Protocol):
     """What `PlannerPolicy` runs: a planner over plans (H, nu), warm-started by shifting.
 

@@ -65,8 +65,8 @@ def read_metrics(path: str | Path, warn: bool = True) -> list[dict[str, Any]]:
             if isinstance(record, dict):
                 records.append(record)
     if damaged and warn:
-        lines = ", ".join(map(str, damaged))
-        log.warning("skipping unreadable line%s %s of %s", "s"[: len(damaged) > 1], lines, path)
+        which = "lines" if len(damaged) > 1 else "line"
+        log.warning("skipping unreadable %s %s of %s", which, ", ".join(map(str, damaged)), path)
     return records
 
 
