@@ -84,7 +84,7 @@ def _models(values: list[str] | None, suite: str) -> tuple[str, ...] | None:
 def _check_lists(cfg: DictConfig) -> None:
     """The lists that must not be empty (the rules on their elements are the schema's)."""
     lists = ("nv", "batch", "planners", "num_samples", "horizons", "iterations", "transitions",
-             "robots", "friction", "samples", "seeds")  # fmt: skip
+             "robots", "friction", "samples", "designs", "test_designs", "seeds")  # fmt: skip
     for name in lists:
         if cfg[name] is not None and len(cfg[name]) == 0:
             raise ConfigError(f"{name}=[] is not valid; give at least one value (or null)")
@@ -178,6 +178,8 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
         robots=tuples("robots"),
         friction=tuples("friction"),
         samples=tuples("samples"),
+        designs=tuples("designs"),
+        test_designs=tuples("test_designs"),
     )
 
 

@@ -20,7 +20,7 @@ from mbrl_delan.conf.checks import migrate
 from mbrl_delan.training.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from mbrl_delan.training.recorder import RUN_CONFIG, SUMMARY_FILE, WEIGHTS_FILE
 
-FIT_MODEL_FILE = "model.pt"  # `mbrl_delan.fit.MODEL_FILE`
+FIT_MODEL_FILE = "model.pt"  # `mbrl_delan.conf.fitting.MODEL_FILE`
 
 
 @dataclass
@@ -36,8 +36,9 @@ class Run:
 
 
 def load_run(run_dir: str | Path) -> Run:
-    """The config and trained model (on the CPU, in the run's dtype) of a fit or train run;
-    the modules of the run's ``plugins`` are imported first (its own env, model).
+    """The config and trained model (on the CPU, in the run's dtype, in evaluation mode) of
+    a fit or train run; the modules of the run's ``plugins`` are imported first (its own env,
+    model).
 
     Raises FileNotFoundError when `run_dir` holds neither a fit's ``model.pt`` nor a train
     run's ``config.yaml`` with its ``checkpoint.pt`` or its final weights ``world_model.pt``
@@ -49,7 +50,7 @@ def load_run(run_dir: str | Path) -> Run:
         from mbrl_delan.conf.fitting import load_fit_model
 
         cfg, model = load_fit_model(run_dir)
-        return Run("fit", run_dir, cfg, model, summary)
+        return Run("fit", run_dir, cfg, model.eval(), summary)
     weights = [run_dir / f for f in (CHECKPOINT_FILE, WEIGHTS_FILE) if (run_dir / f).is_file()]
     if (run_dir / RUN_CONFIG).is_file() and weights:
         return Run("train", run_dir, *_train_model(run_dir, weights[0]), summary)
@@ -71,7 +72,7 @@ def _train_model(run_dir: Path, weights: Path) -> tuple[DictConfig, nn.Module]:
     model = build_world_model(cfg, system, torch.device("cpu"), DTYPES[cfg.dtype])
     state = load_checkpoint(weights)  # tensors and plain containers only
     model.load_state_dict(state["loop"]["model"] if weights.name == CHECKPOINT_FILE else state)
-    return cfg, model
+    return cfg, model.eval()
 
 
 # what a run's oracle and zero-torque episodes depend on: another run that agrees on these

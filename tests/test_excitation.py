@@ -5,7 +5,9 @@ dissipative, velocities from measured positions, and the arrays schema."""
 from __future__ import annotations
 
 import json
+import tempfile
 from dataclasses import replace
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -23,11 +25,18 @@ from mbrl_delan.data.excitation import (
     mass_matrix_error,
 )
 from mbrl_delan.evaluate import evaluate_run
-from mbrl_delan.systems.arms import ARMS, FRICTION, arm, arm_model, torque_limits
+from mbrl_delan.systems.arms import (
+    ARMS,
+    FRICTION,
+    arm,
+    arm_model,
+    coulomb_friction,
+    torque_limits,
+)
 
 # published totals of the link masses (kg), base and hand included
-MASSES = {"panda": 17.422, "iiwa14": 30.61, "ur5e": 20.995}
-DOF = {"panda": 7, "iiwa14": 7, "ur5e": 6}
+MASSES = {"panda": 17.422, "iiwa14": 30.61, "ur5e": 20.995, "slim7": 8.6, "light6": 4.6}
+DOF = {"panda": 7, "iiwa14": 7, "ur5e": 6, "slim7": 7, "light6": 6}
 # slow (10 s periods of 5 harmonics) and noise-free: differences of q are close to qd
 QUIET = ExcitationSettings(
     samples=300, period_s=10.0, harmonics=5, q_noise=0.0, tau_noise=0.0, cutoff_hz=None
@@ -36,7 +45,7 @@ QUIET = ExcitationSettings(
 
 @pytest.mark.parametrize("robot", list(ARMS))
 def test_arms_carry_their_published_masses_and_friction_only_when_asked(robot: str) -> None:
-    plain, rough = arm_model(robot), arm_model(robot, friction=True)
+    plain, rough = arm_model(robot), arm_model(robot, "frictionloss")
     assert plain.nv == DOF[robot] and plain.nu == DOF[robot]
     assert plain.body_mass.sum() == pytest.approx(MASSES[robot], abs=1e-3)
     assert not plain.dof_damping.any() and not plain.dof_frictionloss.any()
@@ -45,7 +54,13 @@ def test_arms_carry_their_published_masses_and_friction_only_when_asked(robot: s
     np.testing.assert_allclose(rough.dof_damping, FRICTION.viscous * limits)
     np.testing.assert_allclose(rough.dof_frictionloss, FRICTION.coulomb * limits)
     np.testing.assert_allclose(rough.dof_armature, FRICTION.armature * limits)
-    with pytest.raises(ValueError, match="not a shipped arm; choose one of: panda"):
+    real = arm_model(robot, "coulomb_viscous")  # Coulomb as f sign(qd), not MuJoCo's
+    np.testing.assert_allclose(real.dof_damping, rough.dof_damping)
+    assert not real.dof_frictionloss.any()
+    np.testing.assert_allclose(coulomb_friction(robot, "coulomb_viscous"), rough.dof_frictionloss)
+    assert not coulomb_friction(robot, "frictionloss").any()
+    assert arm_model(robot, True).dof_frictionloss.any()  # true: frictionloss (saved runs)
+    with pytest.raises(ValueError, match="neither a shipped arm .*panda.*nor an MJCF file"):
         arm("panda7")
 
 
@@ -120,7 +135,8 @@ def test_fit_on_excitation_data_learns_and_evaluates_from_its_provenance(tmp_pat
                  "logger=none", "epochs=3", "model.hidden=16", "threads=1"]  # fmt: skip
     summary, _ = _run(compose_config(FIT_CONFIG_DIR, overrides), tmp_path)
     assert summary["data"] == "excitation" and summary["robot"] == "ur5e"
-    assert summary["samples"] == {"train": 2160, "val": 240, "test": 600}  # 15 x 2 s
+    assert summary["samples"] == {"train": 2000, "val": 400, "test": 600}  # 15 x 2 s: 10/2/3
+    assert summary["splits"]["val"] == "whole training trajectories"
     first = json.loads((tmp_path / "metrics.jsonl").read_text().splitlines()[0])
     assert summary["final"]["train"]["mse"] < first["train_mse"]
     result = evaluate_run(tmp_path)
@@ -135,7 +151,8 @@ def test_fit_on_excitation_data_learns_and_evaluates_from_its_provenance(tmp_pat
 
 def test_an_unknown_robot_is_a_config_error_naming_the_choices(tmp_path) -> None:
     cfg = compose_config(FIT_CONFIG_DIR, ["data=excitation", "data.robot=ur10", "logger=none"])
-    with pytest.raises(ConfigError, match=r"data.robot='ur10' is not valid; .*panda, iiwa14"):
+    with pytest.raises(ConfigError, match=r"data.robot='ur10' is not valid; .*panda, iiwa14.*"
+                                          r"or give an MJCF file"):  # fmt: skip
         _run(cfg, tmp_path / "run")
     assert not (tmp_path / "run").exists()
 
@@ -157,7 +174,7 @@ def test_excitation_test_seed_draws_the_test_trajectories_apart(tmp_path) -> Non
                  "data.test_seed=7", "model=mlp", "logger=none", "epochs=1",
                  "model.hidden=16", "threads=1"]  # fmt: skip
     summary, _ = _run(compose_config(FIT_CONFIG_DIR, overrides), tmp_path / "run")
-    assert summary["samples"] == {"train": 2700, "val": 300, "test": 600}
+    assert summary["samples"] == {"train": 2600, "val": 400, "test": 600}
     assert set(summary["final"]["test"]["trajectories"]) == {"test:0", "test:1", "test:2"}
     same = compose_config(FIT_CONFIG_DIR, [*overrides, "data.test_seed=0"])
     with pytest.raises(ConfigError, match="data.test_seed=0: the training data's own seed"):
@@ -200,3 +217,96 @@ def test_measured_accelerations_hold_up_at_the_trajectories_ends() -> None:
     assert error[starts].max() < 2 * error[inside].max()
     assert error[ends].max() < 2 * error[inside].max()
     assert error.max() < 0.05 * np.abs(true).max()
+
+
+TWO_LINK = """<mujoco model="two_link">
+  <option timestep="0.002"><flag contact="disable"/></option>
+  <worldbody>
+    <body name="upper">
+      <inertial mass="1.0" pos="0 0 0.15" diaginertia="0.01 0.01 0.001"/>
+      <joint name="shoulder" type="hinge" axis="0 1 0" range="-2 2"/>
+      <body name="lower" pos="0 0 0.3">
+        <inertial mass="0.5" pos="0 0 0.1" diaginertia="0.003 0.003 0.0005"/>
+        <joint name="elbow" type="hinge" axis="0 1 0" range="-2.5 2.5"/>
+        <body name="slider" pos="0 0 0.2">
+          <inertial mass="0.2" pos="0 0 0" diaginertia="1e-4 1e-4 1e-4"/>
+          <joint name="extend" type="slide" axis="0 0 1" range="0 0.5"/>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor joint="shoulder" gear="20" ctrlrange="-1 1"/>
+    <motor joint="elbow" gear="8" ctrlrange="-1 1"/>
+    <motor joint="extend" gear="30" ctrlrange="-1 1"/>
+  </actuator>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("design", ["fourier", "sinusoids", "point_to_point"])
+def test_every_design_stays_inside_the_limits_with_its_exact_derivatives(design: str) -> None:
+    """Sample trajectories of a user's MJCF (hinges and a slide) inside the ranges, speeds
+    and motors' torques; qd and qdd the design's own derivatives (central differences of the
+    noise-free, unfiltered signals agree to O(dt^2))."""
+    settings = ExcitationSettings(samples=2000, design=design, q_noise=0.0, tau_noise=0.0,
+                                  cutoff_hz=None, rate_hz=400.0, centres="random")  # fmt: skip
+    path = "tests_two_link.xml"
+    with pytest.MonkeyPatch.context() as mp, tempfile.TemporaryDirectory() as tmp:
+        mp.chdir(tmp)
+        Path(path).write_text(TWO_LINK)
+        data = excitation_arrays(path, "coulomb_viscous", settings, seed=0)
+        model = arm_model(path)
+    low, high = model.jnt_range[:, 0], model.jnt_range[:, 1]
+    mid, half = (low + high) / 2, (high - low) / 2
+    assert (np.abs(data["q"] - mid) <= 0.8 * half + 1e-9).all()
+    assert (np.abs(data["qd"]) <= 0.8 * np.array([2.0, 2.0, 0.5]) + 1e-9).all()  # defaults
+    assert (np.abs(data["tau"]) <= torque_limits(model)).all()
+    assert data["q"].std(0).min() > 0.1 * half.min()  # every joint moves
+    dt = 1.0 / settings.rate_hz
+    for f, df in (("q", "qd"), ("qd", "qdd")):
+        for k in np.unique(data["trajectory"]):
+            rows = data["trajectory"] == k
+            err = np.gradient(data[f][rows], dt, axis=0)[2:-2] - data[df][rows][2:-2]
+            assert np.abs(err).max() < 0.02 * np.abs(data[df]).max(), (f, k)
+
+
+def test_coulomb_viscous_friction_is_damping_and_sign_of_velocity() -> None:
+    data = excitation_arrays("light6", "coulomb_viscous", replace(QUIET, samples=1000), 0)
+    model = arm_model("light6", "coulomb_viscous")
+    coulomb = coulomb_friction("light6", "coulomb_viscous")
+    parts = sum(data[k] for k in (keys.TAU_INERTIAL, keys.TAU_CORIOLIS, keys.TAU_GRAVITY))
+    # qd here: differences of q (O(dt^2)), the law's own qd to within 1e-3 of its range
+    law = model.dof_damping * data["qd"] + coulomb * np.sign(data["qd"])
+    moving = np.abs(data["qd"]) > 0.05
+    np.testing.assert_allclose((data["tau"] - parts)[moving], law[moving], atol=2e-3)
+    np.testing.assert_allclose(data[keys.TAU_FRICTION], data["tau"] - parts, atol=1e-9)
+
+
+def test_fit_on_a_users_mjcf_tests_on_another_design(tmp_path, monkeypatch) -> None:
+    """``fit data=excitation data.robot=<MJCF path>``: an arm the package does not ship, its
+    test trajectories of another design, whole trajectories validating; an MJCF with a ball
+    joint, a missing file and a bad design are one-line config errors."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "arm.xml").write_text(TWO_LINK)
+    overrides = ["data=excitation", "data.robot=arm.xml", "data.samples=2000",
+                 "data.test_design=point_to_point", "model=white_box", "logger=none",
+                 "threads=1"]  # fmt: skip
+    summary, _ = _run(compose_config(FIT_CONFIG_DIR, overrides), tmp_path / "run")
+    # the small arm's measured accelerations (1e-4 rad of noise on q, differentiated twice)
+    # hold the test R^2 of its own true dynamics at 0.979
+    assert summary["robot"] == "arm.xml" and summary["test_r2"] > 0.95
+    assert summary["splits"]["test"] == "trajectories of their own (design point_to_point, seed 1)"
+    assert summary["mass_matrix_error"]["test"] < 0.02
+    assert set(summary["final"]["test"]["trajectories"]) == {"test:0", "test:1"}
+    (tmp_path / "ball.xml").write_text(TWO_LINK.replace('type="hinge" axis="0 1 0" range="-2 2"',
+                                                        'type="ball"'))  # fmt: skip
+    for bad, message in [
+        ("data.robot=ball.xml", "joint shoulder is a ball joint"),
+        ("data.robot=none.xml", "data.robot='none.xml': no such MJCF file"),
+        ("data.design=chirp", "data.design='chirp' is not valid"),
+        ("data.friction=stribeck", "data.friction='stribeck' is not valid"),
+    ]:
+        with pytest.raises(ConfigError, match=message):
+            _run(compose_config(FIT_CONFIG_DIR, [*overrides, bad]), tmp_path / "bad")
+        assert not (tmp_path / "bad").exists()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import errno
 import importlib.util
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -17,7 +18,7 @@ import torch
 from tensordict import TensorDict
 
 from mbrl_delan import keys
-from mbrl_delan.conf.fitting import fit_inverse_dynamics
+from mbrl_delan.conf.fitting import fit_inverse_dynamics, generalisation_gap
 from mbrl_delan.data.arrays import (
     ArrayFormatError,
     DerivativeSettings,
@@ -105,13 +106,24 @@ def test_trajectories_are_never_cut() -> None:
 
 def test_segments_hold_out_one_block_of_each_training_trajectory() -> None:
     ids = torch.arange(10).repeat_interleave(20)
-    masks = split_trajectories(ids, 0.1, 0.2, seed=3)
+    masks = split_trajectories(ids, 0.1, 0.2, seed=3, val_by="segments")
     test_ids = ids[masks["test"]].unique()
     assert bool(torch.isin(ids, test_ids).eq(masks["test"]).all()) and test_ids.numel() == 2
     for i in set(range(10)) - set(test_ids.tolist()):
         rows = torch.nonzero(masks["val"] & (ids == i)).reshape(-1)
         assert rows.numel() == 2 and int(rows[1] - rows[0]) == 1  # one contiguous block
     assert bool((masks["train"] ^ masks["val"] ^ masks["test"]).all())
+
+
+def test_whole_trajectories_validate_by_default() -> None:
+    ids = torch.arange(10).repeat_interleave(20)
+    masks = split_trajectories(ids, 0.1, 0.2, seed=3)
+    held = {name: set(ids[masks[name]].tolist()) for name in ("train", "val", "test")}
+    assert (len(held["val"]), len(held["test"]), len(held["train"])) == (1, 2, 7)
+    for name, trajectories in held.items():  # every trajectory wholly in one split
+        assert int(torch.isin(ids, torch.tensor(sorted(trajectories))).sum()) == 20 * len(
+            trajectories
+        ), name
 
 
 def test_one_trajectory_holds_out_its_end() -> None:
@@ -136,7 +148,9 @@ def test_joint_list_layout_is_the_mjcfs_for_unlimited_hinges() -> None:
 def test_fit_from_an_npz_learns_the_arm(fitted, arm2_file) -> None:
     summary = json.loads((fitted / "summary.json").read_text())
     assert summary["data"] == "arrays"
-    assert summary["samples"] == {"train": 5 * 36, "val": 5 * 4, "test": 40}  # 1 test trajectory
+    # 6 trajectories of 40: 1 for test, 1 for validation (whole ones)
+    assert summary["samples"] == {"train": 4 * 40, "val": 40, "test": 40}
+    assert summary["splits"]["val"] == "whole training trajectories"
     assert set(summary["final"]) == {"train", "val", "test"}
     assert set(summary["final"]["test"]["trajectories"]) | set(
         summary["final"]["val"]["trajectories"]
@@ -157,6 +171,7 @@ def test_fit_from_a_plain_joint_list_without_mjcf(arm2_data, tmp_path) -> None:
     assert "mass_matrix_random_poses" not in result.summary  # no MJCF: no joint ranges to draw
     run = load_run(tmp_path / "run")
     assert run.kind == "fit" and run.config.data.joints == ["hinge", "hinge"]
+    assert not run.model.training  # loaded for evaluation
     q = arm2_data[keys.Q][:8]
     with torch.no_grad():
         torch.testing.assert_close(run.model.mass_matrix(q), result.model.mass_matrix(q))
@@ -413,7 +428,7 @@ def test_worked_example(tmp_path) -> None:
     out = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, cwd=tmp_path)
     assert out.returncode == 0, out.stdout + out.stderr
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["samples"] == {"train": 135, "val": 15, "test": 30}
+    assert summary["samples"] == {"train": 120, "val": 30, "test": 30}  # 6 x 30: 4/1/1
     report = tmp_path / "eval.json"
     assert evaluate_main([str(run_dir), f"data={more}", f"out={report}"]) == 0
     result = json.loads(report.read_text())["splits"]["data"]
@@ -429,7 +444,8 @@ def test_a_named_test_file_is_the_test_split(arm2_data, arm2_file, tmp_path) -> 
     result = fit_inverse_dynamics(
         arm2_file, "arm2", tmp_path / "run", "delan", [*SMALL, f"data.test_path={test_file}"]
     )
-    assert result.summary["samples"] == {"train": 6 * 36, "val": 6 * 4, "test": 80}
+    assert result.summary["samples"] == {"train": 5 * 40, "val": 40, "test": 80}
+    assert result.summary["splits"]["test"] == f"the trajectories of {test_file.resolve()}"
     assert set(result.summary["final"]["test"]["trajectories"]) == {"test:0", "test:1"}
     provenance = json.loads((tmp_path / "run" / "dataset_provenance.json").read_text())
     assert provenance["test"]["path"] == str(test_file.resolve())
@@ -459,3 +475,15 @@ def test_a_missing_or_mismatched_test_file_is_one_line_naming_it(
 def _three_joint_file(folder: Path) -> Path:
     data = trajectory_dataset(load_system("arm3"), 1, 20, torch.Generator().manual_seed(0))
     return save_arrays(data, folder / "arm3.npz")
+
+
+def test_a_test_error_far_above_the_validation_error_is_warned_about(caplog) -> None:
+    final = {"val": {"r2": 0.999}, "test": {"r2": 0.95}}
+    with caplog.at_level(logging.WARNING, logger="mbrl_delan.conf.fitting"):
+        assert generalisation_gap(final, "val") == pytest.approx(0.049)
+    assert "test R2 0.9500 is 0.0490 below val R2 0.9990" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="mbrl_delan.conf.fitting"):
+        assert generalisation_gap({"val": {"r2": 0.999}, "test": {"r2": 0.995}}, "val") < 0.01
+        assert generalisation_gap(final, None) is None  # nothing stops the training
+    assert not caplog.text

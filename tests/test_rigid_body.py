@@ -31,7 +31,7 @@ from mbrl_delan.models.inertial import (
     set_inertial_parameters,
 )
 from mbrl_delan.models.rigid_body import WhiteBoxInverse, regressor
-from mbrl_delan.systems.arms import arm_model
+from mbrl_delan.systems.arms import arm_model, coulomb_friction
 
 # noise-free; 3 harmonics: the unfiltered differences' O(dt^2) error (qd, qdd) stays below the
 # tolerances of the identification's checks
@@ -72,7 +72,7 @@ def test_the_regressor_times_the_parameters_is_mujocos_inverse_dynamics() -> Non
     q, qd, qdd = _states(truth, 40, seed=0)
     qd = qd + np.sign(qd)  # |qd| > 1: MuJoCo's frictionloss at its bound
     tau = inverse_dynamics(truth, q, qd, qdd)["tau"]
-    Y = regressor(start, bodies, q, qd, qdd)
+    Y = regressor(start, bodies, q, qd, qdd, "frictionloss")
     np.testing.assert_allclose(Y @ _parameters(truth), tau, rtol=1e-7, atol=1e-7)
 
 
@@ -95,17 +95,21 @@ def test_cholesky_parameters_are_always_physically_consistent() -> None:
     assert np.linalg.eigvalsh(pseudo_inertia(projected))[0] > 0
 
 
-@pytest.mark.parametrize("friction", [False, True])
-def test_least_squares_recovers_a_known_arm_from_noise_free_data(friction: bool) -> None:
-    """From the documented wrong start (inertials x 0.5, no friction): the identified arm's
-    torques on other trajectories, its M, friction and armature are the true arm's (the base
-    parameters: a chain's link masses are not each identifiable) and its bodies physically
-    consistent; on the frictionless arm the friction stays at zero."""
-    truth = arm_model("panda", friction)
+@pytest.mark.parametrize(
+    ("friction", "law"),
+    [("none", "coulomb_viscous"), ("frictionloss", "frictionloss"),
+     ("coulomb_viscous", "coulomb_viscous")],
+)  # fmt: skip
+def test_least_squares_recovers_a_known_arm_from_noise_free_data(friction: str, law: str) -> None:
+    """From the documented wrong start (inertials x 0.5, no friction), with the friction law
+    the data were made by: the identified arm's torques on other trajectories, its M,
+    friction and armature are the true arm's (the base parameters: a chain's link masses are
+    not each identifiable) and its bodies physically consistent; on the frictionless arm the
+    friction stays at zero."""
     data = excitation_arrays("panda", friction, QUIET, seed=0)
     td = TensorDict({k: torch.as_tensor(data[k]) for k in ("q", "qd", "qdd", "tau")},
                     batch_size=[data["q"].shape[0]])  # fmt: skip
-    model = WhiteBoxInverse(arm_model("panda"))
+    model = WhiteBoxInverse(arm_model("panda"), friction_law=law)
     model.fit_normalization(td)
     model.identify(td)
     assert model.consistent()
@@ -114,10 +118,44 @@ def test_least_squares_recovers_a_known_arm_from_noise_free_data(friction: bool)
     assert np.abs(pred.numpy() - held["tau"]).max() < 5e-3 * np.abs(held["tau"]).max()
     mass = model.mass_matrix(torch.as_tensor(held["q"][::20])).numpy()
     assert mass_matrix_error("panda", friction, held["q"][::20], mass) < 0.005
-    own, rough = model.mujoco_model(), arm_model("panda", friction=True)
+    truth, rough = arm_model("panda", friction), arm_model("panda", "frictionloss")
+    found = {"dof_damping": model.viscous, "dof_armature": model.armature,
+             "dof_frictionloss": model.coulomb}  # fmt: skip
+    coulomb = coulomb_friction("panda", friction) + truth.dof_frictionloss  # one of them is 0
     for name, share in (("dof_damping", 0.05), ("dof_frictionloss", 0.05), ("dof_armature", 0.1)):
-        error = np.abs(getattr(own, name) - getattr(truth, name))[1:]  # joint 1's armature:
+        true = coulomb if name == "dof_frictionloss" else getattr(truth, name)
+        error = np.abs(found[name].numpy() - true)[1:]  # joint 1's armature:
         assert (error <= share * getattr(rough, name)[1:]).all(), name  # link 1's inertia too
+
+
+@pytest.mark.parametrize("law", ["coulomb_viscous", "frictionloss"])
+def test_the_white_boxs_forward_dynamics_inverts_its_inverse_dynamics(law: str) -> None:
+    """acceleration(q, qd, predict_torque(q, qd, qdd)) = qdd under either friction law,
+    with friction, armature and other inertials than the MJCF's."""
+    model = WhiteBoxInverse(arm_model("ur5e"), prior_scale=0.7, friction_law=law)
+    model.viscous.fill_(0.5)
+    model.coulomb.fill_(2.0)
+    model.armature.fill_(0.05)
+    q, qd, qdd = (torch.as_tensor(x) for x in _states(arm_model("ur5e"), 30, seed=4))
+    tau = model.predict_torque(q, qd, qdd)
+    torch.testing.assert_close(model.acceleration(q, qd, tau), qdd, rtol=1e-7, atol=1e-7)
+
+
+def test_the_white_box_fitted_with_the_wrong_friction_law_misses_the_torques() -> None:
+    """On Coulomb + viscous data (f sign(qd)), MuJoCo's soft frictionloss law leaves a test
+    error many times the right law's."""
+    data = excitation_arrays("ur5e", "coulomb_viscous", QUIET, seed=0)
+    held = excitation_arrays("ur5e", "coulomb_viscous", replace(QUIET, samples=400), seed=1)
+    td = TensorDict({k: torch.as_tensor(data[k]) for k in ("q", "qd", "qdd", "tau")},
+                    batch_size=[data["q"].shape[0]])  # fmt: skip
+    errors = {}
+    for law in ("coulomb_viscous", "frictionloss"):
+        model = WhiteBoxInverse(arm_model("ur5e"), friction_law=law)
+        model.fit_normalization(td)
+        model.identify(td)
+        pred = model.predict_torque(*(torch.as_tensor(held[k]) for k in ("q", "qd", "qdd")))
+        errors[law] = float(((pred.numpy() - held["tau"]) ** 2).mean())
+    assert errors["frictionloss"] > 10 * errors["coulomb_viscous"]
 
 
 def test_white_box_fit_identifies_an_arm_and_reloads(tmp_path) -> None:

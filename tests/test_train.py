@@ -142,6 +142,7 @@ def test_load_run_gives_the_train_runs_delan_and_evaluate_uses_it(finished_run, 
 
     run = load_run(finished_run)
     assert run.kind == "train" and run.summary["env"] == "pendulum"
+    assert not run.model.training  # loaded for evaluation
     saved = load_checkpoint(finished_run / "checkpoint.pt", weights_only=False)["loop"]["model"]
     for key, value in run.model.state_dict().items():
         torch.testing.assert_close(value, saved[key])

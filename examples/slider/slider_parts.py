@@ -129,5 +129,5 @@ class LinearInverseConfig:
 
 
 @register_inverse_model("linear_inverse", schema=LinearInverseConfig)
-def build_linear_inverse(cfg, context):  # context: mbrl_delan.fit.InverseContext
+def build_linear_inverse(cfg, context):  # context: mbrl_delan.conf.inverse.InverseContext
     return LinearInverse(context.layout.nq, context.layout.nv, context.std_floor)

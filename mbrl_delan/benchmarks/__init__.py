@@ -143,8 +143,10 @@ class SuiteOptions:
     save_models: str | None = None  # a folder that keeps each fitted case as a record folder
     # suite own_arm (None: the suite's default, or its quick size under `quick`)
     robots: tuple[str, ...] | None = None  # of OWN_ARM_ROBOTS
-    friction: tuple[bool, ...] | None = None  # the arms without and with joint friction
+    friction: tuple[str, ...] | None = None  # the arms' friction kinds (OWN_ARM_FRICTION)
     samples: tuple[int, ...] | None = None  # training-set sizes (data.samples)
+    designs: tuple[str, ...] | None = None  # training data's excitation designs
+    test_designs: tuple[str, ...] | None = None  # test trajectories' designs (None: the same)
 
 
 def synchronizer(device: torch.device) -> Callable[[], None]:

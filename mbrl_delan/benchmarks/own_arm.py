@@ -1,27 +1,35 @@
-"""Suite `own_arm`: ``python -m mbrl_delan.fit data=excitation`` at its defaults on real arms.
+"""Suite `own_arm`: ``python -m mbrl_delan.fit data=excitation`` at its defaults on arms.
 
 Its figure: ``python -m mbrl_delan.benchmarks.own_arm FILE [FILE ...] --out PNG [--robot panda]
-[--friction]``: held-out torque MSE against training samples, one line per model (the mean
-over seeds, a band from the smallest to the largest), the points in the log.
+[--friction KIND]``: held-out torque MSE against training samples, one line per model (the
+mean over seeds, a band from the smallest to the largest), the points in the log.
 
-For every robot (`mbrl_delan.systems.arms`: panda, iiwa14, ur5e), with and without joint
-friction, every training-set size and every model (``delan``, ``mlp``, ``white_box``): one fit
-on the arm's excitation data (`mbrl_delan.data.excitation`, seeded by the bench's ``seed``,
-which also seeds the fit), the test split held-out whole trajectories. One record per figure
-(case ``<robot>_<model>[_friction]_<samples>``):
+For every robot (`mbrl_delan.systems.arms`: panda, iiwa14, ur5e, slim7, light6), friction
+kind (none, frictionloss, coulomb_viscous), training-set size, training design, test design
+and model (``tree_delan``, ``delan``, ``mlp``, ``white_box``): one fit on the arm's
+excitation data (`mbrl_delan.data.excitation`, seeded by the bench's ``seed``, which also
+seeds the fit). The test split: whole held-out trajectories of the training design, or
+trajectories of another design (``data.test_design``); validation: whole training
+trajectories. One record per figure, case
+``<robot>_<model>_<friction>_<samples>_<train design>[_to_<test design>]``:
 
-- ``test_torque_r2``: R^2 of the test torques (per-DoF normalised, `TorqueErrors`);
+- ``test_torque_r2``, ``val_torque_r2``: R^2 of the test and validation torques (per-DoF
+  normalised, `TorqueErrors`);
 - ``test_torque_mse``: mean over test samples and DoFs of (tau_hat - tau)^2, N^2 m^2;
-- ``mass_matrix_error`` (delan, white_box): median over the test states of
+- ``truth_torque_r2``: ``test_torque_r2`` of the arm's own dynamics (its MJCF's numbers and
+  friction law, `true_arm`) on the same measured test data: the most any model can reach
+  with the data's noise;
+- ``mass_matrix_error`` (delan, tree_delan, white_box): median over the test states of
   ||M_model(q) - M(q)||_F / ||M(q)||_F, M the arm's own (`mj_fullM`, armature included);
-- ``friction_torque_share`` (delan, white_box): RMS over the test samples of the model's
-  friction torque / RMS of the test torques;
+- ``friction_torque_share`` (delan, tree_delan, white_box): RMS over the test samples of the
+  model's friction torque / RMS of the test torques;
 - ``fit_wall_s``: the fit's wall time, data made and evaluation included (a learned model
   trains until the validation error stops falling: the time to convergence);
 - ``fit_epoch_s``: the training time per epoch (learned models).
 
 Fields: ``robot``, ``model``, ``friction``, ``samples`` (training-set size asked:
-``data.samples``), ``seed``, ``epochs``, ``train_samples`` and the host's.
+``data.samples``), ``train_design``, ``test_design``, ``seed``, ``epochs``,
+``train_samples`` and the host's.
 """
 
 from __future__ import annotations
@@ -45,7 +53,9 @@ from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.conf.checks import compose_config
 from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, fit_splits
 from mbrl_delan.models.inverse import DeLaNInverse, InverseDynamicsModel
-from mbrl_delan.models.rigid_body import WhiteBoxInverse
+from mbrl_delan.models.rigid_body import WhiteBoxInverse, data_friction_law
+from mbrl_delan.systems.arms import FRICTION_KINDS, arm_model, coulomb_friction, friction_kind
+from mbrl_delan.training.inverse_fit import evaluate_torques
 
 log = logging.getLogger(__name__)
 
@@ -58,15 +68,17 @@ class OwnArmConfig:
     """The grid: robots x friction x samples x models, at `seed`; `overrides` go to every fit."""
 
     robots: tuple[str, ...] = OWN_ARM_ROBOTS
-    friction: tuple[bool, ...] = (False, True)
+    friction: tuple[str, ...] = ("none", "coulomb_viscous")
     samples: tuple[int, ...] = (10_000,)
     models: tuple[str, ...] = OWN_ARM_MODELS
+    designs: tuple[str, ...] = ("fourier",)
+    test_designs: tuple[str | None, ...] = (None,)  # None: the training design's held-out
     seed: int = 0
     overrides: tuple[str, ...] = ()
 
     @classmethod
     def quick(cls) -> OwnArmConfig:
-        return cls(robots=("panda",), friction=(False,), samples=(600,),
+        return cls(robots=("panda",), friction=("none",), samples=(600,),
                    overrides=("epochs=2",))  # fmt: skip
 
 
@@ -75,9 +87,7 @@ def friction_torque_share(model: InverseDynamicsModel, test: Any) -> float | Non
     q, qd = test[keys.Q], test[keys.QD]
     with torch.no_grad():
         if isinstance(model, DeLaNInverse):
-            friction = model.dynamics.terms(
-                q.to(model.tau_scale), qd.to(model.tau_scale)
-            ).dissipation
+            friction = model.friction_torque(qd.to(model.tau_scale))
         elif isinstance(model, WhiteBoxInverse):
             friction = model.friction_torque(q, qd, test[keys.QDD])
         else:
@@ -86,13 +96,45 @@ def friction_torque_share(model: InverseDynamicsModel, test: Any) -> float | Non
     return rms(friction) / rms(test[keys.TAU])
 
 
-def fit_case(robot: str, friction: bool, samples: int, model: str, cfg: OwnArmConfig,
-             folder: Path) -> dict[str, float]:  # fmt: skip
+@dataclass(frozen=True)
+class Case:
+    """One fit of the grid."""
+
+    robot: str
+    friction: str
+    samples: int
+    model: str
+    design: str
+    test_design: str | None  # None: the training design's held-out trajectories
+
+    @property
+    def name(self) -> str:
+        cross = f"_to_{self.test_design}" if self.test_design not in (None, self.design) else ""
+        return f"{self.robot}_{self.model}_{self.friction}_{self.samples}_{self.design}{cross}"
+
+
+def true_arm(robot: str, friction: str, train: Any) -> WhiteBoxInverse:
+    """The arm's own inverse dynamics as a white box (its MJCF's inertials, friction and
+    armature, the friction's law), in the loss units of the training split `train`."""
+    truth = arm_model(robot, friction)
+    model = WhiteBoxInverse(arm_model(robot), prior_scale=1.0,
+                            friction_law=data_friction_law(friction))  # fmt: skip
+    model.fit_normalization(train)
+    model.viscous.copy_(torch.as_tensor(truth.dof_damping))
+    model.armature.copy_(torch.as_tensor(truth.dof_armature))
+    model.coulomb.copy_(torch.as_tensor(coulomb_friction(robot, friction) + truth.dof_frictionloss))
+    return model
+
+
+def fit_case(case: Case, cfg: OwnArmConfig, folder: Path) -> dict[str, float]:
     """One fit's figures (module docstring)."""
+    test = [] if case.test_design in (None, case.design) else [
+        f"data.test_design={case.test_design}"]  # fmt: skip
     overrides = [
-        "data=excitation", f"data.robot={robot}", f"data.friction={str(friction).lower()}",
-        f"data.samples={samples}", f"data.seed={cfg.seed}", f"seed={cfg.seed}",
-        f"model={model}", "logger=none", *cfg.overrides,
+        "data=excitation", f"data.robot={case.robot}", f"data.friction={case.friction}",
+        f"data.samples={case.samples}", f"data.design={case.design}", *test,
+        f"data.seed={cfg.seed}", f"seed={cfg.seed}", f"model={case.model}", "logger=none",
+        *cfg.overrides,
     ]  # fmt: skip
     start = time.perf_counter()
     summary, fitted, splits = fit_splits(compose_config(FIT_CONFIG_DIR, overrides), folder)
@@ -100,37 +142,42 @@ def fit_case(robot: str, friction: bool, samples: int, model: str, cfg: OwnArmCo
     test = summary["final"]["test"]
     figures = {
         "test_torque_r2": test["r2"],
+        "val_torque_r2": summary["final"]["val"]["r2"],
         "test_torque_mse": test["mse_si"],
         "fit_wall_s": wall,
         "epochs": summary["epochs"],
         "train_samples": summary["samples"]["train"],
     }
+    truth = true_arm(case.robot, case.friction, splits["train"])
+    figures["truth_torque_r2"] = evaluate_torques(truth, splits["test"], 4096).r2
     if "mass_matrix_error" in summary:
         figures["mass_matrix_error"] = summary["mass_matrix_error"]["test"]
     share = friction_torque_share(fitted, splits["test"])
     if share is not None:
         figures["friction_torque_share"] = share
-    if summary.get("train_s") is not None and model != "white_box":
+    if summary.get("train_s") is not None and case.model != "white_box":
         figures["fit_epoch_s"] = summary["train_s"] / summary["epochs"]
     return figures
 
 
 def run_own_arm(cfg: OwnArmConfig) -> Iterator[BenchRecord]:
     host = host_fields(torch.device("cpu"))
-    grid = itertools.product(cfg.robots, cfg.friction, cfg.samples, cfg.models)
+    grid = itertools.product(cfg.robots, cfg.friction, cfg.samples, cfg.models, cfg.designs,
+                             cfg.test_designs)  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
-        for robot, friction, samples, model in grid:
-            case = f"{robot}_{model}{'_friction' if friction else ''}_{samples}"
-            figures = fit_case(robot, friction, samples, model, cfg, Path(tmp) / case)
+        for case in itertools.starmap(Case, grid):
+            figures = fit_case(case, cfg, Path(tmp) / case.name)
             fields = {
-                "robot": robot, "model": model, "friction": friction, "samples": samples,
-                "seed": cfg.seed, "epochs": figures.pop("epochs"),
-                "train_samples": figures.pop("train_samples"), **host,
+                "robot": case.robot, "model": case.model, "friction": case.friction,
+                "samples": case.samples, "train_design": case.design,
+                "test_design": case.test_design or case.design, "seed": cfg.seed,
+                "epochs": figures.pop("epochs"), "train_samples": figures.pop("train_samples"),
+                **host,
             }  # fmt: skip
             for metric, value in figures.items():
-                log.info("%s: %s = %.4g", case, metric, value)
+                log.info("%s: %s = %.4g", case.name, metric, value)
                 unit = UNITS.get(metric, "fraction")
-                yield BenchRecord(SUITE, case, metric, value, unit, "cpu", fields)
+                yield BenchRecord(SUITE, case.name, metric, value, unit, "cpu", fields)
 
 
 def run_own_arm_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
@@ -139,7 +186,7 @@ def run_own_arm_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
     cfg = OwnArmConfig.quick() if opts.quick else OwnArmConfig()
     given: dict[str, Any] = {
         "robots": opts.robots, "friction": opts.friction, "samples": opts.samples,
-        "models": opts.models,
+        "models": opts.models, "designs": opts.designs, "test_designs": opts.test_designs,
     }  # fmt: skip
     cfg = replace(cfg, **{k: v for k, v in given.items() if v is not None})
     cfg = replace(cfg, seed=opts.seed or 0, overrides=cfg.overrides + tuple(opts.overrides))
@@ -147,14 +194,15 @@ def run_own_arm_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
 
 
 def sample_curves(
-    records: list[dict[str, Any]], robot: str, friction: bool, metric: str = "test_torque_mse"
+    records: list[dict[str, Any]], robot: str, friction: str, metric: str = "test_torque_mse"
 ) -> dict[str, list[tuple[int, list[float]]]]:
-    """Model -> [(samples, the metric's values over seeds)] of one arm, sorted by samples."""
+    """Model -> [(samples, the metric's values over seeds)] of one arm and friction kind,
+    sorted by samples (records written before the kinds: friction true or false)."""
     curves: dict[str, dict[int, list[float]]] = {}
     for r in records:
         if (r.get("suite"), r.get("metric"), r.get("robot")) != (SUITE, metric, robot):
             continue
-        if r.get("friction") != friction or r.get("value") is None:
+        if friction_kind(r.get("friction", "none")) != friction or r.get("value") is None:
             continue
         curves.setdefault(r["model"], {}).setdefault(int(r["samples"]), []).append(r["value"])
     return {m: sorted(by_n.items()) for m, by_n in sorted(curves.items())}
@@ -165,7 +213,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("files", nargs="+", type=Path, help="records of suite own_arm (JSONL)")
     parser.add_argument("--out", type=Path, required=True, help="the figure to write (PNG)")
     parser.add_argument("--robot", default="panda", choices=OWN_ARM_ROBOTS)
-    parser.add_argument("--friction", action="store_true", help="the arm with joint friction")
+    parser.add_argument("--friction", default="none", choices=FRICTION_KINDS,
+                        help="the arm's joint friction")  # fmt: skip
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     records = read_record_files(args.files)
@@ -178,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for line in describe_curves(curves, x="samples"):
         log.info("%s", line)
-    title = f"{args.robot}{' with joint friction' if args.friction else ''}: held-out torque error"
+    with_friction = "" if args.friction == "none" else f" with {args.friction} friction"
+    title = f"{args.robot}{with_friction}: held-out torque error"
     figure = plot_error_curves(curves, args.out, title, "training samples",
                                "test torque MSE (N$^2$ m$^2$)", xlog=True)  # fmt: skip
     log.info("figure: %s", figure)

@@ -64,5 +64,9 @@ FIDELITY_CASES = (
 )  # fmt: skip
 
 # suite own_arm: the shipped arms (`mbrl_delan.systems.arms.ARMS`) and the fits' models
-OWN_ARM_ROBOTS = ("panda", "iiwa14", "ur5e")
-OWN_ARM_MODELS = ("delan", "mlp", "white_box")
+OWN_ARM_ROBOTS = ("panda", "iiwa14", "ur5e", "slim7", "light6")
+OWN_ARM_MODELS = ("delan", "tree_delan", "mlp", "white_box")
+# ... the arms' friction kinds (`systems.arms.FRICTION_KINDS`) and the excitation designs
+# (`data.excitation.DESIGNS`)
+OWN_ARM_FRICTION = ("none", "frictionloss", "coulomb_viscous")
+OWN_ARM_DESIGNS = ("fourier", "sinusoids", "point_to_point")

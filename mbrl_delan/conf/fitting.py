@@ -44,6 +44,8 @@ from mbrl_delan.data.arrays import SPLITS as ARRAY_SPLITS
 from mbrl_delan.data.arrays import VAL_BY, DerivativeSettings, save_arrays
 from mbrl_delan.data.buffer import check_finite
 from mbrl_delan.data.excitation import (
+    CENTRES,
+    DESIGNS,
     EXCITATION_FORMAT,
     ExcitationSettings,
     excitation_arrays,
@@ -73,9 +75,9 @@ from mbrl_delan.models.inverse import (
     DeLaNInverse,
     InverseDynamicsModel,
 )
-from mbrl_delan.models.rigid_body import WhiteBoxInverse
+from mbrl_delan.models.rigid_body import FRICTION_LAWS, WhiteBoxInverse
 from mbrl_delan.models.tangent_mlp import ACTIVATIONS as DELAN_ACTIVATIONS
-from mbrl_delan.systems.arms import ARMS, arm
+from mbrl_delan.systems.arms import ARMS, FRICTION_KINDS, arm, friction_kind
 from mbrl_delan.systems.system import HINGE, JOINT_TYPES
 from mbrl_delan.training.inverse_fit import (
     EpochResult,
@@ -99,11 +101,14 @@ from mbrl_delan.training.schedule import LearningRateStages, run_stages
 
 log = logging.getLogger(__name__)
 
+# ${stem:${data.robot}} in run-dir names: a shipped arm's name, or an MJCF file's stem
+OmegaConf.register_new_resolver("stem", lambda value: Path(str(value)).stem, replace=True)
+
 
 DATA_NAMES = ("cmu_mocap", "arrays", "excitation")
 
 
-FIT_MODELS = (*MODEL_NAMES, "white_box")  # the learned models and the identified rigid body
+FIT_MODELS = (*MODEL_NAMES, "tree_delan", "white_box")  # the learned, the tree's, the identified
 
 
 LR_SCHEDULES = ("constant", "cosine", "stages")
@@ -172,20 +177,24 @@ def _validate_model(cfg: DictConfig) -> None:
     if cfg.name == "white_box":
         check_number("model.prior_scale", cfg.prior_scale, 0.0, open_low=True)
         check_number("model.prior_weight", cfg.prior_weight, 0.0)
+        _choice("model.friction_law", cfg.get("friction_law", "auto"), ("auto", *FRICTION_LAWS))
         return
     check_number("model.hidden", cfg.hidden, 1)
-    if cfg.name == "delan":
+    if cfg.name in ("delan", "tree_delan"):
         check_number("model.layers", cfg.layers, 1)
         _choice("model.activation", cfg.activation, DELAN_ACTIVATIONS)
         check_number("model.diag_shift", cfg.diag_shift, 0.0, open_low=True)
         _flag("model.still_first_order", cfg.still_first_order)
-        _flag("model.tree_sparse", cfg.tree_sparse)
+        _flag("model.tree_sparse", cfg.get("tree_sparse", False))
         _flag("model.armature", cfg.get("armature", False))
         _flag("model.compile_fit", cfg.get("compile_fit", False))
     else:
         _choice("model.activation", cfg.activation, tuple(MLP_ACTIVATIONS))
     if cfg.name == "ensemble":
         check_number("model.ensemble_size", cfg.ensemble_size, 1)
+    if cfg.name == "tree_delan":
+        check_number("model.prior_scale", cfg.prior_scale, 0.0, open_low=True)
+        check_number("model.start_level", cfg.start_level, cfg.diag_shift, open_low=True)
 
 
 def _validate_arrays(cfg: DictConfig) -> None:
@@ -221,8 +230,16 @@ def _validate_split(cfg: DictConfig) -> None:
 
 
 def _validate_excitation(cfg: DictConfig) -> None:
-    _choice("data.robot", cfg.robot, tuple(ARMS))
-    _flag("data.friction", cfg.friction)
+    robot = cfg.robot
+    if not isinstance(robot, str) or (robot not in ARMS and not robot.endswith(".xml")):
+        raise ConfigError(f"data.robot={robot!r} is not valid; choose one of: "
+                          f"{', '.join(ARMS)}, or give an MJCF file (.xml)")  # fmt: skip
+    if not isinstance(cfg.friction, bool):
+        _choice("data.friction", cfg.friction, FRICTION_KINDS)
+    _choice("data.centres", cfg.get("centres", "middle"), CENTRES)
+    for key in ("design", "test_design"):
+        if key == "design" or cfg.get(key) is not None:
+            _choice(f"data.{key}", cfg.get(key), tuple(DESIGNS))
     check_whole("data.samples", cfg.samples, 1)
     check_whole("data.seed", cfg.seed, 0)
     check_number("data.period_s", cfg.period_s, 0.0, open_low=True)
@@ -231,6 +248,8 @@ def _validate_excitation(cfg: DictConfig) -> None:
     check_number("data.use", cfg.use, 0.0, 1.0, open_low=True)
     check_number("data.q_noise", cfg.q_noise, 0.0)
     check_number("data.tau_noise", cfg.tau_noise, 0.0)
+    if cfg.get("max_velocity") is not None:
+        check_number("data.max_velocity", cfg.max_velocity, 0.0, open_low=True)
     if cfg.get("test_seed") is not None:
         check_whole("data.test_seed", cfg.test_seed, 0)
         if cfg.test_seed == cfg.seed:
@@ -321,13 +340,14 @@ def validate_fit_config(cfg: DictConfig) -> None:
         _choice("logger.mode", cfg.logger.mode, WANDB_MODES)
     _validate_model(cfg.model)
     _validate_data(cfg.data)
-    if cfg.model.name == "white_box" and cfg.data.name == "arrays" and cfg.data.mjcf is None:
+    tree_models = ("white_box", "tree_delan")
+    if cfg.model.name in tree_models and cfg.data.name == "arrays" and cfg.data.mjcf is None:
         raise ConfigError(
-            "model=white_box needs the robot's kinematic tree: give data.mjcf=MODEL.xml"
+            f"model={cfg.model.name} needs the robot's kinematic tree: give data.mjcf=MODEL.xml"
         )
-    if cfg.model.name == "white_box" and cfg.data.name == "cmu_mocap":
+    if cfg.model.name in tree_models and cfg.data.name == "cmu_mocap":
         raise ConfigError(
-            "model=white_box fits arms (data=excitation or data=arrays data.mjcf=...)"
+            f"model={cfg.model.name} fits arms (data=excitation or data=arrays data.mjcf=...)"
         )
 
 
@@ -401,23 +421,50 @@ def make_inverse_data(cfg: DictConfig) -> InverseData:
         raise ConfigError(f"data.test_clips: {err}") from err
 
 
-def excitation_inverse_data(cfg: DictConfig) -> InverseData:
-    """A shipped arm's excitation data (`mbrl_delan.data.excitation`), fitted on the arm's
-    frictionless MJCF (its tree; no armature: the fit learns what the motors drive)."""
-    settings = ExcitationSettings(
+def excitation_settings(cfg: DictConfig, design: str | None = None) -> ExcitationSettings:
+    """`data=excitation`'s trajectory and measurement settings (`design`: another design)."""
+    return ExcitationSettings(
         samples=cfg.samples, period_s=cfg.period_s, harmonics=cfg.harmonics,
         rate_hz=cfg.rate_hz, use=cfg.use, q_noise=cfg.q_noise, tau_noise=cfg.tau_noise,
-        cutoff_hz=cfg.cutoff_hz,
+        cutoff_hz=cfg.cutoff_hz, design=design or cfg.get("design", "fourier"),
+        centres=cfg.get("centres", "middle"), max_velocity=cfg.get("max_velocity"),
     )  # fmt: skip
-    fields = excitation_arrays(cfg.robot, cfg.friction, settings, cfg.seed)
-    test_seed = cfg.get("test_seed")
-    source = {"format": EXCITATION_FORMAT, "robot": cfg.robot, "friction": cfg.friction,
-              "seed": cfg.seed, "test_seed": test_seed, "settings": asdict(settings)}  # fmt: skip
+
+
+def excitation_test_seed(cfg: DictConfig) -> int | None:
+    """The seed of `data=excitation`'s own test trajectories: ``data.test_seed``, else
+    ``data.seed + 1`` when ``data.test_design`` is set; None: the test split is drawn from
+    the training data's trajectories."""
+    if cfg.get("test_seed") is not None:
+        return int(cfg.test_seed)
+    return int(cfg.seed) + 1 if cfg.get("test_design") is not None else None
+
+
+def excitation_inverse_data(cfg: DictConfig) -> InverseData:
+    """An arm's excitation data (`mbrl_delan.data.excitation`; a shipped arm or an MJCF
+    file), fitted on the arm's frictionless MJCF (its tree; no armature: the fit learns what
+    the motors drive). With ``data.test_seed`` or ``data.test_design`` the test split is
+    trajectories of their own (`excitation_test_seed`, the test design), test_fraction x
+    samples of them."""
+    settings = excitation_settings(cfg)
+    friction = friction_kind(cfg.friction)
+    if cfg.robot not in ARMS and not Path(cfg.robot).is_file():
+        raise ConfigError(f"data.robot={cfg.robot!r}: no such MJCF file")
+    try:
+        fields = excitation_arrays(cfg.robot, friction, settings, cfg.seed)
+    except ValueError as err:  # a user MJCF that is not an arm, or without torque limits
+        raise ConfigError(f"data.robot={cfg.robot}: {err}") from err
+    test_seed = excitation_test_seed(cfg)
+    test_design = cfg.get("test_design") or settings.design
+    source = {"format": EXCITATION_FORMAT, "robot": cfg.robot, "friction": friction,
+              "seed": cfg.seed, "test_seed": test_seed, "settings": asdict(settings),
+              "test_design": test_design}  # fmt: skip
     test = None
-    if test_seed is not None:  # held-out trajectories of their own seed, test_fraction's size
-        size = replace(settings, samples=max(1, round(cfg.samples * cfg.split.test_fraction)))
-        test = (f"excitation test data of {cfg.robot}",
-                excitation_arrays(cfg.robot, cfg.friction, size, test_seed))  # fmt: skip
+    if test_seed is not None:
+        size = excitation_settings(cfg, test_design)
+        size = replace(size, samples=max(1, round(cfg.samples * cfg.split.test_fraction)))
+        test = (f"excitation test data of {cfg.robot} ({test_design})",
+                excitation_arrays(cfg.robot, friction, size, test_seed))  # fmt: skip
     return fields_inverse_data(
         f"excitation data of {cfg.robot}", fields, FitSystem.of(arm(cfg.robot).asset), source,
         val_fraction=cfg.split.val_fraction, test_fraction=cfg.split.test_fraction,
@@ -445,6 +492,7 @@ def build_system_model(cfg: DictConfig, system: FitSystem) -> InverseDynamicsMod
         cfg.get("friction_init"),
         cfg.get("coulomb"),
         cfg.get("coulomb_lead", False),
+        friction_kind(cfg.data.friction) if cfg.data.name == "excitation" else None,
     )
     return build_inverse_model(cfg.model, context)
 
@@ -677,7 +725,8 @@ def fit_summary(
         where = {"path": provenance["path"]} if "path" in provenance else {
             k: provenance[k] for k in ("robot", "friction", "seed")
         }  # fmt: skip
-        summary |= {**where, "trajectories": len(data.group_names)}
+        summary |= {**where, "trajectories": len(data.group_names),
+                    "splits": split_descriptions(provenance)}  # fmt: skip
     for name, part in summary["final"].items():
         part[data.group_kind] = group_errors(
             model, splits[name], data.groups[name], data.group_names, cfg.eval_batch_size
@@ -685,6 +734,9 @@ def fit_summary(
         summary[f"{name}_mse"] = part["mse"]
         summary[f"{name}_mse_si"] = part["mse_si"]
         summary[f"{name}_r2"] = part["r2"]
+    gap = generalisation_gap(summary["final"], cfg.stop_on)
+    if gap is not None:
+        summary["val_test_r2_gap"] = gap
     if isinstance(model, DeLaNInverse):
         q_all = torch.cat([td[keys.Q] for td in splits.values()])
         check = check_mass_matrix(model, q_all, cfg.eval_batch_size)
@@ -698,6 +750,41 @@ def fit_summary(
     if cfg.data.name == "excitation" and isinstance(model, DeLaNInverse | WhiteBoxInverse):
         summary["mass_matrix_error"] = _mass_matrix_errors(cfg.data, model, splits)  # the arm's
     return summary
+
+
+GAP_WARNING = 0.01  # a test R^2 this far below the validation split's is warned about
+
+
+def split_descriptions(provenance: dict[str, Any]) -> dict[str, str]:
+    """What each split of an arrays or excitation fit holds, in words (summary.json)."""
+    split = provenance.get("split", {})
+    whole = split.get("val_by", "trajectories") == "trajectories"
+    val = ("whole training trajectories" if whole
+           else "one contiguous segment of each training trajectory")  # fmt: skip
+    if "test" in provenance:
+        test = f"the trajectories of {provenance['test']['path']}"
+    elif provenance.get("test_seed") is not None:
+        test = (f"trajectories of their own (design {provenance.get('test_design', 'fourier')}, "
+                f"seed {provenance['test_seed']})")  # fmt: skip
+    else:
+        test = "whole trajectories of the data (with fewer than 3: the end of each one)"
+    return {"train": "the rest of the data's trajectories", "val": val, "test": test}
+
+
+def generalisation_gap(final: dict[str, Any], stop_on: str | None) -> float | None:
+    """R^2 of the split that stops training less the test split's (None without both); a
+    gap above `GAP_WARNING` is warned about: the validation error does not tell the
+    held-out one."""
+    if stop_on is None or stop_on not in final or "test" not in final:
+        return None
+    gap = final[stop_on]["r2"] - final["test"]["r2"]
+    if gap > GAP_WARNING:
+        log.warning(
+            "test R2 %.4f is %.4f below %s R2 %.4f: the model does not generalise to the held-"
+            "out data as %s says (more varied training data, or %s of whole trajectories)",
+            final["test"]["r2"], gap, stop_on, final[stop_on]["r2"], stop_on, stop_on,
+        )  # fmt: skip
+    return gap
 
 
 def _mass_matrix_errors(

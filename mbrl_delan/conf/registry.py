@@ -98,7 +98,9 @@ class Registry(Generic[T]):
         return iter(self.names())
 
     def names(self) -> tuple[str, ...]:
-        """The registered names, the package's own first, in registration order."""
+        """The registered names in registration order: a plugin imported before the first
+        lookup comes before the package's own, which are imported then (and the
+        entry points' plugins after them)."""
         self._load()
         return tuple(self._entries)
 

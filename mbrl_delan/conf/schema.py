@@ -27,6 +27,8 @@ from mbrl_delan.conf.bench_names import (
     FIDELITY_ENVS,
     HUMANOID_ORACLE_TASKS,
     ORACLE_PLANNERS,
+    OWN_ARM_DESIGNS,
+    OWN_ARM_FRICTION,
     OWN_ARM_ROBOTS,
     REALTIME_TASKS,
     SUITE_NAMES,
@@ -436,8 +438,10 @@ class BenchConfig:
     env: str | None = rule(None, choices=FIDELITY_ENVS)  # suite fidelity: its env
     save_models: str | None = None  # suite fidelity: keep each fitted case in <this>/<case>_s<seed>
     robots: list[str] | None = rule(None, choices=OWN_ARM_ROBOTS)  # suite own_arm
-    friction: list[bool] | None = None  # suite own_arm: the arms without/with joint friction
+    friction: list[str] | None = rule(None, choices=OWN_ARM_FRICTION)  # suite own_arm
     samples: list[int] | None = rule(None, low=1)  # suite own_arm: training-set sizes
+    designs: list[str] | None = rule(None, choices=OWN_ARM_DESIGNS)  # suite own_arm: training
+    test_designs: list[str] | None = rule(None, choices=OWN_ARM_DESIGNS)  # ... and test
 
 
 def store_schemas(store: ConfigStore) -> None:

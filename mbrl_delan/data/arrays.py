@@ -321,7 +321,7 @@ def split_trajectories(
     val_fraction: float,
     test_fraction: float,
     seed: int,
-    val_by: str = "segments",
+    val_by: str = "trajectories",
 ) -> dict[str, torch.Tensor]:
     """Boolean masks (N,) of the ``train``, ``val`` and ``test`` samples for trajectory ids
     (N,) or (N, 1).

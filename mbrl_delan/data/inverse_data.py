@@ -186,7 +186,7 @@ def array_inverse_data(
     val_fraction: float = 0.1,
     test_fraction: float = 0.2,
     seed: int = 0,
-    val_by: str = "segments",
+    val_by: str = "trajectories",
     test_path: str | Path | None = None,
 ) -> InverseData:
     """Logged arrays (`mbrl_delan.data.arrays`) on the joints of `system`, split by
@@ -217,7 +217,7 @@ def fields_inverse_data(
     val_fraction: float = 0.1,
     test_fraction: float = 0.2,
     seed: int = 0,
-    val_by: str = "segments",
+    val_by: str = "trajectories",
     test: tuple[str | Path, dict[str, Any]] | None = None,
 ) -> InverseData:
     """Arrays' fields in memory (the schema of `mbrl_delan.data.arrays`; `origin` in errors)

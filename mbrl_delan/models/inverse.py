@@ -60,6 +60,7 @@ from mbrl_delan.models.features import QFeatures
 from mbrl_delan.models.field import LagrangianNetwork
 from mbrl_delan.models.lagrangian import LagrangianDynamics
 from mbrl_delan.models.structure import Structure
+from mbrl_delan.models.tree import RigidBodyTree, TreeDynamics
 from mbrl_delan.systems.system import JointLayout
 
 MODEL_NAMES = ("delan", "mlp", "ensemble")
@@ -256,7 +257,10 @@ class DeLaNInverse(InverseDynamicsModel):
 
     The mechanics is a `DeLaN` with actuation B = I (its action is tau), ``loss="inverse"``,
     and its `structure` with ``inertia_scaling`` and ``diagonal_init`` on; the loss is
-    `InverseDynamicsModel`'s.
+    `InverseDynamicsModel`'s. With a `tree` (the robot's known kinematic tree with learned
+    inertias, `RigidBodyTree`), DeLaN's networks are a residual Lagrangian beside the tree's
+    rigid body (`TreeDynamics`: M = M_tree + M_res, c, g and the friction the tree's plus the
+    residual's).
 
     Args:
         layout: joint layout (a free root gets the Euler-Poincare term).
@@ -264,6 +268,7 @@ class DeLaNInverse(InverseDynamicsModel):
         std_floor: see `InverseDynamicsModel`.
         control_dt: DeLaN's step (s); only used for finite-difference accelerations when the
             data lack ``qdd`` (humanoid_CMU's timestep by default).
+        tree: the known tree under DeLaN (None: DeLaN alone).
     """
 
     def __init__(
@@ -272,17 +277,19 @@ class DeLaNInverse(InverseDynamicsModel):
         structure: Structure | None = None,
         std_floor: float = 1e-3,
         control_dt: float = 0.002,
+        tree: RigidBodyTree | None = None,
     ) -> None:
         super().__init__(layout.nv, std_floor)
         structure = replace(
             structure or INVERSE_STRUCTURE, inertia_scaling=True, diagonal_init=True
         )
         self.delan = DeLaN(
-            layout, torch.eye(layout.nv), control_dt=control_dt, structure=structure, loss="inverse"
-        )
+            layout, torch.eye(layout.nv), control_dt=control_dt, structure=structure,
+            loss="inverse", tree=tree, tree_residual=tree is not None,
+        )  # fmt: skip
 
     @property
-    def dynamics(self) -> LagrangianDynamics:
+    def dynamics(self) -> LagrangianDynamics | TreeDynamics:
         return self.delan.dynamics
 
     @property
@@ -294,14 +301,39 @@ class DeLaNInverse(InverseDynamicsModel):
         return self.dynamics.inverse_dynamics(q, qd, qdd)  # (..., nv)
 
     def mass_matrix_cholesky(self, q: Tensor) -> Tensor:
-        """The learned factor L (M = L L^T [+ armature], units included; triangular) at q
-        (..., nq): (..., nv, nv)."""
+        """The factor L of the learned M at q (..., nq): DeLaN's own (M = L L^T [+ armature],
+        units included; triangular), or on a tree the Cholesky factor of the whole M.
+        (..., nv, nv)"""
+        if isinstance(self.dynamics, TreeDynamics):
+            return torch.linalg.cholesky(self.mass_matrix(q))
         qd = q.new_zeros(q.shape[:-1] + (self.nv,))
         return self.mechanics.jet(q, qd).L
 
     def mass_matrix(self, q: Tensor) -> Tensor:
-        """The learned M(q) = L L^T (+ the known armature): (..., nv, nv)."""
+        """The learned M(q) (DeLaN's L L^T with the known armature, or the tree's M plus the
+        residual's): (..., nv, nv)."""
+        if isinstance(self.dynamics, TreeDynamics):
+            return self.dynamics.mass_and_bias(q, q.new_zeros(q.shape[:-1] + (self.nv,)))[0]
         L = self.mass_matrix_cholesky(q)
+        return self.dynamics.with_armature(L @ L.transpose(-1, -2))
+
+    def friction_torque(self, qd: Tensor) -> Tensor:
+        """The learned joint friction at qd of a fixed-base robot: the tree's damping and
+        DeLaN's dissipation, viscous and Coulomb (its lead left out). (..., nv)"""
+        dynamics = self.dynamics
+        force = torch.zeros_like(qd)
+        if isinstance(dynamics, TreeDynamics):
+            force = force + dynamics.tree.damping.to(qd) * qd
+        if dynamics.dissipation is not None:
+            force = force + dynamics.dissipation(qd)
+        return force
+
+    def mass_matrix_float64(self, q: Tensor) -> Tensor:
+        """M(q) formed in float64 (DeLaN's from its factor L, so float32 round-off does not
+        limit checks of ill-conditioned matrices). (..., nv, nv)"""
+        if isinstance(self.dynamics, TreeDynamics):
+            return self.mass_matrix(q).to(torch.float64)
+        L = self.mass_matrix_cholesky(q).to(torch.float64)
         return self.dynamics.with_armature(L @ L.transpose(-1, -2))
 
     @torch.no_grad()

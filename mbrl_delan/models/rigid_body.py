@@ -9,8 +9,10 @@ robot identification rests on:
 
 with pi = [m, h_x, h_y, h_z, I_xx, I_yy, I_zz, I_xy, I_xz, I_yz] a body's mass, first moment
 (mass times centre of mass) and rotational inertia about its frame's origin, in its frame;
-per DoF b (viscous, column qd), f (Coulomb, column sign qd: `friction_damping`) and a
-(armature, column qdd).
+per DoF b (viscous, column qd), f (Coulomb) and a (armature, column qdd). The Coulomb column
+is the friction law's direction (`FRICTION_LAWS`): ``coulomb_viscous``, a real joint's
+f sign(qd); ``frictionloss``, MuJoCo's soft constraint, whose force opposes qdd + b' qd
+(`friction_damping`) and is f only once saturated.
 `regressor` takes Y from MuJoCo: torque is affine in each pi, so a column is the change of
 `mj_inverse`'s torque when one parameter moves (exact to round-off).
 
@@ -22,8 +24,10 @@ body's pseudo-inertia ``J = [[tr(I)/2 1 - I, h], [h^T, m]]``: J positive definit
 consistency (positive mass, inertia about the centre of mass positive definite and
 satisfying the triangle inequalities). Friction and armature are bounded below by zero.
 
-Predictions are MuJoCo's own: `mj_inverse` on the MJCF with the identified numbers (Coulomb
-friction as MuJoCo's ``frictionloss``).
+Predictions use the law the fit identified: `mj_inverse` on the MJCF with the identified
+inertials, damping and armature, plus f sign(qd) (``coulomb_viscous``), or with f as MuJoCo's
+``frictionloss`` (``frictionloss``: only for data made by that constraint). The forward
+dynamics (`acceleration`) is the same law solved for qdd, so forward(inverse) is the identity.
 """
 
 from __future__ import annotations
@@ -56,6 +60,7 @@ N_INERTIAL = 10  # pi per body
 LENGTH = 0.1  # m, the length unit of a body's parameter scales (first moment, inertia)
 FD_STEP = 1e-4  # a regressor column's step, a share of the parameter's scale
 BOUND = 1e6  # |theta|, friction and armature: far beyond any arm's
+FRICTION_LAWS = ("coulomb_viscous", "frictionloss")  # the Coulomb force's law (module docstring)
 
 
 # ---------------------------------------------------------------- the regressor
@@ -103,12 +108,33 @@ def inverse_torques(
     return out
 
 
+def data_friction_law(kind: str | None) -> str:
+    """The Coulomb law of data made with friction `kind` (`systems.arms.FRICTION_KINDS`;
+    None: unknown, a robot's logs): MuJoCo's soft constraint only for data it made."""
+    return "frictionloss" if kind == "frictionloss" else "coulomb_viscous"
+
+
+def coulomb_direction(
+    model: mujoco.MjModel, qd: np.ndarray, qdd: np.ndarray, law: str
+) -> np.ndarray:
+    """The unit Coulomb force's direction under `law` (`FRICTION_LAWS`): sign(qd), or the
+    saturated direction sign(qdd + b qd) of MuJoCo's soft ``frictionloss``. (N, nv)"""
+    if law == "frictionloss":
+        return np.sign(qdd + friction_damping(model) * qd)
+    return np.sign(qd)
+
+
 def regressor(
-    model: mujoco.MjModel, bodies: list[int], q: np.ndarray, qd: np.ndarray, qdd: np.ndarray
+    model: mujoco.MjModel,
+    bodies: list[int],
+    q: np.ndarray,
+    qd: np.ndarray,
+    qdd: np.ndarray,
+    law: str = "coulomb_viscous",
 ) -> np.ndarray:
     """Y with tau = Y p (module docstring) along states (N, nq), (N, nv), (N, nv), taken by
-    differences of MuJoCo's inverse dynamics about `model`'s own inertials.
-    -> (N, nv, 10 B + 3 nv)"""
+    differences of MuJoCo's inverse dynamics about `model`'s own inertials; the Coulomb
+    column by `law`. -> (N, nv, 10 B + 3 nv)"""
     rigid = rigid_body_model(model)
     base = inverse_torques(rigid, q, qd, qdd)
     scales = parameter_scales(model, bodies)
@@ -121,7 +147,7 @@ def regressor(
             columns.append((inverse_torques(rigid, q, qd, qdd) - base) / step)
         set_inertial_parameters(rigid, body, pi)
     eye = np.eye(model.nv)
-    coulomb = np.sign(qdd + friction_damping(model) * qd)
+    coulomb = coulomb_direction(model, qd, qdd, law)
     friction = [eye * x[:, None, :] for x in (qd, coulomb, qdd)]  # each (N, nv, nv)
     return np.concatenate([np.stack(columns, -1), *friction], -1)
 
@@ -208,6 +234,7 @@ class WhiteBoxInverse(InverseDynamicsModel):
         prior_scale: the prior's share of the MJCF's inertials (a documented wrong start).
         prior_weight: the ridge toward the prior (`identify_parameters`).
         std_floor: see `InverseDynamicsModel`.
+        friction_law: the Coulomb force's law, identified and predicted (`FRICTION_LAWS`).
     """
 
     def __init__(
@@ -216,13 +243,17 @@ class WhiteBoxInverse(InverseDynamicsModel):
         prior_scale: float = 0.5,
         prior_weight: float = 1e-6,
         std_floor: float = 1e-3,
+        friction_law: str = "coulomb_viscous",
     ) -> None:
         super().__init__(model.nv, std_floor)
         if prior_scale <= 0 or prior_weight < 0:
             raise ValueError(
                 f"need prior_scale > 0, prior_weight >= 0: {prior_scale}, {prior_weight}"
             )
+        if friction_law not in FRICTION_LAWS:
+            raise ValueError(f"friction_law {friction_law!r}: one of {', '.join(FRICTION_LAWS)}")
         self.prior_weight = prior_weight
+        self.friction_law = friction_law
         self.bodies = moving_bodies(model)
         prior = prior_scale * np.stack([inertial_parameters(model, b) for b in self.bodies])
         self._model = _copy(model)
@@ -238,7 +269,8 @@ class WhiteBoxInverse(InverseDynamicsModel):
         for body, pi in zip(self.bodies, self.inertials.cpu().numpy(), strict=True):
             set_inertial_parameters(model, body, pi)
         model.dof_damping[:] = self.viscous.cpu().numpy()
-        model.dof_frictionloss[:] = self.coulomb.cpu().numpy()
+        soft = self.friction_law == "frictionloss"
+        model.dof_frictionloss[:] = self.coulomb.cpu().numpy() if soft else 0.0
         model.dof_armature[:] = self.armature.cpu().numpy()
         mujoco.mj_setConst(model, self._data)
         return model
@@ -251,7 +283,7 @@ class WhiteBoxInverse(InverseDynamicsModel):
                            for k in (keys.Q, keys.QD, keys.QDD, keys.TAU))  # fmt: skip
         prior = self.prior.cpu().numpy()
         start = _with_inertials(self._model, self.bodies, prior)
-        Y = regressor(start, self.bodies, q, qd, qdd)
+        Y = regressor(start, self.bodies, q, qd, qdd, self.friction_law)
         found = identify_parameters(
             Y, tau, self.tau_scale.to("cpu", torch.float64).numpy(), prior,
             parameter_scales(start, self.bodies), self.prior_weight,
@@ -264,8 +296,34 @@ class WhiteBoxInverse(InverseDynamicsModel):
         lead = qd.shape[:-1]
         arrays = [x.detach().reshape(-1, x.shape[-1]).to("cpu", torch.float64).numpy()
                   for x in (q, qd, qdd)]  # fmt: skip
-        tau = inverse_torques(self.mujoco_model(), *arrays)
+        tau = inverse_torques(self.mujoco_model(), *arrays) + self._sign_coulomb(arrays[1])
         return torch.as_tensor(tau).to(qd).reshape(*lead, self.nv)
+
+    def _sign_coulomb(self, qd: np.ndarray) -> np.ndarray:
+        """f sign(qd) of the ``coulomb_viscous`` law (zero under ``frictionloss``, whose
+        force is in the MJCF). (N, nv)"""
+        if self.friction_law == "frictionloss":
+            return np.zeros_like(qd)
+        return self.coulomb.cpu().numpy() * np.sign(qd)
+
+    @torch.no_grad()
+    def acceleration(self, q: Tensor, qd: Tensor, tau: Tensor) -> Tensor:
+        """The forward dynamics of the same model: qdd with `predict_torque(q, qd, qdd)` =
+        tau (MuJoCo's forward dynamics of the identified MJCF under tau, less f sign(qd) for
+        ``coulomb_viscous``). (..., nv)"""
+        lead = qd.shape[:-1]
+        q_, qd_, tau_ = (x.reshape(-1, x.shape[-1]).to("cpu", torch.float64).numpy()
+                         for x in (q, qd, tau))  # fmt: skip
+        model = self.mujoco_model()
+        applied = tau_ - self._sign_coulomb(qd_)
+        out = np.zeros_like(qd_)
+        for i in range(q_.shape[0]):
+            self._data.qpos[:], self._data.qvel[:] = q_[i], qd_[i]
+            self._data.qfrc_applied[:] = applied[i]
+            mujoco.mj_forward(model, self._data)
+            out[i] = self._data.qacc
+        self._data.qfrc_applied[:] = 0.0
+        return torch.as_tensor(out).to(qd).reshape(*lead, self.nv)
 
     def friction_torque(self, q: Tensor, qd: Tensor, qdd: Tensor) -> Tensor:
         """The joints' friction in the predicted torque (viscous and Coulomb): (..., nv)."""
@@ -301,6 +359,7 @@ class WhiteBoxInverse(InverseDynamicsModel):
         names = [model.body(b).name or f"body{b}" for b in self.bodies]
         return {
             "physically_consistent": self.consistent(),
+            "friction_law": self.friction_law,
             "mass": dict(zip(names, model.body_mass[self.bodies].tolist(), strict=True)),
             "com": dict(zip(names, model.body_ipos[self.bodies].tolist(), strict=True)),
             **{k: getattr(self, k).tolist() for k in ("viscous", "coulomb", "armature")},

@@ -1,35 +1,58 @@
-"""Real arms shipped with the package, for fitting a robot from its own data.
+"""Arms to fit from their own data: the shipped ones, or any hinge/slide MJCF of a user's.
 
-`ARMS` names the project's MJCF files of the Franka Emika Panda (7 DoF), the KUKA LBR
-iiwa 14 (7) and the Universal Robots UR5e (6) (`systems/assets/`: published kinematics and
-link inertials, capsules for meshes, contacts off, torque motors at the joints' limits) with
-each joint's velocity limit. `arm_model(robot, friction=True)` is the same arm with joint
-friction and rotor inertia, each a share of the joint's torque limit (`FRICTION`): viscous
-damping (MuJoCo's `damping`), Coulomb friction (`frictionloss`) and armature.
+`ARMS` names the project's MJCF files (`systems/assets/`: capsules for meshes, contacts off,
+torque motors at the joints' limits) with each joint's velocity limit:
+
+- the Franka Emika Panda (7 DoF), the KUKA LBR iiwa 14 (7) and the Universal Robots UR5e
+  (6), with their published kinematics and link inertials;
+- ``slim7``, a 7-DoF arm whose three roll joints (upper arm, forearm, flange) have a few
+  1e-4 kg m^2 of inertia about their axes, and ``light6``, a light 6-DoF arm (4.6 kg).
+
+`arm(robot)` takes a shipped name or an MJCF file's path; a file's velocity limits are
+`DEFAULT_VELOCITY` unless given. `arm_model(robot, friction)` is the arm with joint friction
+and rotor inertia of the kind `friction` names (`FRICTION_KINDS`), each a share of the
+joint's torque limit (`FRICTION`):
+
+- ``none``: no friction, no armature;
+- ``frictionloss``: viscous damping (MuJoCo's ``damping``), Coulomb friction as MuJoCo's
+  soft ``frictionloss`` constraint, and armature;
+- ``coulomb_viscous``: viscous damping and armature in the model; the Coulomb force
+  f sign(qd) of a real joint is not MuJoCo's and comes from `coulomb_friction` (the data's
+  torques add it: `mbrl_delan.data.excitation`).
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
+from pathlib import Path
 
 import mujoco
 import numpy as np
 
 from mbrl_delan.systems.system import asset_path
 
+log = logging.getLogger(__name__)
+
+FRICTION_KINDS = ("none", "frictionloss", "coulomb_viscous")
+DEFAULT_VELOCITY = {"hinge": 2.0, "slide": 0.5}  # rad/s, m/s: a user MJCF's joints, if not given
+
 
 @dataclass(frozen=True)
 class Arm:
-    """A shipped arm: its asset's stem and each joint's velocity limit (rad/s)."""
+    """An arm: its shipped asset's stem or an MJCF file, and each joint's velocity limit
+    (rad/s or m/s; None: `DEFAULT_VELOCITY` by joint type)."""
 
     asset: str
-    max_velocity: tuple[float, ...]
+    max_velocity: tuple[float, ...] | None = None
 
 
 ARMS = {
     "panda": Arm("panda", (2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61)),
     "iiwa14": Arm("iiwa14", (1.483, 1.483, 1.745, 1.309, 2.269, 2.356, 2.356)),
     "ur5e": Arm("ur5e", (3.1416,) * 6),
+    "slim7": Arm("slim7", (2.0, 2.0, 3.0, 2.5, 3.5, 3.5, 4.0)),
+    "light6": Arm("light6", (3.1416,) * 6),
 }
 
 
@@ -45,33 +68,110 @@ class Friction:
 FRICTION = Friction()
 
 
+def friction_kind(value: str | bool) -> str:
+    """A friction setting as one of `FRICTION_KINDS`; true and false (the setting before
+    there were kinds, in saved runs) read as ``frictionloss`` and ``none``."""
+    if isinstance(value, bool):
+        return "frictionloss" if value else "none"
+    if value not in FRICTION_KINDS:
+        raise ValueError(f"friction {value!r}: choose one of {', '.join(FRICTION_KINDS)}")
+    return value
+
+
 def arm(robot: str) -> Arm:
-    """The shipped arm named `robot`; ValueError naming the known ones otherwise."""
-    if robot not in ARMS:
-        raise ValueError(f"robot={robot!r} is not a shipped arm; choose one of: {', '.join(ARMS)}")
-    return ARMS[robot]
+    """The shipped arm named `robot`, or the arm of an MJCF file (a path ending in .xml);
+    ValueError naming the known arms, FileNotFoundError for a missing file."""
+    if robot in ARMS:
+        return ARMS[robot]
+    if robot.endswith(".xml"):
+        if not Path(robot).is_file():
+            raise FileNotFoundError(f"robot MJCF file not found: {robot}")
+        return Arm(str(Path(robot).resolve()))
+    raise ValueError(
+        f"robot={robot!r} is neither a shipped arm ({', '.join(ARMS)}) nor an MJCF file (.xml)"
+    )
+
+
+def _asset(entry: Arm) -> Path:
+    return Path(entry.asset) if entry.asset.endswith(".xml") else asset_path(entry.asset)
 
 
 def torque_limits(model: mujoco.MjModel) -> np.ndarray:
-    """Each DoF's largest motor torque (N m): |gear| x the control bound. (nv,)"""
+    """Each DoF's largest motor torque (N m): |gear| x the control bound of the joint motors
+    driving it; inf for a DoF no control-limited motor drives. (nv,)"""
     limits = np.zeros(model.nv)
+    driven = np.zeros(model.nv, dtype=bool)
     for a in range(model.nu):
+        if int(model.actuator_trntype[a]) != int(mujoco.mjtTrn.mjTRN_JOINT):
+            continue
         dof = model.jnt_dofadr[model.actuator_trnid[a, 0]]
-        bound = np.abs(model.actuator_ctrlrange[a]).max()
-        limits[dof] = abs(model.actuator_gear[a, 0]) * bound
+        if not model.actuator_ctrllimited[a]:
+            limits[dof] = np.inf
+        else:
+            bound = np.abs(model.actuator_ctrlrange[a]).max()
+            limits[dof] += abs(model.actuator_gear[a, 0]) * bound
+        driven[dof] = True
+    limits[~driven] = np.inf
     return limits
 
 
-def arm_model(robot: str, friction: bool = False, law: Friction = FRICTION) -> mujoco.MjModel:
-    """The arm's MjModel; with `friction`, each joint's damping, frictionloss and armature
-    set to `law`'s shares of its torque limit."""
-    spec = mujoco.MjSpec.from_file(str(asset_path(arm(robot).asset)))
-    if friction:
-        limits = torque_limits(spec.compile())
-        for joint, limit in zip(spec.joints, limits, strict=True):
-            damping = np.array(joint.damping)  # linear, then MuJoCo's polynomial terms
-            damping[0] = law.viscous * limit
-            joint.damping = damping
-            joint.frictionloss = law.coulomb * limit
-            joint.armature = law.armature * limit
+def velocity_limits(model: mujoco.MjModel, robot: str) -> np.ndarray:
+    """Each joint's velocity limit (nv,): the arm's, else `DEFAULT_VELOCITY` by type."""
+    given = arm(robot).max_velocity
+    if given is not None:
+        return np.array(given, dtype=float)
+    hinge = model.jnt_type == int(mujoco.mjtJoint.mjJNT_HINGE)
+    return np.where(hinge, DEFAULT_VELOCITY["hinge"], DEFAULT_VELOCITY["slide"])
+
+
+def check_arm(model: mujoco.MjModel, robot: str) -> None:
+    """ValueError unless every joint of `model` is a hinge or a slide with one DoF."""
+    allowed = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+    for j in range(model.njnt):
+        if int(model.jnt_type[j]) not in allowed:
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"#{j}"
+            kind = mujoco.mjtJoint(model.jnt_type[j]).name.removeprefix("mjJNT_").lower()
+            raise ValueError(f"{robot}: joint {name} is a {kind} joint; an arm's joints must "
+                             "be hinges or slides")  # fmt: skip
+    if model.nv == 0:
+        raise ValueError(f"{robot}: the model has no joints")
+
+
+def arm_model(
+    robot: str, friction: str | bool = "none", law: Friction = FRICTION
+) -> mujoco.MjModel:
+    """The arm's MjModel; with friction (module docstring), each joint's damping, armature
+    and (``frictionloss``) frictionloss set to `law`'s shares of its torque limit."""
+    kind = friction_kind(friction)
+    spec = mujoco.MjSpec.from_file(str(_asset(arm(robot))))
+    model = spec.compile()
+    check_arm(model, robot)
+    if kind == "none":
+        return model
+    limits = _finite_limits(model, robot, kind)
+    for joint, limit in zip(spec.joints, limits, strict=True):
+        damping = np.array(joint.damping)  # linear, then MuJoCo's polynomial terms
+        damping[0] = law.viscous * limit
+        joint.damping = damping
+        joint.frictionloss = law.coulomb * limit if kind == "frictionloss" else 0.0
+        joint.armature = law.armature * limit
     return spec.compile()
+
+
+def coulomb_friction(robot: str, friction: str | bool, law: Friction = FRICTION) -> np.ndarray:
+    """Each DoF's Coulomb force f of ``coulomb_viscous`` friction (tau += f sign(qd)); zeros
+    for the other kinds, whose Coulomb friction (if any) is in the MjModel. (nv,)"""
+    model = arm_model(robot)
+    if friction_kind(friction) != "coulomb_viscous":
+        return np.zeros(model.nv)
+    return law.coulomb * _finite_limits(model, robot, "coulomb_viscous")
+
+
+def _finite_limits(model: mujoco.MjModel, robot: str, kind: str) -> np.ndarray:
+    limits = torque_limits(model)
+    if not np.isfinite(limits).all():
+        free = [mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, int(j)) or f"#{j}"
+                for j in model.dof_jntid[~np.isfinite(limits)]]  # fmt: skip
+        raise ValueError(f"{robot}: friction={kind} is set from each joint's torque limit, and "
+                         f"joints {free} have no control-limited motor")  # fmt: skip
+    return limits

@@ -191,15 +191,14 @@ def evaluate_torques(
 def check_mass_matrix(model: DeLaNInverse, q: Tensor, batch_size: int = 1024) -> MassMatrixCheck:
     """Cholesky (``torch.linalg.cholesky_ex``) of the learned M at every q (N, nq).
 
-    M = L L^T (+ the known armature) is formed in float64 from the learned factor, so the
-    check is not limited by float32 round-off of ill-conditioned matrices.
+    M is formed in float64 (`DeLaNInverse.mass_matrix_float64`: DeLaN's from its learned
+    factor), so the check is not limited by float32 round-off of ill-conditioned matrices.
     """
     model.eval()
     ok, count = 0, 0
     min_eig, max_cond = math.inf, 0.0
     for idx in batches(q.shape[0], batch_size, None):
-        L = model.mass_matrix_cholesky(q[idx.to(q.device)]).to(F64)  # (B, nv, nv)
-        M = model.dynamics.with_armature(L @ L.transpose(-1, -2))
+        M = model.mass_matrix_float64(q[idx.to(q.device)])  # (B, nv, nv)
         info = torch.linalg.cholesky_ex(M).info  # (B,) 0 where M is positive definite
         ok += int((info == 0).sum())
         count += int(info.numel())

@@ -1,0 +1,66 @@
+"""Fit's `model=tree_delan`: DeLaN with the arm's known kinematic tree under it. The tree's
+M is MuJoCo's (linear in the inertials: the start's share of `mj_fullM`), the fitted model
+is positive definite, reloads to the same torques, and needs an MJCF."""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from mbrl_delan import keys
+from mbrl_delan.conf.checks import ConfigError, compose_config
+from mbrl_delan.conf.fitting import (
+    FIT_CONFIG_DIR,
+    _run,
+    build_system_model,
+    load_fit_model,
+    make_inverse_data,
+)
+from mbrl_delan.models.inverse import DeLaNInverse
+from mbrl_delan.models.tree import TreeDynamics
+from mbrl_delan.systems.arms import arm_model
+
+SMALL = ["data=excitation", "data.robot=ur5e", "data.samples=1000", "model=tree_delan",
+         "logger=none", "epochs=2", "model.hidden=16", "threads=1"]  # fmt: skip
+
+
+def test_the_trees_mass_matrix_is_mujocos_at_the_starts_share() -> None:
+    cfg = compose_config(FIT_CONFIG_DIR, [*SMALL, "model.prior_scale=0.5"])
+    data = make_inverse_data(cfg.data)
+    model = build_system_model(cfg, data.system).double()
+    assert isinstance(model, DeLaNInverse) and isinstance(model.dynamics, TreeDynamics)
+    q = data.splits["train"][keys.Q][::100]
+    with torch.no_grad():
+        tree = model.dynamics.tree.mass_matrix(q).numpy()
+    truth = arm_model("ur5e")
+    mj = mujoco.MjData(truth)
+    for qi, mi in zip(q.numpy(), tree, strict=True):
+        mj.qpos[:] = qi
+        mujoco.mj_forward(truth, mj)
+        full = np.zeros((6, 6))
+        mujoco.mj_fullM(truth, mj, full)
+        np.testing.assert_allclose(mi, 0.5 * full, rtol=1e-6, atol=1e-6)
+
+
+def test_a_tree_delan_fit_is_positive_definite_and_reloads(tmp_path) -> None:
+    summary, model = _run(compose_config(FIT_CONFIG_DIR, SMALL), tmp_path / "run")
+    assert summary["model"] == "tree_delan" and summary["positive_definite_fraction"] == 1.0
+    assert 0 < summary["mass_matrix_error"]["test"] < 1
+    _, again = load_fit_model(tmp_path / "run")
+    q = torch.randn(5, 6, dtype=torch.float64)
+    qd, qdd = torch.randn_like(q), torch.randn_like(q)
+    with torch.no_grad():
+        torch.testing.assert_close(again.predict_torque(q, qd, qdd),
+                                   model.predict_torque(q, qd, qdd))  # fmt: skip
+
+
+def test_tree_delan_without_a_model_file_is_a_config_error(tmp_path) -> None:
+    path = tmp_path / "d.npz"
+    np.savez(path, q=np.zeros((4, 2)), qd=np.zeros((4, 2)), tau=np.zeros((4, 2)), dt=0.01)
+    overrides = ["data=arrays", f"data.path={path}", "data.joints=[hinge,hinge]",
+                 "model=tree_delan", "logger=none"]  # fmt: skip
+    with pytest.raises(ConfigError, match="model=tree_delan needs the robot's kinematic tree"):
+        _run(compose_config(FIT_CONFIG_DIR, overrides), tmp_path / "run")
+    assert not (tmp_path / "run").exists()
