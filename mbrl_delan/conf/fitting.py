@@ -237,9 +237,9 @@ def _validate_excitation(cfg: DictConfig) -> None:
     if not isinstance(cfg.friction, bool):
         _choice("data.friction", cfg.friction, FRICTION_KINDS)
     _choice("data.centres", cfg.get("centres", "middle"), CENTRES)
-    for key in ("design", "test_design"):
-        if key == "design" or cfg.get(key) is not None:
-            _choice(f"data.{key}", cfg.get(key), tuple(DESIGNS))
+    _choice("data.design", cfg.get("design", "fourier"), tuple(DESIGNS))
+    if cfg.get("test_design") is not None:
+        _choice("data.test_design", cfg.test_design, tuple(DESIGNS))
     check_whole("data.samples", cfg.samples, 1)
     check_whole("data.seed", cfg.seed, 0)
     check_number("data.period_s", cfg.period_s, 0.0, open_low=True)

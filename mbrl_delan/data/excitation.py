@@ -89,11 +89,6 @@ class Excitation:
     qd: np.ndarray
     qdd: np.ndarray
 
-    def inner(self, pad: int) -> Excitation:
-        """The trajectories without `pad` samples at either end."""
-        cut = slice(pad, self.t.size - pad)
-        return Excitation(self.t[cut], self.q[:, cut], self.qd[:, cut], self.qdd[:, cut])
-
 
 @dataclass(frozen=True)
 class _Limits:
