@@ -10,21 +10,27 @@ from __future__ import annotations
 import typing
 from dataclasses import fields, is_dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from mbrl_delan import train as train_module
+from mbrl_delan.conf.builders import build_planner
 from mbrl_delan.conf.checks import (
     COMPOSE_ERRORS,
     CONFIG_DIR,
     ConfigError,
+    compose_config,
     config_error_line,
+    exit_on_config_errors,
     migrate,
     validate_train_config,
 )
 from mbrl_delan.conf.schema import MODEL_SCHEMAS, PLANNER_SCHEMAS, TrainConfig
+from mbrl_delan.envs import make_env_parts
 
 CONFIGS = str(CONFIG_DIR)
 
@@ -151,13 +157,33 @@ def test_the_command_exits_2_and_writes_nothing(override: str, tmp_path: Path, r
     assert not run_dir.exists()  # no run folder, no crash.json
 
 
-def test_a_key_under_a_null_node_is_one_line_and_writes_nothing(tmp_path: Path, run_main) -> None:
-    """env.task.clip belongs to env=cmu_track; elsewhere env.task is null: one line naming the
-    override, exit 2, no folder (OmegaConf alone fails with a bare AssertionError)."""
+def test_a_key_under_a_null_node_is_one_line(caplog) -> None:
+    """OmegaConf fails with a bare AssertionError where an override's key lies under a typed
+    node that is null (a schema's ``dict | None`` field, as a user's may have): one line
+    naming the override, exit 2."""
+
+    def _apply_overrides_to_config() -> None:  # Hydra's function's name, its local `override`
+        override = SimpleNamespace(input_line="model.options.depth=3")  # noqa: F841
+        raise AssertionError("Unexpected type for root: NoneType")
+
+    with pytest.raises(SystemExit) as exited:
+        exit_on_config_errors(_apply_overrides_to_config)
+    assert exited.value.code == 2
+    assert caplog.messages == [
+        "config error: model.options.depth=3: a node on its path is null in this config (it "
+        "is set only for another choice of its config group)"
+    ]
+
+
+def test_a_task_option_another_env_takes_is_one_line_and_writes_nothing(
+    tmp_path: Path, run_main
+) -> None:
+    """env.task.clip belongs to env=cmu_track: on the pendulum it is one line naming the env
+    and the options it takes, exit 2, no folder."""
     run_dir = tmp_path / "run"
     code, text = run_main(train_module.main, "env.task.clip=02_01", f"hydra.run.dir={run_dir}")
     assert code == 2 and "Traceback" not in text, text
-    assert "config error: env.task.clip=02_01: a node on its path is null" in text, text
+    assert "env 'pendulum' takes no task option clip (it takes: none)" in text, text
     assert len(text.strip().splitlines()) <= 3, text
     assert not run_dir.exists()
 
@@ -173,3 +199,21 @@ def test_a_schema_is_not_an_option(choice: str, tmp_path: Path, run_main) -> Non
     assert f"Could not find '{group}/{option}'; choose one of:" in text, text
     assert "base_" not in text.split("choose one of:")[1], text
     assert not run_dir.exists()
+
+
+@pytest.mark.parametrize("name", ["cem", "icem", "mppi", "predictive"])
+def test_a_planner_built_from_an_empty_group_holds_the_schemas_defaults(name: str) -> None:
+    """Each built-in planner's settings are stated once: a group with only its name and
+    horizon builds a planner whose settings are the schema's defaults, the same as the
+    planner's own constructor gives, and the ones the train config composes for it."""
+    system = make_env_parts("pendulum").system
+    group = OmegaConf.create({"name": name, "horizon": 7})
+    built = build_planner(group, system, torch.float32)
+    schema = {f.name: f.default for f in fields(PLANNER_SCHEMAS[name])}
+    held = {f.name: getattr(built.settings, f.name) for f in fields(built.Settings)}
+    assert held == {key: schema[key] for key in held}
+    direct = type(built)(7, system.ctrl_low, system.ctrl_high)
+    assert direct.settings == built.settings
+    torch.testing.assert_close(direct.init_std, built.init_std)
+    composed = validate_train_config(compose_config(CONFIG_DIR, [f"planner={name}"]))
+    assert {key: composed.planner[key] for key in held} == held

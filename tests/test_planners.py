@@ -33,10 +33,10 @@ def quadratic(target: Tensor):
 
 def make(kind: str, **overrides: object) -> CEMPlanner | MPPIPlanner:
     if kind == "cem":
-        kwargs = dict(num_samples=400, num_elites=40, iterations=12)
+        kwargs = dict(num_samples=400, num_elites=40, iterations=12, init_std=None, min_std=1e-3)
         kwargs.update(overrides)
         return CEMPlanner(H, LOW, HIGH, **kwargs)
-    kwargs = dict(num_samples=400, iterations=15, temperature=0.1, noise_std=0.2)
+    kwargs = dict(num_samples=400, iterations=15, temperature=0.1, noise_std=0.2, smoothing=0.0)
     kwargs.update(overrides)
     return MPPIPlanner(H, LOW, HIGH, **kwargs)
 
@@ -119,6 +119,8 @@ def test_bounds_per_dimension_and_float64() -> None:
         num_samples=100,
         num_elites=10,
         iterations=4,
+        init_std=None,
+        min_std=1e-3,
         dtype=torch.float64,
     )
     result = planner.plan(
@@ -383,6 +385,7 @@ def oracle_mppi_episode(
         iterations=1,
         temperature=temperature,
         noise_std=noise_std,
+        smoothing=0.0,
     )
     env = make_real_env(env_name, seed=seed)
     with mujoco_objective_factory(system, task, nthread=2) as factory:

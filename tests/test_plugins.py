@@ -21,8 +21,9 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from mbrl_delan.conf.builders import build_model, build_planner
-from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError, validate_train_config
+from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError, compose_config, validate_train_config
 from mbrl_delan.conf.checks import CONFIGS as CONFIGS_ROOT
+from mbrl_delan.conf.loop import env_parts
 from mbrl_delan.conf.registry import ENVS, MODELS, PLANNERS, load_plugins
 from mbrl_delan.envs import make_env_parts, make_real_env
 
@@ -94,6 +95,25 @@ def test_a_plugin_model_gets_compiled_planning_from_accel(user_project: Path) ->
     assert policy.objective_factory.rollout_threads == 1
 
 
+def test_a_task_option_the_env_registered_is_set_from_the_command_line(
+    user_project: Path,
+) -> None:
+    """`register_env(options={"target": 1.0})` with no ``task:`` block in the env's YAML:
+    ``env.task.target=0.3`` (and ``env.task={target: 0.3}``) reaches the task; a name the env
+    does not take is a config error listing the ones it does."""
+    base = [_conf(user_project), f"plugins=[{PLUGIN}]", *PARTS]
+    for override in ("env.task.target=0.3", "env.task={target:0.3}"):
+        cfg = validate_train_config(compose_config(CONFIG_DIR, [*base, override]))
+        assert env_parts(cfg).task.target == 0.3
+    default = validate_train_config(compose_config(CONFIG_DIR, base))
+    assert env_parts(default).task.target == 1.0
+    wrong = validate_train_config(compose_config(CONFIG_DIR, [*base, "env.task.traget=0.3"]))
+    with pytest.raises(
+        ConfigError, match=r"env 'slider' takes no task option traget \(it takes: target\)"
+    ):
+        env_parts(wrong)
+
+
 def test_a_plugin_name_already_taken_is_refused(user_project: Path) -> None:
     load_plugins([PLUGIN])
     with pytest.raises(ValueError, match="model 'delan' is already registered"):
@@ -115,6 +135,7 @@ def test_train_runs_a_loop_with_the_users_env_model_and_planner(
         sys.executable, "-m", "mbrl_delan.train", f"plugins=[{PLUGIN}]", _conf(user_project),
         *PARTS, "logger=none", "threads=1", "budget.oracle_episodes=1",
         "budget.final_eval_episodes=1", "fit.max_epochs=3", f"hydra.run.dir={run_dir}",
+        "env.task.target=0.5",  # a task option the env registered, which its YAML does not list
     ]  # fmt: skip
     env = {**os.environ, "WANDB_MODE": "disabled"}
     # run from the project's folder, as its user would: `python -m` imports from there
@@ -127,6 +148,7 @@ def test_train_runs_a_loop_with_the_users_env_model_and_planner(
         "slider", "linear", "shooting",
     )  # fmt: skip
     assert summary["iterations"] == 1 and summary["env_steps"] == 2 * 12
+    assert OmegaConf.load(run_dir / "config.yaml").env.task == {"target": 0.5}
     assert 0.0 <= summary["eval_return_mean"] <= 12.0  # rewards lie in [0, 1]
     loaded = _load_run_in_a_fresh_interpreter(user_project, run_dir)
     assert "train LinearModel" in loaded and "plugin loaded by load_run: True" in loaded

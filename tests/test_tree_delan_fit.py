@@ -1,5 +1,6 @@
 """Fit's `model=tree_delan`: DeLaN with the arm's known kinematic tree under it. The tree's
-M is MuJoCo's (linear in the inertials: the start's share of `mj_fullM`), the fitted model
+M is MuJoCo's (linear in the inertials: the start's share of `mj_fullM`, plus the armature
+start where the MJCF gives none), the fitted model
 is positive definite, reloads to the same torques, and needs an MJCF."""
 
 from __future__ import annotations
@@ -27,21 +28,29 @@ SMALL = ["data=excitation", "data.robot=ur5e", "data.samples=1000", "model=tree_
 
 
 def test_the_trees_mass_matrix_is_mujocos_at_the_starts_share() -> None:
-    cfg = compose_config(FIT_CONFIG_DIR, [*SMALL, "model.prior_scale=0.5"])
-    data = make_inverse_data(cfg.data)
-    model = build_system_model(cfg, data.system).double()
-    assert isinstance(model, DeLaNInverse) and isinstance(model.dynamics, TreeDynamics)
-    q = data.splits["train"][keys.Q][::100]
-    with torch.no_grad():
-        tree = model.dynamics.tree.mass_matrix(q).numpy()
+    """M_tree(q) = 0.5 mj_fullM(q) + the armature start, 0.01 of the start's M(qpos0)
+    diagonal (the MJCF gives none); with armature_start=0, exactly 0.5 mj_fullM(q)."""
     truth = arm_model("ur5e")
     mj = mujoco.MjData(truth)
-    for qi, mi in zip(q.numpy(), tree, strict=True):
-        mj.qpos[:] = qi
-        mujoco.mj_forward(truth, mj)
-        full = np.zeros((6, 6))
-        mujoco.mj_fullM(truth, mj, full)
-        np.testing.assert_allclose(mi, 0.5 * full, rtol=1e-6, atol=1e-6)
+    mujoco.mj_forward(truth, mj)
+    home = np.zeros((6, 6))
+    mujoco.mj_fullM(truth, mj, home)
+    for share in (0.01, 0.0):
+        cfg = compose_config(FIT_CONFIG_DIR, [*SMALL, "model.prior_scale=0.5",
+                                              f"model.armature_start={share}"])  # fmt: skip
+        data = make_inverse_data(cfg.data)
+        model = build_system_model(cfg, data.system).double()
+        assert isinstance(model, DeLaNInverse) and isinstance(model.dynamics, TreeDynamics)
+        q = data.splits["train"][keys.Q][::100]
+        with torch.no_grad():
+            tree = model.dynamics.tree.mass_matrix(q).numpy()
+        armature = np.diag(share * 0.5 * np.diag(home))
+        for qi, mi in zip(q.numpy(), tree, strict=True):
+            mj.qpos[:] = qi
+            mujoco.mj_forward(truth, mj)
+            full = np.zeros((6, 6))
+            mujoco.mj_fullM(truth, mj, full)
+            np.testing.assert_allclose(mi, 0.5 * full + armature, rtol=1e-6, atol=1e-9)
 
 
 def test_a_tree_delan_fit_is_positive_definite_and_reloads(tmp_path) -> None:

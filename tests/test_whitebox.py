@@ -5,6 +5,7 @@ their true values, worked answers of the fidelity figures, and the loop end to e
 from __future__ import annotations
 
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -14,10 +15,12 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 from tensordict import TensorDict
 from tiny import TINY_TRAIN
 
 from mbrl_delan import keys
+from mbrl_delan.conf.checks import compose_train_config, migrate
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.models.whitebox import (
@@ -190,12 +193,12 @@ def test_fidelity_sees_the_floor_go(humanoid, reference) -> None:
 
 @pytest.mark.slow
 def test_tiny_whitebox_loop_identifies_and_resumes(tmp_path: Path) -> None:
-    """model=whitebox through the loop on the pendulum: identified at every refit (no
+    """model=white_box through the loop on the pendulum: identified at every refit (no
     optimizer), planned on MuJoCo, its multipliers in the checkpoint; a resume with a larger
     budget continues from them."""
     run_dir = tmp_path / "whitebox"
     tiny = [o for o in TINY_TRAIN if not o.startswith("model.")]
-    cmd = [sys.executable, "-m", "mbrl_delan.train", *tiny, "model=whitebox",
+    cmd = [sys.executable, "-m", "mbrl_delan.train", *tiny, "model=white_box",
            "model.iterations=3", "model.windows=16", f"hydra.run.dir={run_dir}"]  # fmt: skip
     env = {**os.environ, "WANDB_MODE": "disabled"}
     out = subprocess.run([*cmd, "budget.iterations=1"], capture_output=True, text=True, env=env,
@@ -211,7 +214,21 @@ def test_tiny_whitebox_loop_identifies_and_resumes(tmp_path: Path) -> None:
     state = torch.load(run_dir / "checkpoint.pt", weights_only=False)["loop"]["model"]
     assert state["_extra_state"]["identifications"] == 3
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["model"] == "whitebox" and summary["iterations"] == 2
+    assert summary["model"] == "white_box" and summary["iterations"] == 2
+
+
+def test_the_former_name_whitebox_runs_as_white_box_with_a_notice(caplog) -> None:
+    """model=whitebox (the name before train and fit shared one) is model=white_box with every
+    setting the same and one notice; a run saved under the former name reads as white_box."""
+    with caplog.at_level(logging.WARNING, logger="mbrl_delan.conf.checks"):
+        former = compose_train_config(["model=whitebox"])
+    assert [r.getMessage() for r in caplog.records] == [
+        "model=whitebox is now model=white_box: read as that"
+    ]
+    current = compose_train_config(["model=white_box"])
+    assert OmegaConf.to_container(former.model) == OmegaConf.to_container(current.model)
+    saved = OmegaConf.create({"model": {"name": "whitebox", "window": 4}})
+    assert migrate(saved).model.name == "white_box" and saved.model.name == "whitebox"
 
 
 @pytest.mark.parametrize(("case", "factor"), [("mass_x1.25", 1.25), ("gear_x0.65", 0.65)])

@@ -1,6 +1,7 @@
 """A worked example of a user's own parts, registered from outside the package.
 
-A slider (one slide joint with a motor) whose task is to reach x = 1, a linear world model,
+A slider (one slide joint with a motor) whose task is to reach x = 1 (the task option
+``env.task.target``), a linear world model,
 random shooting and a linear inverse-dynamics model. Run them through the loop, and the
 inverse model through the fit, from the repository's root:
 
@@ -19,6 +20,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from mbrl_delan.conf.builders import sampling_builder
 from mbrl_delan.conf.registry import (
     register_env,
     register_inverse_model,
@@ -28,7 +30,7 @@ from mbrl_delan.conf.registry import (
 from mbrl_delan.conf.schema import ModelConfig, PlannerConfig, rule
 from mbrl_delan.models.base import LossOutput, WorldModel
 from mbrl_delan.models.inverse import InverseDynamicsModel
-from mbrl_delan.planners.base import SamplingDistribution, SamplingPlanner
+from mbrl_delan.planners.base import SamplingDistribution, SamplingPlanner, SamplingSettings
 from mbrl_delan.systems.system import State
 from mbrl_delan.tasks.base import Task
 
@@ -36,20 +38,21 @@ from mbrl_delan.tasks.base import Task
 class ReachOne(Task):
     name = "reach_one"
 
-    def __init__(self, episode_len=20):
-        self.episode_len = episode_len
+    def __init__(self, episode_len=20, target=1.0):
+        self.episode_len, self.target = episode_len, target
 
     def reward(self, q, qd, action):
-        return torch.exp(-((q[..., 0] - 1.0) ** 2))
+        return torch.exp(-((q[..., 0] - self.target) ** 2))
 
     def initial_state(self, batch_shape, generator):
         q = 0.1 * torch.randn((*batch_shape, 1), generator=generator, dtype=torch.float64)
         return State(q, torch.zeros_like(q))
 
 
-@register_env("slider", asset=Path(__file__).with_name("slider.xml"), frame_skip=2)
-def make_task(system, episode_len, options):
-    return ReachOne() if episode_len is None else ReachOne(episode_len)
+@register_env("slider", asset=Path(__file__).with_name("slider.xml"), frame_skip=2,
+              options={"target": 1.0})  # fmt: skip
+def make_task(system, episode_len, options):  # options: the registered ones, env.task.<name>=
+    return ReachOne(episode_len or 20, float(options["target"]))
 
 
 class LinearModel(WorldModel):
@@ -84,8 +87,15 @@ def build_linear(cfg, system):
     return LinearModel(system.nq, system.nu)
 
 
+@dataclass
+class ShootingSettings(SamplingSettings):
+    init_std: float = rule(0.5, low=0, above=True)
+
+
 class RandomShooting(SamplingPlanner):
     """Keeps the best of N random sequences around the last mean."""
+
+    Settings = ShootingSettings
 
     def _initial_distribution(self, mean):
         return SamplingDistribution(mean, self.init_std.to(mean).expand_as(mean).clone())
@@ -95,21 +105,11 @@ class RandomShooting(SamplingPlanner):
 
 
 @dataclass
-class ShootingConfig(PlannerConfig):
-    init_std: float = rule(0.5, low=0, above=True)
+class ShootingConfig(ShootingSettings, PlannerConfig):
+    """planner=shooting: its settings, then the loop's (horizon, replan_every, ...)."""
 
 
-@register_planner("shooting", schema=ShootingConfig)
-def build_shooting(cfg, system, dtype):
-    return RandomShooting(
-        cfg.horizon,
-        system.ctrl_low,
-        system.ctrl_high,
-        cfg.num_samples,
-        cfg.iterations,
-        init_std=cfg.init_std,
-        dtype=dtype,
-    )
+register_planner("shooting", schema=ShootingConfig)(sampling_builder(RandomShooting))
 
 
 class LinearInverse(InverseDynamicsModel):

@@ -17,7 +17,7 @@ and `JointLimits`, implicit, 2 x 7.5 ms), planned on in torch. `runs`: train run
 whose final world model (checkpoint) is scored too, case ``<model>:<run dir name>``.
 
 The learned models (`FIT_CASES`: ``tree``, ``tree_delan``, ``delan`` with the contact model,
-``whitebox``, ``ensemble``), named in `models`, are each built as the loop builds them and
+``white_box``, ``ensemble``), named in `models`, are each built as the loop builds them and
 fitted once, as the loop's refit does (seed `seed`), on the first `transitions` (default
 5,000) transitions of `data_run`'s replay buffer (the loop's own data), or without
 `data_run` on episodes of uniformly random actions from the task's starts.
@@ -92,7 +92,7 @@ FIT_CASES = {
     "tree_delan": ("model=tree_delan",),
     "delan": ("model=delan", "model.contacts=true", "model.joint_limits=true",
               "model.residual=false", "model.translation_invariant=true", "model.substeps=1"),
-    "whitebox": ("model=whitebox",),
+    "white_box": ("model=white_box",),
     "ensemble": ("model=ensemble",),
 }  # fmt: skip
 

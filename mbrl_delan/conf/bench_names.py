@@ -60,7 +60,7 @@ FIDELITY_CASES = (
     "friction_0.2", "contact_3x_softer", "contact_10x_softer", "foot_x0.7", "contacts_off",
     "exo_springs", "exo_friction", "exo",
     "whitebox_start", "rigid_contact_start",
-    "tree", "tree_delan", "delan", "whitebox", "ensemble",
+    "tree", "tree_delan", "delan", "white_box", "ensemble",
 )  # fmt: skip
 
 # suite own_arm: the shipped arms (`mbrl_delan.systems.arms.ARMS`) and the fits' models

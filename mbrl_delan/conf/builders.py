@@ -1,19 +1,19 @@
 """The package's world models and planners built from their config groups: the registry's
-built-ins (`MODELS`: delan, tree, tree_delan, delan_ensemble, ensemble, whitebox;
+built-ins (`MODELS`: delan, tree, tree_delan, delan_ensemble, ensemble, white_box;
 `PLANNERS`: cem, icem, predictive, mppi), `build_model` and `build_planner` for any
 registered one, and the DeLaN `Structure` a config describes (`delan_structure`)."""
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
-from dataclasses import replace
+from collections.abc import Callable, Sequence
+from dataclasses import fields, replace
 from typing import Any
 
 import mujoco
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from mbrl_delan.conf.checks import ConfigError
 from mbrl_delan.conf.registry import MODELS, PLANNERS
@@ -21,6 +21,7 @@ from mbrl_delan.conf.schema import (
     MODEL_SCHEMAS,
     PLANNER_SCHEMAS,
 )
+from mbrl_delan.conf.structure import read_structure
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.models.contact import ContactModel, ContactPoints, JointLimits
 from mbrl_delan.models.delan import DeLaN
@@ -35,7 +36,7 @@ from mbrl_delan.models.tree import (
 )
 from mbrl_delan.models.whitebox import IdentifyConfig, WhiteBoxModel
 from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus
-from mbrl_delan.planners.base import PLANNER_METHODS, SamplingPlanner
+from mbrl_delan.planners.base import PLANNER_METHODS, Planner, SamplingPlanner
 from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.mppi import MPPIPlanner
@@ -45,27 +46,19 @@ from mbrl_delan.systems.system import FREE, System
 
 log = logging.getLogger(__name__)
 
+PlannerBuilder = Callable[[DictConfig, System, torch.dtype], Planner]
+
 
 def delan_structure(cfg: DictConfig, system: System, **fixed: Any) -> Structure:
-    """The `Structure` a DeLaN model config (train's or fit's) describes on `system`.
-
-    ``tree_sparse`` and ``armature`` take the system's ``dof_parentid`` and ``dof_armature``;
+    """The `Structure` a DeLaN model config (train's, or a mocap fit's read by the loop)
+    describes on `system` (`read_structure`: ``tree_sparse`` and ``armature`` take the
+    system's ``dof_parentid`` and ``dof_armature``, ``known_root`` its free root's inertias);
     `fixed` gives fields the config does not hold (the fit's ``translation_invariant``)."""
-    values: dict[str, Any] = {
-        name: cfg[name]
-        for name in ("hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb",
-                     "still_first_order", "translation_invariant", "yaw_invariant",
-                     "inertia_scaling", "residual")
-        if name in cfg
-    }  # fmt: skip
-    values["diagonal_init"] = values.get("inertia_scaling", False)
-    if cfg.get("tree_sparse", False):
-        values["dof_parents"] = system.mj_model().dof_parentid.tolist()
-    if cfg.get("armature", False):
-        values["armature"] = system.mj_model().dof_armature.tolist()
+    model = system.mj_model()
     if cfg.get("known_root", False):
-        values["root_inertia"], values["root_weight"] = known_root(system)
-    return Structure(**(values | fixed))
+        root_inertia, root_weight = known_root(system)
+        fixed = {"root_inertia": root_inertia, "root_weight": root_weight} | fixed
+    return read_structure(cfg, model.dof_parentid.tolist(), model.dof_armature.tolist(), **fixed)
 
 
 def known_root(system: System) -> tuple[tuple[float, ...], float]:
@@ -113,10 +106,15 @@ def build_model(cfg: DictConfig, system: System) -> WorldModel:
     return MODELS[cfg.name].build(cfg, system)
 
 
-def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPlanner:
-    """The planner named by ``cfg.name`` (the planner group), built by its registry entry; a
-    planner without a method of the `Planner` protocol is a ConfigError naming it."""
-    planner = PLANNERS[cfg.name].build(cfg, system, dtype)
+def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> Planner:
+    """The planner named by ``cfg.name`` (the planner group, typed by its entry's schema:
+    what it does not set takes the schema's defaults), built by its registry entry; a planner
+    without a method of the `Planner` protocol is a ConfigError naming it."""
+    entry = PLANNERS[cfg.name]
+    if entry.schema is not None:  # the group's values (interpolations resolved in its config)
+        values = OmegaConf.to_container(cfg, resolve=True)
+        cfg = OmegaConf.merge(OmegaConf.structured(entry.schema), values)
+    planner = entry.build(cfg, system, dtype)
     missing = [m for m in PLANNER_METHODS if not callable(getattr(planner, m, None))]
     if not hasattr(planner, "horizon"):
         missing.append("horizon")
@@ -232,8 +230,8 @@ def _ensemble(cfg: DictConfig, system: System) -> GaussianEnsemble:
     )
 
 
-@MODELS.register("whitebox", schema=MODEL_SCHEMAS["whitebox"])
-def _whitebox(cfg: DictConfig, system: System) -> WhiteBoxModel:
+@MODELS.register("white_box", schema=MODEL_SCHEMAS["white_box"])
+def _white_box(cfg: DictConfig, system: System) -> WhiteBoxModel:
     model = WhiteBoxModel(
         system,
         physics=PlanPhysics(cfg.substeps, cfg.integrator),
@@ -245,57 +243,17 @@ def _whitebox(cfg: DictConfig, system: System) -> WhiteBoxModel:
     return model
 
 
-def _planner_arguments(cfg: DictConfig, system: System, dtype: torch.dtype) -> dict[str, Any]:
-    """The constructor arguments every sampling planner takes."""
-    return dict(
-        horizon=cfg.horizon,
-        action_low=system.ctrl_low,
-        action_high=system.ctrl_high,
-        num_samples=cfg.num_samples,
-        iterations=cfg.iterations,
-        dtype=dtype,
-        knots=cfg.knots,
-        interpolation=cfg.interpolation,
-    )
+def sampling_builder(planner: type[SamplingPlanner]) -> PlannerBuilder:
+    """The builder of a `SamplingPlanner` subclass (the package's and a user's): its
+    `Settings` read from the planner group (typed by a schema that extends them)."""
+
+    def build(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPlanner:
+        settings = planner.Settings(**{f.name: cfg[f.name] for f in fields(planner.Settings)})
+        return planner(cfg.horizon, system.ctrl_low, system.ctrl_high, settings, dtype)
+
+    return build
 
 
-@PLANNERS.register("cem", schema=PLANNER_SCHEMAS["cem"])
-def _cem(cfg: DictConfig, system: System, dtype: torch.dtype) -> CEMPlanner:
-    return CEMPlanner(
-        num_elites=cfg.num_elites,
-        init_std=cfg.init_std,
-        min_std=cfg.min_std,
-        momentum=cfg.momentum,
-        **_planner_arguments(cfg, system, dtype),
-    )
-
-
-@PLANNERS.register("icem", schema=PLANNER_SCHEMAS["icem"])
-def _icem(cfg: DictConfig, system: System, dtype: torch.dtype) -> ICEMPlanner:
-    return ICEMPlanner(
-        num_elites=cfg.num_elites,
-        beta=cfg.beta,
-        decay=cfg.decay,
-        min_samples=cfg.min_samples,
-        keep_elites=cfg.keep_elites,
-        init_std=cfg.init_std,
-        min_std=cfg.min_std,
-        momentum=cfg.momentum,
-        return_best=cfg.return_best,
-        **_planner_arguments(cfg, system, dtype),
-    )
-
-
-@PLANNERS.register("predictive", schema=PLANNER_SCHEMAS["predictive"])
-def _predictive(cfg: DictConfig, system: System, dtype: torch.dtype) -> PredictiveSampling:
-    return PredictiveSampling(noise_std=cfg.noise_std, **_planner_arguments(cfg, system, dtype))
-
-
-@PLANNERS.register("mppi", schema=PLANNER_SCHEMAS["mppi"])
-def _mppi(cfg: DictConfig, system: System, dtype: torch.dtype) -> MPPIPlanner:
-    return MPPIPlanner(
-        temperature=cfg.temperature,
-        noise_std=cfg.noise_std,
-        smoothing=cfg.smoothing,
-        **_planner_arguments(cfg, system, dtype),
-    )
+for _name, _planner in (("cem", CEMPlanner), ("icem", ICEMPlanner), ("mppi", MPPIPlanner),
+                        ("predictive", PredictiveSampling)):  # fmt: skip
+    PLANNERS.add(_name, sampling_builder(_planner), PLANNER_SCHEMAS[_name])

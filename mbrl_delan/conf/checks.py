@@ -24,12 +24,9 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
 from mbrl_delan.conf.registry import ENVS, MODELS, PLANNERS, PluginError, load_plugins
-from mbrl_delan.conf.schema import (
-    ACCEL_KEYS,
-    TrainConfig,
-    field_rule,
-)
+from mbrl_delan.conf.schema import ACCEL_KEYS, TrainConfig
 from mbrl_delan.models.base import WorldModel
+from mbrl_delan.rules import field_rule
 from mbrl_delan.training.checkpoint import RunWriteError
 from mbrl_delan.training.fit import FitConfig
 
@@ -100,7 +97,7 @@ def exit_on_config_errors(hydra_main: Callable[[], Any]) -> Any:
         exit_config_error(
             ConfigError(
                 f"{line}: a node on its path is null in this config (it is set only for "
-                "another choice of its config group, e.g. env.task for env=cmu_track)"
+                "another choice of its config group)"
             )
         )
     except RunWriteError as err:
@@ -182,14 +179,26 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # the YAML files, one
 CONFIG_DIR = CONFIGS / "train"  # python -m mbrl_delan.train's
 
 
+# an env's task options (``env.task``) are what it registered (`register_env(options=...)`),
+# which its YAML need not list: an override of one adds or sets it (Hydra's ``++``), and the
+# env refuses a name it does not take
+TASK_OVERRIDES = ("env.task.", "env.task=")
+
+
+def task_overrides(overrides: Sequence[str]) -> list[str]:
+    """`overrides` with each plain ``env.task.<option>=`` (or ``env.task=``) one add-or-set."""
+    return [f"++{o}" if o.startswith(TASK_OVERRIDES) else o for o in overrides]
+
+
 def compose_config(config_dir: Path, overrides: Sequence[str] = ()) -> DictConfig:
     """The config Hydra composes from ``config_dir/config.yaml`` with `overrides` (as on the
-    command line), also inside a running Hydra app (its own Hydra is put back after)."""
+    command line, `task_overrides` applied), also inside a running Hydra app (its own Hydra
+    is put back after)."""
     running = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
-            return compose("config", overrides=list(overrides))
+            return compose("config", overrides=task_overrides(overrides))
     finally:  # the running app's Hydra back (the context set a new GlobalHydra instance)
         GlobalHydra.instance().clear()
         if running is not None:
@@ -239,13 +248,32 @@ MIGRATIONS: dict[str, Any] = {
 
 # keys that moved: where a run saved before the move had them -> where they are now
 MOVED = {f"model.{key}": f"accel.{key}" for key in ACCEL_KEYS}
+# names that changed: family -> {former name: name}; a config with a former one runs as the
+# name, with a one-line notice
+RENAMED = {"model": {"whitebox": "white_box"}}
+
+
+def renamed(cfg: DictConfig) -> DictConfig:
+    """`cfg` with each former name of `RENAMED` (``model=whitebox``) read as its current one,
+    logging a one-line notice; `cfg` itself is left as it is."""
+    out = cfg
+    for family, names in RENAMED.items():
+        group = cfg.get(family)
+        name = group.get("name") if isinstance(group, DictConfig) else None
+        if name in names:
+            log.warning("%s=%s is now %s=%s: read as that", family, name, family, names[name])
+            out = out.copy() if out is cfg else out
+            with open_dict(out):
+                out[family].name = names[name]
+    return out
 
 
 def migrate(cfg: DictConfig) -> DictConfig:
     """A run's saved config with the keys added since it was saved (`MIGRATIONS`), where its
     model or planner has them (its schema lists them), filled with the values it ran with,
-    and the keys that moved (`MOVED`) in their new place."""
-    out = cfg.copy()
+    the keys that moved (`MOVED`) in their new place and its names the current ones
+    (`RENAMED`)."""
+    out = renamed(cfg).copy()
     with open_dict(out):
         for old, new in MOVED.items():
             group, _, leaf = old.rpartition(".")
@@ -284,12 +312,13 @@ def validate_train_config(cfg: DictConfig) -> DictConfig:
     written; a `ConfigError` names the first bad key. Returns the typed config.
 
     Loads the config's ``plugins`` first (their envs, models and planners), then: every group
-    merged into its schema (`mbrl_delan.conf.schema`: types and unknown keys), every field's range
+    merged into its schema (`mbrl_delan.conf.schema`: types and unknown keys; a former name,
+    `RENAMED`, read as the current one with a notice), every field's range
     (`check_ranges`: also NaN or inf in any float), the names against the registries, and the
     rules between keys (`_check_rules`).
     """
     load_config_plugins(cfg)
-    typed = typed_train_config(cfg)
+    typed = typed_train_config(renamed(cfg))
     check_ranges(typed)
     for family, registry in (("env", ENVS), ("model", MODELS), ("planner", PLANNERS)):
         _choice(f"{family}.name", typed[family].name, registry.names())

@@ -17,7 +17,6 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
 
@@ -34,9 +33,13 @@ from mbrl_delan.conf.checks import (
     compose_config,
     load_config_plugins,
     refuse_used_run_dir,
-    schema_error_message,
 )
-from mbrl_delan.conf.inverse import InverseContext, build_inverse_model
+from mbrl_delan.conf.inverse import (
+    InverseContext,
+    build_inverse_model,
+    check_residual_start,
+    typed_model,
+)
 from mbrl_delan.conf.registry import (
     INVERSE_MODELS,
 )
@@ -70,13 +73,10 @@ from mbrl_delan.data.mocap import (
     random_poses,
 )
 from mbrl_delan.models.inverse import (
-    MLP_ACTIVATIONS,
-    MODEL_NAMES,
     DeLaNInverse,
     InverseDynamicsModel,
 )
-from mbrl_delan.models.rigid_body import FRICTION_LAWS, WhiteBoxInverse
-from mbrl_delan.models.tangent_mlp import ACTIVATIONS as DELAN_ACTIVATIONS
+from mbrl_delan.models.rigid_body import WhiteBoxInverse
 from mbrl_delan.systems.arms import ARMS, FRICTION_KINDS, arm, friction_kind
 from mbrl_delan.systems.system import HINGE, JOINT_TYPES
 from mbrl_delan.training.inverse_fit import (
@@ -106,9 +106,6 @@ OmegaConf.register_new_resolver("stem", lambda value: Path(str(value)).stem, rep
 
 
 DATA_NAMES = ("cmu_mocap", "arrays", "excitation")
-
-
-FIT_MODELS = (*MODEL_NAMES, "tree_delan", "white_box")  # the learned, the tree's, the identified
 
 
 LR_SCHEDULES = ("constant", "cosine", "stages")
@@ -165,36 +162,10 @@ def _clip_names(path: str, value: Any, allow_empty: bool = False) -> list[str]:
 
 def _validate_model(cfg: DictConfig) -> None:
     _choice("model.name", cfg.name, INVERSE_MODELS.names())
-    if cfg.name not in FIT_MODELS:  # a plugin's: typed and checked by its schema, if it has one
-        schema = INVERSE_MODELS[cfg.name].schema
-        if schema is not None:
-            try:
-                typed = OmegaConf.merge(OmegaConf.structured(schema), cfg)
-            except OmegaConfBaseException as err:  # its keys are the group's: model.<key>
-                raise ConfigError(f"model.{schema_error_message(err)}") from err
-            check_ranges(typed, "model.")
-        return
-    if cfg.name == "white_box":
-        check_number("model.prior_scale", cfg.prior_scale, 0.0, open_low=True)
-        check_number("model.prior_weight", cfg.prior_weight, 0.0)
-        _choice("model.friction_law", cfg.get("friction_law", "auto"), ("auto", *FRICTION_LAWS))
-        return
-    check_number("model.hidden", cfg.hidden, 1)
-    if cfg.name in ("delan", "tree_delan"):
-        check_number("model.layers", cfg.layers, 1)
-        _choice("model.activation", cfg.activation, DELAN_ACTIVATIONS)
-        check_number("model.diag_shift", cfg.diag_shift, 0.0, open_low=True)
-        _flag("model.still_first_order", cfg.still_first_order)
-        _flag("model.tree_sparse", cfg.get("tree_sparse", False))
-        _flag("model.armature", cfg.get("armature", False))
-        _flag("model.compile_fit", cfg.get("compile_fit", False))
-    else:
-        _choice("model.activation", cfg.activation, tuple(MLP_ACTIVATIONS))
-    if cfg.name == "ensemble":
-        check_number("model.ensemble_size", cfg.ensemble_size, 1)
-    if cfg.name == "tree_delan":
-        check_number("model.prior_scale", cfg.prior_scale, 0.0, open_low=True)
-        check_number("model.start_level", cfg.start_level, cfg.diag_shift, open_low=True)
+    typed = typed_model(cfg)
+    check_ranges(typed, "model.")
+    if "start_level" in typed and "diag_shift" in typed:
+        check_residual_start(typed)
 
 
 def _validate_arrays(cfg: DictConfig) -> None:
@@ -332,7 +303,10 @@ def validate_fit_config(cfg: DictConfig) -> None:
     _flag("periodic_hinges", cfg.get("periodic_hinges", False))
     if cfg.get("coulomb") is not None:
         _flag("coulomb", cfg.coulomb)
-    _flag("coulomb_lead", cfg.get("coulomb_lead", False))
+    if cfg.get("coulomb_lead", False) not in (True, False, "auto"):
+        raise ConfigError(
+            f"coulomb_lead={cfg.coulomb_lead!r} is not valid; it must be true, false or auto"
+        )
     if cfg.get("friction_init") is not None:
         check_number("friction_init", cfg.friction_init, 0.0, open_low=True)
     _choice("logger.backend", cfg.logger.backend, LOGGERS)

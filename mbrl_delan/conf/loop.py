@@ -43,7 +43,7 @@ from mbrl_delan.models.base import WorldModel, model_placement
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus, mujoco_objective_factory
-from mbrl_delan.planners.base import SamplingPlanner
+from mbrl_delan.planners.base import Planner
 from mbrl_delan.planners.humanoid_residual import HUMANOID_ILQR, humanoid_ilqr_policy
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.planners.tracking_residual import TRACKING_ILQR, tracking_ilqr_policy
@@ -85,7 +85,7 @@ def env_parts(cfg: DictConfig) -> EnvParts:
         raise ConfigError(f"env={env.name}: {err}") from err
 
 
-def _planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPlanner:
+def _planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> Planner:
     """The configured planner; a value it refuses (e.g. temperature <= 0) is a ConfigError."""
     try:
         return build_planner(cfg.planner, system, dtype)

@@ -8,7 +8,7 @@ defaults list (``- /base_env@_here_``), so a value of the wrong type
 (``budget.iterations=1.5``) or a key that does not exist fails when Hydra composes the config,
 naming the key. Ranges and the rules that tie keys together are checked by
 `mbrl_delan.conf.checks.validate_train_config`, which reads the ``low`` / ``high`` / ``choices``
-metadata of these fields (`field_rule`).
+metadata of these fields (`mbrl_delan.rules.field_rule`).
 
 A user's model or planner brings its own schema (`mbrl_delan.conf.registry.register_model(name,
 schema=...)`), an env YAML of their own extends ``/base_env@_here_``.
@@ -16,12 +16,11 @@ schema=...)`), an env YAML of their own extends ``/base_env@_here_``.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, fields
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, ListConfig
+from omegaconf import MISSING
 
 from mbrl_delan.conf.bench_names import (
     FIDELITY_ENVS,
@@ -33,69 +32,18 @@ from mbrl_delan.conf.bench_names import (
     REALTIME_TASKS,
     SUITE_NAMES,
 )
+from mbrl_delan.planners import (
+    CEMSettings,
+    ICEMSettings,
+    MPPISettings,
+    PredictiveSettings,
+    SamplingSettings,
+)
 from mbrl_delan.planners.spline import INTERPOLATIONS
+from mbrl_delan.rules import rule
 from mbrl_delan.tasks.balance import PLAN_COSTS
 from mbrl_delan.training.fit import FitConfig
 from mbrl_delan.training.recorder import LOGGERS, WANDB_MODES
-
-
-def rule(
-    default: Any = MISSING,
-    *,
-    low: float | None = None,
-    high: float | None = None,
-    above: bool = False,
-    below: bool = False,
-    choices: tuple[str, ...] | None = None,
-) -> Any:
-    """A dataclass field with its valid range: low <= value <= high (strict with `above` /
-    `below`) or a value among `choices`; None is always allowed for an Optional field."""
-    meta = {"low": low, "high": high, "above": above, "below": below, "choices": choices}
-    return field(
-        default=default,
-        metadata={k: v for k, v in meta.items() if v is not None and v is not False},
-    )
-
-
-@dataclass
-class FieldRule:
-    """The range of one field, read from its metadata (see `rule`)."""
-
-    low: float = -math.inf
-    high: float = math.inf
-    above: bool = False
-    below: bool = False
-    choices: tuple[str, ...] | None = None
-
-    def describe(self, value: Any = 0.0) -> str:
-        """What a valid value is, in words (`value`: an int is described as a whole number)."""
-        if self.choices:
-            return "choose one of: " + ", ".join(self.choices)
-        parts = []
-        if self.low > -math.inf:
-            parts.append(f"{'>' if self.above else '>='} {self.low:g}")
-        if self.high < math.inf:
-            parts.append(f"{'<' if self.below else '<='} {self.high:g}")
-        kind = "a whole number" if isinstance(value, int) else "a finite number"
-        return f"it must be {kind}" + (" " + " and ".join(parts) if parts else "")
-
-    def allows(self, value: Any) -> bool:
-        if isinstance(value, list | tuple | ListConfig):  # a list: each element
-            return all(self.allows(v) for v in value)
-        if self.choices:
-            return value in self.choices
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            return True  # strings, lists, mappings: typed by the schema only
-        if not math.isfinite(value):
-            return False
-        low_ok = value > self.low if self.above else value >= self.low
-        high_ok = value < self.high if self.below else value <= self.high
-        return low_ok and high_ok
-
-
-def field_rule(metadata: Any) -> FieldRule:
-    return FieldRule(**dict(metadata))
-
 
 INTEGRATORS = ("euler", "rk4")
 # MuJoCo's integrators the oracle may plan with (`objectives.mujoco.INTEGRATORS`)
@@ -124,11 +72,12 @@ class EnvConfig:
     model_contacts: bool = False
     model_inertia_scaling: bool = False
     model_known_root: bool = False
-    mppi_temperature: float = rule(0.5, low=0, above=True)
-    mppi_noise_std: float = rule(0.5, low=0, above=True)
-    mppi_smoothing: float = rule(0.8, low=0, high=1, below=True)
-    mppi_samples: int = rule(256, low=1)  # planner=mppi's num_samples on this env
-    mppi_iterations: int = rule(2, low=1)  # planner=mppi's iterations on this env
+    # planner=mppi's settings on this env (and predictive's noise_std): MPPI's own defaults
+    mppi_temperature: float = rule(MPPISettings.temperature, low=0, above=True)
+    mppi_noise_std: float = rule(MPPISettings.noise_std, low=0, above=True)
+    mppi_smoothing: float = rule(MPPISettings.smoothing, low=0, high=1, below=True)
+    mppi_samples: int = rule(MPPISettings.num_samples, low=1)
+    mppi_iterations: int = rule(MPPISettings.iterations, low=1)
     plan_knots: int | None = rule(None, low=1)  # mppi, cem, icem: spline knots (None: every step)
     plan_interpolation: str = rule("linear", choices=INTERPOLATIONS)
     plan_cost: str = rule("reward", choices=PLAN_COSTS)  # planners' objective (balance: humanoids)
@@ -137,7 +86,7 @@ class EnvConfig:
     oracle_substeps: int | None = rule(None, low=1)  # null: frame_skip
     oracle_integrator: str | None = rule(None, choices=ORACLE_INTEGRATORS)  # null: the MJCF's
     oracle_horizon: int | None = rule(None, low=1)  # the iLQR oracle's (null: the planner's)
-    task: dict[str, Any] | None = None  # task options (cmu_track: the clip)
+    task: dict[str, Any] = field(default_factory=dict)  # task options (cmu_track: the clip)
 
 
 @dataclass
@@ -224,7 +173,7 @@ class EnsembleConfig(ModelConfig):
 
 @dataclass
 class WhiteBoxConfig(ModelConfig):
-    """``model=whitebox``: the env's MJCF with parameters identified from the replay buffer
+    """``model=white_box``: the env's MJCF with parameters identified from the replay buffer
     (`models/whitebox.py`)."""
 
     lr: float | None = None  # no gradient fit
@@ -238,56 +187,38 @@ class WhiteBoxConfig(ModelConfig):
 
 
 @dataclass
-class PlannerConfig:
-    """What every planner group has (the receding-horizon policy and the objective read it);
-    a user's planner schema extends it."""
+class PlannerConfig(SamplingSettings):
+    """What every planner group has (the receding-horizon policy and the objective read it):
+    the sampling settings (`planners.base.SamplingSettings`, typed and defaulted there) and
+    the loop's; a user's planner schema extends it."""
 
     name: str = MISSING
     horizon: int = rule(low=1)
-    num_samples: int = rule(low=1)
-    iterations: int = rule(low=1)
     replan_every: int = rule(1, low=1)
     discount: float = rule(1.0, low=0, above=True, high=1)
     risk: float = rule(0.0)  # ensembles: mean - risk * std of the particles' returns
-    knots: int | None = rule(None, low=1)  # spline knots over the horizon (None: every step)
-    interpolation: str = rule("linear", choices=INTERPOLATIONS)
 
 
+# a built-in planner's group: its settings (the planner's own dataclass, first, so that its
+# defaults stand) and the loop's
 @dataclass
-class CEMConfig(PlannerConfig):
+class CEMConfig(CEMSettings, PlannerConfig):
     """``planner=cem``."""
 
-    num_elites: int = rule(low=1)
-    init_std: float = rule(low=0, above=True)
-    min_std: float = rule(low=0)
-    momentum: float = rule(low=0, high=1)
-
 
 @dataclass
-class ICEMConfig(CEMConfig):
+class ICEMConfig(ICEMSettings, PlannerConfig):
     """``planner=icem``."""
 
-    beta: float = rule(low=0)
-    decay: float = rule(low=1)
-    min_samples: int | None = rule(None, low=1)
-    keep_elites: float = rule(low=0, high=1)
-    return_best: bool = MISSING
-
 
 @dataclass
-class MPPIConfig(PlannerConfig):
+class MPPIConfig(MPPISettings, PlannerConfig):
     """``planner=mppi``."""
 
-    temperature: float = rule(low=0, above=True)
-    noise_std: float = rule(low=0, above=True)
-    smoothing: float = rule(low=0, high=1, below=True)
-
 
 @dataclass
-class PredictiveConfig(PlannerConfig):
+class PredictiveConfig(PredictiveSettings, PlannerConfig):
     """``planner=predictive``: predictive sampling."""
-
-    noise_std: float = rule(low=0, above=True)
 
 
 @dataclass
@@ -376,7 +307,7 @@ MODEL_SCHEMAS = {
     "tree_delan": TreeConfig,
     "delan_ensemble": DeLaNEnsembleConfig,
     "ensemble": EnsembleConfig,
-    "whitebox": WhiteBoxConfig,
+    "white_box": WhiteBoxConfig,
 }
 PLANNER_SCHEMAS = {
     "cem": CEMConfig,

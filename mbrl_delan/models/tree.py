@@ -149,6 +149,18 @@ def documented_start(spec: mujoco.MjSpec, total_mass: float | None = None) -> Tr
                      start.armature * WRONG_JOINTS["armature"])  # fmt: skip
 
 
+def armature_start(model: mujoco.MjModel, share: float) -> np.ndarray:
+    """Each DoF's armature as the MJCF gives it, or where it gives none `share` x the DoF's
+    diagonal of M(qpos0): a start the fit can move (a zero start sits at the log floor, where
+    its gradient vanishes, and a residual has to carry the armature). (nv,)"""
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    mass = np.zeros((model.nv, model.nv))
+    mujoco.mj_fullM(model, data, mass)
+    armature = model.dof_armature.copy()
+    return np.where(armature > 0, armature, share * np.diag(mass))
+
+
 def upper_factor(J: np.ndarray) -> np.ndarray:
     """U upper triangular with a positive diagonal and U U^T = J (positive definite). (4, 4)"""
     flip = np.arange(3, -1, -1)

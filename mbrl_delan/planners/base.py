@@ -13,16 +13,39 @@ from __future__ import annotations
 import abc
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any, Protocol
+from dataclasses import dataclass, field, replace
+from typing import Any, ClassVar, Protocol
 
 import torch
 from torch import Tensor
 
 from mbrl_delan.objectives.base import Objective
-from mbrl_delan.planners.spline import KnotSpline
+from mbrl_delan.planners.spline import INTERPOLATIONS, KnotSpline
+from mbrl_delan.rules import rule
 
 SHIFT_FILLS = ("repeat", "zero")
+
+
+@dataclass
+class SamplingSettings:
+    """What every sampling planner takes beside its horizon and action bounds, each typed,
+    ranged and defaulted here once: the planner's constructor takes them (a settings object
+    and/or keyword changes) and the planner groups' schemas (`conf.schema.PlannerConfig`'s
+    kin) extend them.
+
+    num_samples: sequences N evaluated per iteration. iterations: refinement iterations per
+    `plan` call. knots: the planner searches K knots (K, nu) of a spline over the horizon
+    instead of every step's action (`KnotSpline`; the objective still gets (N, H, nu)); None:
+    every step is a knot. interpolation: how the actions between knots follow from them
+    (`INTERPOLATIONS`). shift_fill: how `shift` fills the freed last step: "repeat" the last
+    action or "zero" (zero clamped into the bounds).
+    """
+
+    num_samples: int = rule(256, low=1)
+    iterations: int = rule(4, low=1)
+    knots: int | None = rule(None, low=1)
+    interpolation: str = rule("linear", choices=INTERPOLATIONS)
+    shift_fill: str = rule("repeat", choices=SHIFT_FILLS)
 
 
 @dataclass
@@ -135,39 +158,41 @@ class SamplingPlanner(abc.ABC):
         action_low: lower bound of each action dimension, shape (nu,); may be -inf.
             Every sampled sequence is clamped into the bounds.
         action_high: upper bound of each action dimension, shape (nu,); may be inf.
-        num_samples: sequences N evaluated per iteration (>= 1).
-        iterations: refinement iterations per `plan` call (>= 1).
-        init_std: standard deviation of the first iteration, a scalar or (nu,). None means
-            a quarter of the action range where it is finite and 1 elsewhere.
-        shift_fill: how `shift` fills the freed last step: "repeat" the last action or
-            "zero" (zero clamped into the bounds).
+        settings: the planner's `Settings` (None: their defaults).
         dtype: floating dtype of the plans `initial_mean` makes.
-        knots: the planner searches K knots (K, nu) of a spline over the horizon instead of
-            every step's action (`KnotSpline`); the objective still gets (N, H, nu) and the
-            plans are (H, nu). None: every step is a knot.
-        interpolation: how the actions between knots follow from them: "zero", "linear" or
-            "cubic" (`INTERPOLATIONS`).
+        **changes: settings changed from `settings` by name (``num_samples=64``).
+
+    A subclass names its settings class (`Settings`), the field that holds the first
+    iteration's standard deviation (`STD_FIELD`: a scalar or (nu,); None: a quarter of the
+    action range where it is finite and 1 elsewhere) and checks and takes its own fields in
+    `_take`.
     """
+
+    Settings: ClassVar[type[SamplingSettings]] = SamplingSettings
+    STD_FIELD: ClassVar[str] = "init_std"
 
     def __init__(
         self,
         horizon: int,
         action_low: Tensor | Sequence[float] | float,
         action_high: Tensor | Sequence[float] | float,
-        num_samples: int,
-        iterations: int,
-        init_std: float | Sequence[float] | None = None,
-        shift_fill: str = "repeat",
+        settings: SamplingSettings | None = None,
         dtype: torch.dtype = torch.float32,
-        knots: int | None = None,
-        interpolation: str = "linear",
+        **changes: Any,
     ) -> None:
+        if settings is not None and not isinstance(settings, self.Settings):
+            raise TypeError(
+                f"{type(self).__name__}: settings must be a {self.Settings.__name__}, got "
+                f"{settings!r}; give single settings by name (num_samples=...)"
+            )
+        settings = replace(settings or self.Settings(), **changes)
+        self.settings = settings
         require(horizon >= 1, f"horizon must be >= 1, got {horizon}")
-        require(num_samples >= 1, f"num_samples must be >= 1, got {num_samples}")
-        require(iterations >= 1, f"iterations must be >= 1, got {iterations}")
+        require(settings.num_samples >= 1, f"num_samples must be >= 1, got {settings.num_samples}")
+        require(settings.iterations >= 1, f"iterations must be >= 1, got {settings.iterations}")
         require(
-            shift_fill in SHIFT_FILLS,
-            f"shift_fill must be one of {SHIFT_FILLS}, got {shift_fill!r}",
+            settings.shift_fill in SHIFT_FILLS,
+            f"shift_fill must be one of {SHIFT_FILLS}, got {settings.shift_fill!r}",
         )
         require(dtype.is_floating_point, f"dtype must be a floating dtype, got {dtype}")
         low, high = as_bound(action_low, "action_low"), as_bound(action_high, "action_high")
@@ -181,15 +206,19 @@ class SamplingPlanner(abc.ABC):
             f"action_low must be <= action_high, got {low.tolist()} > {high.tolist()}",
         )
         self.horizon = horizon
-        self.num_samples = num_samples
-        self.iterations = iterations
-        self.shift_fill = shift_fill
+        self.num_samples = settings.num_samples
+        self.iterations = settings.iterations
+        self.shift_fill = settings.shift_fill
         self.dtype = dtype
         self.action_low = low  # (nu,) float64 CPU
         self.action_high = high  # (nu,)
-        self.init_std = self._make_init_std(init_std)  # (nu,)
-        self.spline = KnotSpline(horizon, knots, interpolation)
+        self.init_std = self._make_init_std(getattr(settings, self.STD_FIELD, None))  # (nu,)
+        self.spline = KnotSpline(horizon, settings.knots, settings.interpolation)
         self._bounds_cache: dict[tuple[torch.device, torch.dtype], tuple[Tensor, Tensor]] = {}
+        self._take(settings)
+
+    def _take(self, settings: Any) -> None:  # noqa: B027 (optional: a subclass may add none)
+        """Check and keep the subclass's own settings (the base has none)."""
 
     @property
     def action_dim(self) -> int:

@@ -2,61 +2,55 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from mbrl_delan.planners.base import SamplingDistribution, SamplingPlanner, require
+from mbrl_delan.planners.base import (
+    SamplingDistribution,
+    SamplingPlanner,
+    SamplingSettings,
+    require,
+)
+from mbrl_delan.rules import rule
+
+
+@dataclass
+class CEMSettings(SamplingSettings):
+    """`SamplingSettings` and CEM's own: num_elites K best samples the distribution is refit
+    to (1 <= K <= num_samples); init_std the first iteration's std (a scalar or (nu,); None:
+    a quarter of the action range); min_std the floor on the std after each update; momentum
+    alpha in mean = alpha * mean + (1 - alpha) * elite_mean (same for std), 0 <= alpha < 1."""
+
+    num_elites: int = rule(25, low=1)
+    init_std: float | None = rule(0.5, low=0, above=True)
+    min_std: float = rule(0.05, low=0)
+    momentum: float = rule(0.1, low=0, high=1, below=True)
+
+
+def check_cem(settings: CEMSettings) -> None:
+    """The rules between CEM's settings, beyond their ranges."""
+    s = settings
+    require(
+        1 <= s.num_elites <= s.num_samples,
+        f"num_elites must be in [1, num_samples={s.num_samples}], got {s.num_elites}",
+    )
+    require(s.min_std >= 0, f"min_std must be >= 0, got {s.min_std}")
+    require(0 <= s.momentum < 1, f"momentum must be in [0, 1), got {s.momentum}")
 
 
 class CEMPlanner(SamplingPlanner):
-    """CEM: sample around a Gaussian, refit it to the top `num_elites`, repeat.
+    """CEM: sample around a Gaussian, refit it to the top `num_elites`, repeat
+    (`CEMSettings`; constructed as `SamplingPlanner`)."""
 
-    Args (beyond `SamplingPlanner`'s):
-        num_elites: K best samples the distribution is refit to (1 <= K <= num_samples).
-        min_std: floor on the standard deviation after each update (>= 0).
-        momentum: alpha in mean = alpha * mean + (1 - alpha) * elite_mean (same for std),
-            0 <= alpha < 1.
-    """
+    Settings = CEMSettings
 
-    def __init__(
-        self,
-        horizon: int,
-        action_low: Tensor | Sequence[float] | float,
-        action_high: Tensor | Sequence[float] | float,
-        num_samples: int = 500,
-        num_elites: int = 50,
-        iterations: int = 5,
-        init_std: float | Sequence[float] | None = None,
-        min_std: float = 1e-3,
-        momentum: float = 0.1,
-        shift_fill: str = "repeat",
-        dtype: torch.dtype = torch.float32,
-        knots: int | None = None,
-        interpolation: str = "linear",
-    ) -> None:
-        super().__init__(
-            horizon,
-            action_low,
-            action_high,
-            num_samples,
-            iterations,
-            init_std=init_std,
-            shift_fill=shift_fill,
-            dtype=dtype,
-            knots=knots,
-            interpolation=interpolation,
-        )
-        require(
-            1 <= num_elites <= num_samples,
-            f"num_elites must be in [1, num_samples={num_samples}], got {num_elites}",
-        )
-        require(min_std >= 0, f"min_std must be >= 0, got {min_std}")
-        require(0 <= momentum < 1, f"momentum must be in [0, 1), got {momentum}")
-        self.num_elites = num_elites
-        self.min_std = min_std
-        self.momentum = momentum
+    def _take(self, settings: CEMSettings) -> None:
+        check_cem(settings)
+        self.num_elites = settings.num_elites
+        self.min_std = settings.min_std
+        self.momentum = settings.momentum
 
     def _initial_distribution(self, mean: Tensor) -> SamplingDistribution:
         std = self.init_std.to(mean.device, mean.dtype).expand_as(mean).clone()

@@ -18,7 +18,6 @@ never in the planner, so one planner can serve several independent callers.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -31,6 +30,8 @@ from mbrl_delan.planners.base import (
     SamplingPlanner,
     require,
 )
+from mbrl_delan.planners.cem import CEMSettings, check_cem
+from mbrl_delan.rules import rule
 
 
 @dataclass
@@ -113,6 +114,23 @@ def colored_noise(
     return (series / std).transpose(1, 2)  # (N, H, nu)
 
 
+@dataclass
+class ICEMSettings(CEMSettings):
+    """`CEMSettings` (K = num_elites <= min_samples) and iCEM's own: beta the exponent of the
+    noise's power spectrum 1/f^beta along the horizon (>= 0; 0 white, 2 Brownian-like, smooth
+    sequences); decay the population's decay factor per iteration (>= 1; 1 keeps it);
+    min_samples the population's floor N_min, num_elites <= N_min <= num_samples (None:
+    min(num_samples, 2 num_elites)); keep_elites the fraction of the elites carried into the
+    next iteration, in [0, 1]; return_best: the best sequence seen is the plan (`mean`)
+    instead of the distribution mean."""
+
+    beta: float = rule(2.0, low=0)
+    decay: float = rule(1.25, low=1)
+    min_samples: int | None = rule(None, low=1)
+    keep_elites: float = rule(0.3, low=0, high=1)
+    return_best: bool = False
+
+
 class ICEMPlanner(SamplingPlanner):
     """iCEM: CEM with colored noise, kept elites, population decay and best-sample return.
 
@@ -122,84 +140,44 @@ class ICEMPlanner(SamplingPlanner):
     on the std as in CEM; the best ceil(keep_elites * num_elites) elites (at least one when
     keep_elites > 0) are kept for the next iteration and returned in `ICEMPlanResult.elites`.
 
-    Args (beyond `SamplingPlanner`'s; `num_samples` is the first population N_0):
-        num_elites: K best samples the distribution is refit to (1 <= K <= min_samples).
-        beta: exponent of the noise's power spectrum 1/f^beta along the horizon, >= 0;
-            0 is white noise, 2 (Brownian-like) favours smooth sequences.
-        decay: population decay factor per iteration, >= 1 (1 keeps it constant).
-        min_samples: floor N_min of the population, num_elites <= N_min <= num_samples.
-            None: min(num_samples, 2 * num_elites).
-        keep_elites: fraction of the elites carried into the next iteration, in [0, 1].
-        min_std: floor on the standard deviation after each update (>= 0).
-        momentum: alpha in mean = alpha * mean + (1 - alpha) * elite_mean (same for std),
-            0 <= alpha < 1.
-        return_best: return the best sequence seen as the plan (`mean`) instead of the
-            distribution mean.
+    Settings: `ICEMSettings` (`num_samples` is the first population N_0); constructed as
+    `SamplingPlanner`.
     """
 
-    def __init__(
-        self,
-        horizon: int,
-        action_low: Tensor | Sequence[float] | float,
-        action_high: Tensor | Sequence[float] | float,
-        num_samples: int = 256,
-        num_elites: int = 25,
-        iterations: int = 4,
-        beta: float = 2.0,
-        decay: float = 1.25,
-        min_samples: int | None = None,
-        keep_elites: float = 0.3,
-        init_std: float | Sequence[float] | None = None,
-        min_std: float = 0.05,
-        momentum: float = 0.1,
-        return_best: bool = False,
-        shift_fill: str = "repeat",
-        dtype: torch.dtype = torch.float32,
-        knots: int | None = None,
-        interpolation: str = "linear",
-    ) -> None:
-        super().__init__(
-            horizon,
-            action_low,
-            action_high,
-            num_samples,
-            iterations,
-            init_std=init_std,
-            shift_fill=shift_fill,
-            dtype=dtype,
-            knots=knots,
-            interpolation=interpolation,
-        )
-        if min_samples is None:
-            min_samples = min(num_samples, 2 * num_elites)
-        require(
-            1 <= num_elites <= num_samples,
-            f"num_elites must be in [1, num_samples={num_samples}], got {num_elites}",
+    Settings = ICEMSettings
+
+    def _take(self, settings: ICEMSettings) -> None:
+        check_cem(settings)
+        s = settings
+        min_samples = (
+            min(s.num_samples, 2 * s.num_elites) if s.min_samples is None else s.min_samples
         )
         require(
-            num_elites <= min_samples <= num_samples,
-            f"min_samples must be in [num_elites={num_elites}, num_samples={num_samples}]"
+            s.num_elites <= min_samples <= s.num_samples,
+            f"min_samples must be in [num_elites={s.num_elites}, num_samples={s.num_samples}]"
             f", got {min_samples}",
         )
-        require(math.isfinite(beta) and beta >= 0, f"beta must be finite and >= 0, got {beta}")
-        require(math.isfinite(decay) and decay >= 1, f"decay must be finite and >= 1, got {decay}")
-        require(0 <= keep_elites <= 1, f"keep_elites must be in [0, 1], got {keep_elites}")
-        require(min_std >= 0, f"min_std must be >= 0, got {min_std}")
-        require(0 <= momentum < 1, f"momentum must be in [0, 1), got {momentum}")
-        self.num_elites = num_elites
-        self.beta = float(beta)
-        self.decay = float(decay)
+        require(
+            math.isfinite(s.beta) and s.beta >= 0, f"beta must be finite and >= 0, got {s.beta}"
+        )
+        require(
+            math.isfinite(s.decay) and s.decay >= 1, f"decay must be finite and >= 1, got {s.decay}"
+        )
+        require(0 <= s.keep_elites <= 1, f"keep_elites must be in [0, 1], got {s.keep_elites}")
+        self.num_elites = s.num_elites
+        self.beta = float(s.beta)
+        self.decay = float(s.decay)
         self.min_samples = min_samples
-        self.keep_elites = keep_elites
-        self.num_kept = self._kept_count(keep_elites, num_elites)
+        self.keep_elites = s.keep_elites
+        self.num_kept = self._kept_count(s.keep_elites, s.num_elites)
         require(
             self.num_kept < min_samples,
-            f"keep_elites={keep_elites} keeps {self.num_kept} elites, which leaves no "
+            f"keep_elites={s.keep_elites} keeps {self.num_kept} elites, which leaves no "
             f"fresh sample in a population of min_samples={min_samples}",
         )
-        self.min_std = min_std
-        self.momentum = momentum
-        self.return_best = return_best
+        self.min_std = s.min_std
+        self.momentum = s.momentum
+        self.return_best = s.return_best
 
     @staticmethod
     def _kept_count(fraction: float, num_elites: int) -> int:

@@ -3,12 +3,18 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from mbrl_delan.planners.base import SamplingDistribution, SamplingPlanner, require
+from mbrl_delan.planners.base import (
+    SamplingDistribution,
+    SamplingPlanner,
+    SamplingSettings,
+    require,
+)
+from mbrl_delan.rules import rule
 
 
 def ar1_filter(horizon: int, smoothing: float, dtype: torch.dtype, device: torch.device) -> Tensor:
@@ -40,51 +46,36 @@ def mppi_weights(returns: Tensor, temperature: float) -> Tensor:
     return torch.softmax(logits, dim=0)
 
 
+@dataclass
+class MPPISettings(SamplingSettings):
+    """`SamplingSettings` (MPPI's sample count and iterations) and MPPI's own: temperature
+    lambda > 0 (small values approach picking the best sample); noise_std the perturbations'
+    std (a scalar or (nu,); None: a quarter of the action range); smoothing a in [0, 1): the
+    perturbations are an AR(1) series along the horizon, eps_t = a eps_{t-1} +
+    sqrt(1 - a^2) n_t (`ar1_filter`), so neighbouring actions move together while each keeps
+    the std `noise_std`; 0 is white noise."""
+
+    num_samples: int = rule(256, low=1)
+    iterations: int = rule(2, low=1)
+    temperature: float = rule(0.5, low=0, above=True)
+    noise_std: float | None = rule(0.5, low=0, above=True)
+    smoothing: float = rule(0.8, low=0, high=1, below=True)
+
+
 class MPPIPlanner(SamplingPlanner):
-    """MPPI: perturb the mean with fixed Gaussian noise, average samples by exp(R / lambda).
+    """MPPI: perturb the mean with fixed Gaussian noise, average samples by exp(R / lambda)
+    (`MPPISettings`; constructed as `SamplingPlanner`)."""
 
-    Args (beyond `SamplingPlanner`'s):
-        temperature: lambda > 0; small values approach picking the best sample.
-        noise_std: standard deviation of the perturbations, scalar or (nu,), > 0. None
-            falls back to `init_std`.
-        smoothing: action smoothing a in [0, 1): the perturbations are an AR(1) series along
-            the horizon, eps_t = a eps_{t-1} + sqrt(1 - a^2) n_t (`ar1_filter`), so
-            neighbouring actions move together while each keeps the std `noise_std`.
-            0 is white noise.
-    """
+    Settings = MPPISettings
+    STD_FIELD = "noise_std"
 
-    def __init__(
-        self,
-        horizon: int,
-        action_low: Tensor | Sequence[float] | float,
-        action_high: Tensor | Sequence[float] | float,
-        num_samples: int = 512,
-        iterations: int = 1,
-        temperature: float = 1.0,
-        noise_std: float | Sequence[float] | None = None,
-        smoothing: float = 0.0,
-        shift_fill: str = "repeat",
-        dtype: torch.dtype = torch.float32,
-        knots: int | None = None,
-        interpolation: str = "linear",
-    ) -> None:
+    def _take(self, settings: MPPISettings) -> None:
+        temperature, smoothing = settings.temperature, settings.smoothing
         require(
             math.isfinite(temperature) and temperature > 0,
             f"temperature must be finite and > 0, got {temperature}",
         )
         require(0 <= smoothing < 1, f"smoothing must be in [0, 1), got {smoothing}")
-        super().__init__(
-            horizon,
-            action_low,
-            action_high,
-            num_samples,
-            iterations,
-            init_std=noise_std,
-            shift_fill=shift_fill,
-            dtype=dtype,
-            knots=knots,
-            interpolation=interpolation,
-        )
         self.temperature = temperature
         self.smoothing = float(smoothing)
         self._filters: dict[tuple[torch.device, torch.dtype], Tensor] = {}

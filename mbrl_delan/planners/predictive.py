@@ -2,49 +2,36 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from mbrl_delan.planners.base import SamplingDistribution, SamplingPlanner
+from mbrl_delan.planners.base import SamplingDistribution, SamplingPlanner, SamplingSettings
+from mbrl_delan.planners.spline import INTERPOLATIONS
+from mbrl_delan.rules import rule
+
+
+@dataclass
+class PredictiveSettings(SamplingSettings):
+    """`SamplingSettings` (few samples, one iteration, three cubic knots) and noise_std, the
+    perturbations' std (a scalar or (nu,); None: a quarter of the action range)."""
+
+    num_samples: int = rule(10, low=1)
+    iterations: int = rule(1, low=1)
+    knots: int | None = rule(3, low=1)
+    interpolation: str = rule("cubic", choices=INTERPOLATIONS)
+    noise_std: float | None = rule(0.5, low=0, above=True)
 
 
 class PredictiveSampling(SamplingPlanner):
     """Predictive sampling: each iteration evaluates the nominal knots and N - 1 copies
     perturbed by Gaussian noise of a fixed std, and the best of them becomes the nominal.
-    Greedy and derivative-free; with few knots (`knots`), few samples suffice.
+    Greedy and derivative-free; with few knots (`knots`), few samples suffice
+    (`PredictiveSettings`; constructed as `SamplingPlanner`)."""
 
-    Args (beyond `SamplingPlanner`'s):
-        noise_std: standard deviation of the perturbations, scalar or (nu,), > 0. None
-            falls back to a quarter of the action range (`init_std`).
-    """
-
-    def __init__(
-        self,
-        horizon: int,
-        action_low: Tensor | Sequence[float] | float,
-        action_high: Tensor | Sequence[float] | float,
-        num_samples: int = 10,
-        iterations: int = 1,
-        noise_std: float | Sequence[float] | None = None,
-        shift_fill: str = "repeat",
-        dtype: torch.dtype = torch.float32,
-        knots: int | None = None,
-        interpolation: str = "linear",
-    ) -> None:
-        super().__init__(
-            horizon,
-            action_low,
-            action_high,
-            num_samples,
-            iterations,
-            init_std=noise_std,
-            shift_fill=shift_fill,
-            dtype=dtype,
-            knots=knots,
-            interpolation=interpolation,
-        )
+    Settings = PredictiveSettings
+    STD_FIELD = "noise_std"
 
     def _initial_distribution(self, mean: Tensor) -> SamplingDistribution:
         std = self.init_std.to(mean.device, mean.dtype).expand_as(mean).clone()

@@ -1,0 +1,69 @@
+"""Settings with their valid ranges: a dataclass field made by `rule` carries its range in
+its metadata (`FieldRule`), which the config checks read (`mbrl_delan.conf.checks`). The
+bottom floor: the planners' settings and the config schemas both use it."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from omegaconf import MISSING, ListConfig
+
+
+def rule(
+    default: Any = MISSING,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    above: bool = False,
+    below: bool = False,
+    choices: tuple[str, ...] | None = None,
+) -> Any:
+    """A dataclass field with its valid range: low <= value <= high (strict with `above` /
+    `below`) or a value among `choices`; None is always allowed for an Optional field."""
+    meta = {"low": low, "high": high, "above": above, "below": below, "choices": choices}
+    return field(
+        default=default,
+        metadata={k: v for k, v in meta.items() if v is not None and v is not False},
+    )
+
+
+@dataclass
+class FieldRule:
+    """The range of one field, read from its metadata (see `rule`)."""
+
+    low: float = -math.inf
+    high: float = math.inf
+    above: bool = False
+    below: bool = False
+    choices: tuple[str, ...] | None = None
+
+    def describe(self, value: Any = 0.0) -> str:
+        """What a valid value is, in words (`value`: an int is described as a whole number)."""
+        if self.choices:
+            return "choose one of: " + ", ".join(self.choices)
+        parts = []
+        if self.low > -math.inf:
+            parts.append(f"{'>' if self.above else '>='} {self.low:g}")
+        if self.high < math.inf:
+            parts.append(f"{'<' if self.below else '<='} {self.high:g}")
+        kind = "a whole number" if isinstance(value, int) else "a finite number"
+        return f"it must be {kind}" + (" " + " and ".join(parts) if parts else "")
+
+    def allows(self, value: Any) -> bool:
+        if isinstance(value, list | tuple | ListConfig):  # a list: each element
+            return all(self.allows(v) for v in value)
+        if self.choices:
+            return value in self.choices
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            return True  # strings, lists, mappings: typed by the schema only
+        if not math.isfinite(value):
+            return False
+        low_ok = value > self.low if self.above else value >= self.low
+        high_ok = value < self.high if self.below else value <= self.high
+        return low_ok and high_ok
+
+
+def field_rule(metadata: Any) -> FieldRule:
+    return FieldRule(**dict(metadata))
