@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
+from omegaconf.errors import OmegaConfBaseException
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
 
@@ -27,13 +28,13 @@ from mbrl_delan.conf.checks import (
     DTYPES,
     ConfigError,
     check_device,
-    check_number,
     check_ranges,
-    check_whole,
     compose_config,
     load_config_plugins,
     refuse_used_run_dir,
+    schema_error_message,
 )
+from mbrl_delan.conf.fit_schema import DATA_SCHEMAS, FitRunConfig
 from mbrl_delan.conf.inverse import (
     InverseContext,
     build_inverse_model,
@@ -44,11 +45,9 @@ from mbrl_delan.conf.registry import (
     INVERSE_MODELS,
 )
 from mbrl_delan.data.arrays import SPLITS as ARRAY_SPLITS
-from mbrl_delan.data.arrays import VAL_BY, DerivativeSettings, save_arrays
+from mbrl_delan.data.arrays import DerivativeSettings, save_arrays
 from mbrl_delan.data.buffer import check_finite
 from mbrl_delan.data.excitation import (
-    CENTRES,
-    DESIGNS,
     EXCITATION_FORMAT,
     ExcitationSettings,
     excitation_arrays,
@@ -63,8 +62,6 @@ from mbrl_delan.data.inverse_data import (
     system_of,
 )
 from mbrl_delan.data.mocap import (
-    GAINS,
-    TORQUE_SOURCES,
     FilterSettings,
     MocapDataset,
     TrackingSettings,
@@ -78,7 +75,7 @@ from mbrl_delan.models.inverse import (
 )
 from mbrl_delan.models.rigid_body import WhiteBoxInverse
 from mbrl_delan.systems.arms import ARMS, FRICTION_KINDS, arm, friction_kind
-from mbrl_delan.systems.system import HINGE, JOINT_TYPES
+from mbrl_delan.systems.system import HINGE
 from mbrl_delan.training.inverse_fit import (
     EpochResult,
     InverseFitSettings,
@@ -88,11 +85,9 @@ from mbrl_delan.training.inverse_fit import (
     fit_inverse_model,
 )
 from mbrl_delan.training.recorder import (
-    LOGGERS,
     METRICS_FILE,
     RUN_CONFIG,
     SUMMARY_FILE,
-    WANDB_MODES,
     Recorder,
     WandbOptions,
     read_metrics,
@@ -106,9 +101,6 @@ OmegaConf.register_new_resolver("stem", lambda value: Path(str(value)).stem, rep
 
 
 DATA_NAMES = ("cmu_mocap", "arrays", "excitation")
-
-
-LR_SCHEDULES = ("constant", "cosine", "stages")
 
 
 PROVENANCE_FILE = "dataset_provenance.json"
@@ -141,11 +133,6 @@ def _choice(path: str, value: Any, choices: Sequence[str]) -> None:
         raise ConfigError(f"{path}={value!r} is not valid; choose one of: {', '.join(choices)}")
 
 
-def _flag(path: str, value: Any) -> None:
-    if not isinstance(value, bool):
-        raise ConfigError(f"{path}={value!r} is not valid; it must be true or false")
-
-
 def _clip_names(path: str, value: Any, allow_empty: bool = False) -> list[str]:
     if not isinstance(value, list | tuple | ListConfig) or (not value and not allow_empty):
         raise ConfigError(
@@ -160,91 +147,97 @@ def _clip_names(path: str, value: Any, allow_empty: bool = False) -> list[str]:
     return [str(v) for v in value]
 
 
-def _validate_model(cfg: DictConfig) -> None:
-    _choice("model.name", cfg.name, INVERSE_MODELS.names())
-    typed = typed_model(cfg)
-    check_ranges(typed, "model.")
-    if "start_level" in typed and "diag_shift" in typed:
-        check_residual_start(typed)
+def typed_fit_config(cfg: DictConfig) -> DictConfig:
+    """`cfg` merged into `FitRunConfig`, its data group into its name's schema
+    (`DATA_SCHEMAS`) and its model group into the model's (`typed_model`): a wrong type or an
+    unknown key is a ConfigError naming it."""
+    _choice("data.name", cfg.data.get("name"), DATA_NAMES)
+    _choice("model.name", cfg.model.get("name"), INVERSE_MODELS.names())
+    base = OmegaConf.structured(FitRunConfig)
+    with open_dict(base):
+        base.data = OmegaConf.structured(DATA_SCHEMAS[cfg.data.name])
+        base.model = {}
+    try:
+        typed = OmegaConf.merge(base, cfg)
+    except OmegaConfBaseException as err:
+        raise ConfigError(schema_error_message(err)) from err
+    with open_dict(typed):
+        typed.model = typed_model(cfg.model)
+    return typed
 
 
-def _validate_arrays(cfg: DictConfig) -> None:
-    if not isinstance(cfg.path, str) or not cfg.path:
+def validate_fit_config(cfg: DictConfig) -> None:
+    """Every value the fit entry point uses, checked before anything is built or written,
+    once the config's ``plugins`` are loaded (their inverse-dynamics models): each typed by
+    its schema and within its range (`typed_fit_config`, `check_ranges`), then the rules
+    between keys (`_check_fit_rules`)."""
+    load_config_plugins(cfg)
+    typed = typed_fit_config(cfg)
+    check_ranges(typed)
+    check_device(typed.device)
+    _check_fit_rules(typed)
+
+
+def _check_fit_rules(cfg: DictConfig) -> None:
+    """The rules between the fit's keys, and the values a schema cannot type (the data's
+    friction flag or kind, ``coulomb_lead``'s auto, clip names that must be strings)."""
+    if cfg.stop_on is not None:
+        _choice("stop_on", cfg.stop_on, _split_names(cfg.data))
+    if cfg.coulomb_lead not in (True, False, "auto"):
+        raise ConfigError(
+            f"coulomb_lead={cfg.coulomb_lead!r} is not valid; it must be true, false or auto"
+        )
+    if "start_level" in cfg.model and "diag_shift" in cfg.model:
+        check_residual_start(cfg.model)
+    {"arrays": _check_arrays, "excitation": _check_excitation, "cmu_mocap": _check_mocap}[
+        cfg.data.name
+    ](cfg.data)
+    tree_models = ("white_box", "tree_delan")
+    if cfg.model.name in tree_models and cfg.data.name == "arrays" and cfg.data.mjcf is None:
+        raise ConfigError(
+            f"model={cfg.model.name} needs the robot's kinematic tree: give data.mjcf=MODEL.xml"
+        )
+    if cfg.model.name in tree_models and cfg.data.name == "cmu_mocap":
+        raise ConfigError(
+            f"model={cfg.model.name} fits arms (data=excitation or data=arrays data.mjcf=...)"
+        )
+
+
+def _check_arrays(cfg: DictConfig) -> None:
+    if not cfg.path:
         raise ConfigError(f"data.path={cfg.path!r} is not valid; give the data file (npz/pt/csv)")
-    test_path = cfg.get("test_path")
-    if test_path is not None:
-        if not isinstance(test_path, str) or not test_path:
-            raise ConfigError(f"data.test_path={test_path!r} is not valid; give a file")
-        if not Path(test_path).is_file():
-            raise ConfigError(f"data.test_path={test_path!r}: no such file")
+    if cfg.test_path is not None and not Path(cfg.test_path).is_file():
+        raise ConfigError(f"data.test_path={cfg.test_path!r}: no such file")
     if (cfg.joints is None) == (cfg.mjcf is None):
         raise ConfigError(
             f"data.joints={cfg.joints!r}, data.mjcf={cfg.mjcf!r}: give one of them (the joint "
             "types as a list, data.joints=[hinge,hinge,slide], or an MJCF file)"
         )
-    if cfg.joints is not None:
-        if not isinstance(cfg.joints, list | ListConfig) or not cfg.joints:
-            raise ConfigError(f"data.joints={cfg.joints!r} is not valid; give a list of types")
-        for i, name in enumerate(cfg.joints):
-            _choice(f"data.joints[{i}]", name, tuple(JOINT_TYPES))
-    _validate_split(cfg)
-    if cfg.filter.cutoff_hz is not None:
-        check_number("data.filter.cutoff_hz", cfg.filter.cutoff_hz, 0.0, open_low=True)
-    check_whole("data.filter.order", cfg.filter.order, 1)
+    if cfg.joints is not None and not cfg.joints:
+        raise ConfigError("data.joints=[] is not valid; give a list of types")
 
 
-def _validate_split(cfg: DictConfig) -> None:
-    check_number("data.split.val_fraction", cfg.split.val_fraction, 0.0, 0.9, open_low=True)
-    check_number("data.split.test_fraction", cfg.split.test_fraction, 0.0, 0.9)
-    check_whole("data.split.seed", cfg.split.seed, 0)
-    _choice("data.split.val_by", cfg.split.val_by, VAL_BY)
-
-
-def _validate_excitation(cfg: DictConfig) -> None:
-    robot = cfg.robot
-    if not isinstance(robot, str) or (robot not in ARMS and not robot.endswith(".xml")):
-        raise ConfigError(f"data.robot={robot!r} is not valid; choose one of: "
+def _check_excitation(cfg: DictConfig) -> None:
+    if cfg.robot not in ARMS and not cfg.robot.endswith(".xml"):
+        raise ConfigError(f"data.robot={cfg.robot!r} is not valid; choose one of: "
                           f"{', '.join(ARMS)}, or give an MJCF file (.xml)")  # fmt: skip
     if not isinstance(cfg.friction, bool):
         _choice("data.friction", cfg.friction, FRICTION_KINDS)
-    _choice("data.centres", cfg.get("centres", "middle"), CENTRES)
-    _choice("data.design", cfg.get("design", "fourier"), tuple(DESIGNS))
-    if cfg.get("test_design") is not None:
-        _choice("data.test_design", cfg.test_design, tuple(DESIGNS))
-    check_whole("data.samples", cfg.samples, 1)
-    check_whole("data.seed", cfg.seed, 0)
-    check_number("data.period_s", cfg.period_s, 0.0, open_low=True)
-    check_whole("data.harmonics", cfg.harmonics, 1)
-    check_number("data.rate_hz", cfg.rate_hz, 0.0, open_low=True)
-    check_number("data.use", cfg.use, 0.0, 1.0, open_low=True)
-    check_number("data.q_noise", cfg.q_noise, 0.0)
-    check_number("data.tau_noise", cfg.tau_noise, 0.0)
-    if cfg.get("max_velocity") is not None:
-        check_number("data.max_velocity", cfg.max_velocity, 0.0, open_low=True)
-    if cfg.get("test_seed") is not None:
-        check_whole("data.test_seed", cfg.test_seed, 0)
-        if cfg.test_seed == cfg.seed:
-            raise ConfigError(f"data.test_seed={cfg.test_seed}: the training data's own seed")
-    if cfg.cutoff_hz is not None:
-        check_number("data.cutoff_hz", cfg.cutoff_hz, 0.0, cfg.rate_hz / 2, open_low=True)
-    _validate_split(cfg)
+    if cfg.test_seed is not None and cfg.test_seed == cfg.seed:
+        raise ConfigError(f"data.test_seed={cfg.test_seed}: the training data's own seed")
+    if cfg.cutoff_hz is not None and cfg.cutoff_hz > cfg.rate_hz / 2:
+        raise ConfigError(
+            f"data.cutoff_hz={cfg.cutoff_hz} is not valid; it must be <= data.rate_hz / 2 "
+            f"= {cfg.rate_hz / 2}"
+        )
 
 
-def _validate_data(cfg: DictConfig) -> None:
-    _choice("data.name", cfg.name, DATA_NAMES)
-    if cfg.name == "arrays":
-        _validate_arrays(cfg)
-        return
-    if cfg.name == "excitation":
-        _validate_excitation(cfg)
-        return
-    _choice("data.torques", cfg.torques, TORQUE_SOURCES)
-    _flag("data.skip_bad_clips", cfg.skip_bad_clips)
+def _check_mocap(cfg: DictConfig) -> None:
     if cfg.dataset_dir is not None:
         return
     clips = _clip_names("data.clips", cfg.clips)
     val = _clip_names("data.val_clips", cfg.val_clips, allow_empty=True)
-    test = _clip_names("data.test_clips", cfg.get("test_clips", []), allow_empty=True)
+    test = _clip_names("data.test_clips", cfg.test_clips, allow_empty=True)
     for name, held in (("val_clips", val), ("test_clips", test)):
         unknown = [c for c in held if c not in clips]
         if unknown:
@@ -258,71 +251,6 @@ def _validate_data(cfg: DictConfig) -> None:
         )
     if len(set(clips)) != len(clips):
         raise ConfigError(f"data.clips={clips} is not valid: a clip is listed twice")
-    if cfg.samples_per_clip is not None:
-        check_number("data.samples_per_clip", cfg.samples_per_clip, 1)
-    if cfg.filter.cutoff_hz is not None:
-        check_number("data.filter.cutoff_hz", cfg.filter.cutoff_hz, 0.0, 59.99, open_low=True)
-    check_number("data.filter.order", cfg.filter.order, 1)
-    check_number("data.filter.edge_trim_s", cfg.filter.edge_trim_s, 0.0)
-    check_number("data.split.val_time_fraction", cfg.split.val_time_fraction, 0.0, 0.95)
-    check_number("data.split.gap_s", cfg.split.gap_s, 0.0)
-    check_number("data.glitch.deg", cfg.glitch.deg, 0.0, open_low=True)
-    check_number("data.glitch.pad_s", cfg.glitch.pad_s, 0.0)
-    if cfg.torques == "pd":
-        check_number("data.pd.omega", cfg.pd.omega, 0.0, open_low=True)
-        check_number("data.pd.zeta", cfg.pd.zeta, 0.0, open_low=True)
-        _choice("data.pd.gains", cfg.pd.gains, GAINS)
-
-
-def validate_fit_config(cfg: DictConfig) -> None:
-    """Every value the fit entry point uses, checked before anything is built or written,
-    once the config's ``plugins`` are loaded (their inverse-dynamics models)."""
-    load_config_plugins(cfg)
-    _choice("dtype", cfg.dtype, tuple(DTYPES))
-    check_device(cfg.device)
-    check_whole("seed", cfg.seed, 0)
-    check_whole("threads", cfg.threads, 1, optional=True)
-    check_whole("epochs", cfg.epochs, 1)
-    check_whole("eval_every", cfg.eval_every, 0)
-    check_number("batch_size", cfg.batch_size, 1)
-    check_number("eval_batch_size", cfg.eval_batch_size, 1)
-    check_number("lr", cfg.lr, 0.0, open_low=True)
-    check_number("weight_decay", cfg.weight_decay, 0.0)
-    _choice("lr_schedule", cfg.lr_schedule, LR_SCHEDULES)
-    check_whole("stages.count", cfg.stages.count, 1)
-    check_number("stages.decay", cfg.stages.decay, 0.0, 1.0, open_low=True)
-    check_whole("stages.warmup_steps", cfg.stages.warmup_steps, 0)
-    check_whole("patience", cfg.patience, 1, optional=True)
-    check_number("min_delta", cfg.min_delta, 0.0)
-    if cfg.stop_on is not None:
-        _choice("stop_on", cfg.stop_on, _split_names(cfg.data))
-    if cfg.max_grad_norm is not None:
-        check_number("max_grad_norm", cfg.max_grad_norm, 0.0, open_low=True)
-    check_number("loss.std_floor", cfg.loss.std_floor, 0.0, 1.0, open_low=True)
-    _flag("translation_invariant", cfg.translation_invariant)
-    _flag("periodic_hinges", cfg.get("periodic_hinges", False))
-    if cfg.get("coulomb") is not None:
-        _flag("coulomb", cfg.coulomb)
-    if cfg.get("coulomb_lead", False) not in (True, False, "auto"):
-        raise ConfigError(
-            f"coulomb_lead={cfg.coulomb_lead!r} is not valid; it must be true, false or auto"
-        )
-    if cfg.get("friction_init") is not None:
-        check_number("friction_init", cfg.friction_init, 0.0, open_low=True)
-    _choice("logger.backend", cfg.logger.backend, LOGGERS)
-    if cfg.logger.get("mode") is not None:
-        _choice("logger.mode", cfg.logger.mode, WANDB_MODES)
-    _validate_model(cfg.model)
-    _validate_data(cfg.data)
-    tree_models = ("white_box", "tree_delan")
-    if cfg.model.name in tree_models and cfg.data.name == "arrays" and cfg.data.mjcf is None:
-        raise ConfigError(
-            f"model={cfg.model.name} needs the robot's kinematic tree: give data.mjcf=MODEL.xml"
-        )
-    if cfg.model.name in tree_models and cfg.data.name == "cmu_mocap":
-        raise ConfigError(
-            f"model={cfg.model.name} fits arms (data=excitation or data=arrays data.mjcf=...)"
-        )
 
 
 def _split_names(data: DictConfig) -> tuple[str, ...]:
