@@ -24,12 +24,12 @@ from mbrl_delan.benchmarks import (
     ILQR_TASKS,
     OWN_ARM_MODELS,
     PLANNER_MODELS,
-    PLUGIN_CASE_PREFIX,
     REALTIME_DYNAMICS,
     SuiteOptions,
     TimingConfig,
     UnknownSuiteError,
     get_suite,
+    plugin_case,
 )
 from mbrl_delan.benchmarks.records import RecordWriter, format_table
 from mbrl_delan.conf.checks import (
@@ -40,7 +40,7 @@ from mbrl_delan.conf.checks import (
     load_config_plugins,
     schema_error_message,
 )
-from mbrl_delan.conf.registry import MODELS, PLANNERS
+from mbrl_delan.conf.registry import ENVS, MODELS, PLANNERS
 from mbrl_delan.conf.schema import MODEL_SCHEMAS, BenchConfig
 
 log = logging.getLogger("mbrl_delan.bench")
@@ -56,9 +56,15 @@ QUICK = {
 }
 
 
+def _plugin_models() -> tuple[str, ...]:
+    """The plugins' registered world models (suite realtime plans on them by name)."""
+    return tuple(m for m in MODELS.names() if m not in MODEL_SCHEMAS)
+
+
 def _plugin_cases() -> tuple[str, ...]:
-    """Suite planner's cases of the plugins' models: ``pendulum_<model>``."""
-    return tuple(PLUGIN_CASE_PREFIX + m for m in MODELS.names() if m not in MODEL_SCHEMAS)
+    """Suite planner's cases of the plugins' models: ``<env>_<model>`` on every registered
+    env (the pendulum's, a plugin's)."""
+    return tuple(plugin_case(e, m) for e in ENVS.names() for m in _plugin_models())
 
 
 def _models(values: list[str] | None, suite: str) -> tuple[str, ...] | None:
@@ -69,7 +75,7 @@ def _models(values: list[str] | None, suite: str) -> tuple[str, ...] | None:
     humanoid = suite in ("humanoid", "fidelity")
     known = {
         "humanoid": HUMANOID_MODELS + HUMANOID_MODEL_VARIANTS,
-        "realtime": REALTIME_DYNAMICS,
+        "realtime": REALTIME_DYNAMICS + _plugin_models(),
         "fidelity": FIDELITY_CASES,
         "own_arm": OWN_ARM_MODELS,
     }.get(suite, PLANNER_MODELS + _plugin_cases())
@@ -127,12 +133,13 @@ def build_options(cfg: DictConfig) -> SuiteOptions:
     once its ``plugins`` are loaded (their planners count among `planners`' choices)."""
     typed = typed_bench_config(cfg)
     load_config_plugins(typed)
-    for name in typed.planners or ():
-        if name not in PLANNERS:
-            raise ConfigError(
-                f"planners: {name!r} is not a registered planner; choose among: "
-                f"{', '.join(PLANNERS.names())} (a plugin's needs its module in plugins=[...])"
-            )
+    for option, registry in (("planners", PLANNERS), ("tasks", ENVS)):
+        for name in typed[option] or ():
+            if name not in registry:
+                raise ConfigError(
+                    f"{option}: {name!r} is not a registered {registry.family}; choose among: "
+                    f"{', '.join(registry.names())} (a plugin's needs its module in plugins=[...])"
+                )
     v = {**OmegaConf.to_container(typed, resolve=True), **(QUICK if typed.quick else {})}
     tuples = lambda name: None if v[name] is None else tuple(v[name])  # noqa: E731
     return SuiteOptions(

@@ -237,19 +237,21 @@ def test_fit_evaluate_and_load_run_with_the_users_inverse_model(
 @pytest.mark.slow
 @pytest.mark.heavy
 def test_bench_times_the_users_planner(user_project: Path, tmp_path: Path) -> None:
-    """`bench suite=planner` with the plugin's planner and its model as a case
-    (``pendulum_linear``; no YAML among the loop's: their schemas' defaults) beside the
-    suite's DeLaN case; an unregistered name is a config error."""
+    """`bench suite=planner` with the plugin's planner and its model as a case on the
+    pendulum and on its own env (``pendulum_linear``, ``slider_linear``; no YAML among the
+    loop's: their schemas' defaults) beside the suite's DeLaN case; an unregistered name is a
+    config error."""
     out_file = tmp_path / "planner.jsonl"
     out = _run_module(
         user_project, "-m", "mbrl_delan.bench", "suite=planner", "quick=true",
-        f"plugins=[{PLUGIN}]", "planners=[shooting]", "models=[pendulum_delan,pendulum_linear]",
-        "torchrl=false", f"out={out_file}", f"hydra.run.dir={tmp_path / 'bench'}",
+        f"plugins=[{PLUGIN}]", "planners=[shooting]",
+        "models=[pendulum_delan,pendulum_linear,slider_linear]", "torchrl=false",
+        f"out={out_file}", f"hydra.run.dir={tmp_path / 'bench'}",
     )  # fmt: skip
     assert out.returncode == 0, out.stdout + out.stderr
     records = [json.loads(line) for line in out_file.read_text().splitlines()]
     latency = [r for r in records if r["metric"] == "plan_latency_ms"]
-    assert {r["model"] for r in latency} == {"pendulum_delan", "pendulum_linear"}
+    assert {r["model"] for r in latency} == {"pendulum_delan", "pendulum_linear", "slider_linear"}
     assert all(r["planner"] == "shooting" for r in latency)
     assert all(r["value"] is None or r["value"] > 0 for r in latency)
     from mbrl_delan.bench import build_options
@@ -258,6 +260,28 @@ def test_bench_times_the_users_planner(user_project: Path, tmp_path: Path) -> No
         unknown = compose("config", overrides=["suite=planner", "planners=[no_such_planner]"])
     with pytest.raises(ConfigError, match="'no_such_planner' is not a registered planner"):
         build_options(unknown)
+
+
+def test_bench_realtime_plans_on_the_users_env_model_and_planner(
+    user_project: Path, tmp_path: Path
+) -> None:
+    """`bench suite=realtime` on the plugin's env (its YAML found through the cases'
+    overrides), planning with its planner on MuJoCo and on its model."""
+    out_file = tmp_path / "realtime.jsonl"
+    searchpath = f"hydra.searchpath=[file://{user_project / 'examples' / 'slider' / 'conf'}]"
+    out = _run_module(
+        user_project, "-m", "mbrl_delan.bench", "suite=realtime", "quick=true",
+        f"plugins=[{PLUGIN}]", "tasks=[slider]", "models=[mujoco,linear]",
+        f"overrides=['{searchpath}','planner=shooting']", f"out={out_file}",
+        f"hydra.run.dir={tmp_path / 'bench'}",
+    )  # fmt: skip
+    assert out.returncode == 0, out.stdout + out.stderr
+    records = [json.loads(line) for line in out_file.read_text().splitlines()]
+    timed = [r for r in records if r["metric"] == "plan_ms_per_control_step"]
+    assert {(r["task"], r["dynamics"], r["planner"]) for r in timed} == {
+        ("slider", "mujoco", "shooting"), ("slider", "linear", "shooting"),
+    }  # fmt: skip
+    assert all(r["value"] > 0 for r in timed)
 
 
 def test_evaluate_names_a_plugin_the_run_saved_that_cannot_be_imported(

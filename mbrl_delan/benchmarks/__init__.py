@@ -30,11 +30,12 @@ from mbrl_delan.conf.bench_names import (  # noqa: F401 - the suites' names, re-
     OWN_ARM_MODELS,
     OWN_ARM_ROBOTS,
     PLANNER_MODELS,
-    PLUGIN_CASE_PREFIX,
     REALTIME_DYNAMICS,
     REALTIME_TASKS,
     SUITE_NAMES,
     SUITES,
+    plugin_case,
+    split_plugin_case,
 )
 
 Suite = Callable[["SuiteOptions"], Iterator[BenchRecord]]

@@ -72,10 +72,10 @@ from mbrl_delan.benchmarks import (
     COMPILED_SUFFIX,
     GRAPH_SUFFIX,
     PLANNER_MODELS,
-    PLUGIN_CASE_PREFIX,
     SuiteOptions,
     Timing,
     host_fields,
+    split_plugin_case,
     synchronizer,
     time_call,
 )
@@ -83,6 +83,7 @@ from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.conf.builders import build_model
 from mbrl_delan.conf.builders import build_planner as config_build_planner
 from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError, compose_train_config
+from mbrl_delan.conf.registry import ENVS
 from mbrl_delan.conf.registry import MODELS as REGISTERED_MODELS
 from mbrl_delan.conf.registry import PLANNERS as REGISTERED_PLANNERS
 from mbrl_delan.envs.model_env import ModelEnv
@@ -248,8 +249,8 @@ def model_config(kind: str) -> DictConfig:
 
 
 def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
-    """The world-model case `name` (one of `PLANNER_MODELS`, or ``pendulum_<model>`` for a
-    plugin's registered model), its model on `device`."""
+    """The world-model case `name` (one of `PLANNER_MODELS`, or ``<env>_<model>`` for a
+    plugin's registered model on a registered env), its model on `device`."""
     torch.manual_seed(seed)
     graph = name.endswith(GRAPH_SUFFIX)
     compiled = name.removesuffix(GRAPH_SUFFIX).endswith(COMPILED_SUFFIX)
@@ -268,8 +269,12 @@ def make_case(name: str, device: torch.device, seed: int = 0) -> Case:
     elif name == "pendulum_ensemble":
         model = build_ensemble(system)
         particles = loop_config(MODEL_CONFIGS["ensemble"]).model.particles
-    elif name not in PLANNER_MODELS:  # pendulum_<a plugin's model>
-        cfg = model_config(name.removeprefix(PLUGIN_CASE_PREFIX))
+    elif name not in PLANNER_MODELS:  # <env>_<a plugin's model>
+        env, kind = split_plugin_case(name, tuple(ENVS.names()))
+        parts = make_env_parts(env)
+        system, task = parts.system, parts.task
+        start = task.initial_state((), torch.Generator().manual_seed(seed))
+        cfg = model_config(kind)
         model, particles = build_model(cfg, system), cfg.particles
     else:
         model = build_delan(system)

@@ -1,7 +1,8 @@
 """Suite `realtime`: milliseconds of planning per control step at the loop's own settings.
 
-For each task in `tasks` (`humanoid_stand`, `humanoid_walk`, `pendulum`) and each dynamics in
-`models` (`mujoco`, `delan`, `tree`, `tree_delan`, `ensemble`), the config is the one
+For each task in `tasks` (`humanoid_stand`, `humanoid_walk`, `pendulum`, or any registered env,
+a plugin's too) and each dynamics in `models` (`mujoco`, `delan`, `tree`, `tree_delan`,
+`ensemble`, or a plugin's registered model by its name), the config is the one
 ``python -m mbrl_delan.train env=<task> model=<dynamics>`` composes (with the suite's
 `overrides`), and the policy is the one the loop builds from it (`train.build_policy`, or
 `train.build_oracle` for `mujoco`):
@@ -111,8 +112,9 @@ class TimedPolicy:
 
 
 def case_config(task: str, dynamics: str, overrides: tuple[str, ...]) -> DictConfig:
-    """The train config of one case: the loop's on `task`, its model, then `overrides`."""
-    model = MODEL_OVERRIDES.get(dynamics, ())
+    """The train config of one case: the loop's on `task`, its model (a plugin's by its name),
+    then `overrides`."""
+    model = MODEL_OVERRIDES.get(dynamics, () if dynamics == "mujoco" else (f"model={dynamics}",))
     return compose_train_config([f"env={task}", *model, *overrides])
 
 

@@ -35,7 +35,20 @@ PLANNER_MODELS = (
     "pendulum_delan_compiled_graph",
     "humanoid_delan_compiled_graph",
 )
-PLUGIN_CASE_PREFIX = "pendulum_"  # suite planner: pendulum_<model>, a plugin's model
+# suite planner: <env>_<model>, a plugin's model on a registered env (the pendulum, a plugin's)
+
+
+def plugin_case(env: str, model: str) -> str:
+    """Suite planner's case name of a plugin's `model` on `env`."""
+    return f"{env}_{model}"
+
+
+def split_plugin_case(name: str, envs: tuple[str, ...]) -> tuple[str, str]:
+    """(env, model) of a plugin case `name`, its env the longest of `envs` it starts with."""
+    env = max((e for e in envs if name.startswith(f"{e}_")), key=len)
+    return env, name.removeprefix(f"{env}_")
+
+
 COMPILED_SUFFIX = "_compiled"
 GRAPH_SUFFIX = "_graph"
 # world models of suite humanoid: DeLaN + residual, DeLaN + residual + the structured contact
