@@ -9,7 +9,7 @@ import gymnasium
 
 __version__ = "0.1.0"
 
-# the env registry's built-in envs (`mbrl_delan.conf.registry.ENVS`; a test checks they agree),
+# the env registry's built-in envs (`mbrl_delan.registry.ENVS`; a test checks they agree),
 # named here so that the import registers their ids without loading them
 BUILTIN_ENVS = (
     "pendulum", "cartpole", "acrobot", "arm_reach", "humanoid_stand", "humanoid_walk",

@@ -40,8 +40,8 @@ from mbrl_delan.conf.checks import (
     load_config_plugins,
     schema_error_message,
 )
-from mbrl_delan.conf.registry import ENVS, MODELS, PLANNERS
 from mbrl_delan.conf.schema import MODEL_SCHEMAS, BenchConfig
+from mbrl_delan.registry import ENVS, MODELS, PLANNERS
 
 log = logging.getLogger("mbrl_delan.bench")
 

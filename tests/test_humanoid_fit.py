@@ -12,8 +12,8 @@ from mbrl_delan import keys
 from mbrl_delan.conf.checks import build_fit_config, compose_train_config
 from mbrl_delan.conf.loop import build_world_model
 from mbrl_delan.envs.registry import make_env_parts
-from mbrl_delan.models.whitebox import MjStepper
 from mbrl_delan.training.fit import fit_model
+from mbrl_delan.training.whitebox import MjStepper
 
 
 @pytest.fixture(scope="module")

@@ -24,8 +24,8 @@ from mbrl_delan.conf.builders import build_model, build_planner
 from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError, compose_config, validate_train_config
 from mbrl_delan.conf.checks import CONFIGS as CONFIGS_ROOT
 from mbrl_delan.conf.loop import env_parts
-from mbrl_delan.conf.registry import ENVS, MODELS, PLANNERS, load_plugins
 from mbrl_delan.envs import make_env_parts, make_real_env
+from mbrl_delan.registry import ENVS, MODELS, PLANNERS, load_plugins
 
 CONFIGS = str(CONFIG_DIR)
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "slider"
@@ -183,7 +183,7 @@ def _load_run_in_a_fresh_interpreter(root: Path, run_dir: Path) -> str:
 
 def test_a_plugin_registers_an_inverse_model_typed_by_its_schema(user_project: Path) -> None:
     from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, validate_fit_config
-    from mbrl_delan.conf.registry import INVERSE_MODELS
+    from mbrl_delan.registry import INVERSE_MODELS
 
     base = [f"plugins=[{PLUGIN}]", _fit_conf(user_project), "model=linear_inverse"]
     base += ["data=arrays", "data.path=x.npz", "data.joints=[slide]"]
@@ -305,8 +305,8 @@ def test_a_planner_without_warm_start_is_a_config_error_naming_it(
     """A registered builder whose planner lacks a method the planning policy calls (here
     `warm_start`, as a planner written from an older how-to would) is refused when it is
     built, before any episode: one config error naming the planner and the method."""
-    from mbrl_delan.conf.registry import Entry
     from mbrl_delan.planners import CEMPlanner
+    from mbrl_delan.registry import Entry
 
     class NoWarmStart:
         def __init__(self, inner: CEMPlanner) -> None:

@@ -13,7 +13,6 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from mbrl_delan import keys
-from mbrl_delan.conf.registry import ENVS
 from mbrl_delan.envs import (
     MujocoTaskEnv,
     env_parts_of,
@@ -22,6 +21,7 @@ from mbrl_delan.envs import (
     make_real_env,
     register_envs,
 )
+from mbrl_delan.registry import ENVS
 
 ENV_NAMES = ENVS.names()
 

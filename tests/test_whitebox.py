@@ -1,4 +1,4 @@
-"""The white-box model (`models/whitebox.py`) and the fidelity figures (`training/fidelity.py`):
+"""The white-box model (`training/whitebox.py`) and the fidelity figures (`training/fidelity.py`):
 the MJCF's own rollouts at multipliers 1, identification of perturbed parameters against
 their true values, worked answers of the fidelity figures, and the loop end to end."""
 
@@ -23,19 +23,19 @@ from mbrl_delan import keys
 from mbrl_delan.conf.checks import compose_train_config, migrate
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
-from mbrl_delan.models.whitebox import (
-    IdentifyConfig,
-    MjStepper,
-    WhiteBoxModel,
-    WhiteBoxSpec,
-    contact_groups,
-)
 from mbrl_delan.objectives.mujoco import ENV_PHYSICS, mujoco_objective_factory
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.systems.system import load_system
 from mbrl_delan.training.fidelity import CandidateRecorder, build_reference, fidelity_metrics
 from mbrl_delan.training.loop import run_episode
+from mbrl_delan.training.whitebox import (
+    IdentifyConfig,
+    MjStepper,
+    WhiteBoxModel,
+    WhiteBoxSpec,
+    contact_groups,
+)
 
 
 @pytest.fixture(scope="module")

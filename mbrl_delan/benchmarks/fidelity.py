@@ -56,7 +56,6 @@ from mbrl_delan.envs.registry import EnvParts, make_env_parts
 from mbrl_delan.models.base import WorldModel, model_placement
 from mbrl_delan.models.contact import ContactModel, JointLimits
 from mbrl_delan.models.rigid_contact import RigidContactModel
-from mbrl_delan.models.whitebox import WhiteBoxModel
 from mbrl_delan.objectives.mujoco import PlanPhysics
 from mbrl_delan.systems.external import add_exoskeleton
 from mbrl_delan.training.fidelity import (
@@ -70,6 +69,7 @@ from mbrl_delan.training.fidelity import (
 from mbrl_delan.training.fit import fit_model
 from mbrl_delan.training.loop import run_episode
 from mbrl_delan.training.recorder import RUN_CONFIG, WEIGHTS_FILE
+from mbrl_delan.training.whitebox import WhiteBoxModel
 
 log = logging.getLogger(__name__)
 

@@ -83,9 +83,6 @@ from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.conf.builders import build_model
 from mbrl_delan.conf.builders import build_planner as config_build_planner
 from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError, compose_train_config
-from mbrl_delan.conf.registry import ENVS
-from mbrl_delan.conf.registry import MODELS as REGISTERED_MODELS
-from mbrl_delan.conf.registry import PLANNERS as REGISTERED_PLANNERS
 from mbrl_delan.envs.model_env import ModelEnv
 from mbrl_delan.envs.modules import ReturnToGo
 from mbrl_delan.envs.registry import make_env_parts
@@ -98,6 +95,9 @@ from mbrl_delan.objectives.mujoco import MujocoObjectiveFactory, mujoco_objectiv
 from mbrl_delan.planners.base import SamplingPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.registry import ENVS
+from mbrl_delan.registry import MODELS as REGISTERED_MODELS
+from mbrl_delan.registry import PLANNERS as REGISTERED_PLANNERS
 from mbrl_delan.systems.external import humanoid_v5_xml
 from mbrl_delan.systems.system import State, System, load_system
 from mbrl_delan.tasks.base import Task

@@ -16,7 +16,6 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from mbrl_delan.conf.checks import ConfigError
-from mbrl_delan.conf.registry import MODELS, PLANNERS
 from mbrl_delan.conf.schema import (
     MODEL_SCHEMAS,
     PLANNER_SCHEMAS,
@@ -34,15 +33,16 @@ from mbrl_delan.models.tree import (
     documented_start,
     geometric_start,
 )
-from mbrl_delan.models.whitebox import IdentifyConfig, WhiteBoxModel
 from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus
 from mbrl_delan.planners.base import PLANNER_METHODS, Planner, SamplingPlanner
 from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.predictive import PredictiveSampling
+from mbrl_delan.registry import MODELS, PLANNERS
 from mbrl_delan.systems.forward_kinematics import ForwardKinematics
 from mbrl_delan.systems.system import FREE, System
+from mbrl_delan.training.whitebox import IdentifyConfig, WhiteBoxModel
 
 log = logging.getLogger(__name__)
 

@@ -23,9 +23,9 @@ from hydra.errors import HydraException, MissingConfigException
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
-from mbrl_delan.conf.registry import ENVS, MODELS, PLANNERS, PluginError, load_plugins
 from mbrl_delan.conf.schema import ACCEL_KEYS, TrainConfig
 from mbrl_delan.models.base import WorldModel
+from mbrl_delan.registry import ENVS, MODELS, PLANNERS, PluginError, load_plugins
 from mbrl_delan.rules import field_rule
 from mbrl_delan.training.checkpoint import RunWriteError
 from mbrl_delan.training.fit import FitConfig

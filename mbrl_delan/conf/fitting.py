@@ -41,9 +41,6 @@ from mbrl_delan.conf.inverse import (
     check_residual_start,
     typed_model,
 )
-from mbrl_delan.conf.registry import (
-    INVERSE_MODELS,
-)
 from mbrl_delan.data.arrays import SPLITS as ARRAY_SPLITS
 from mbrl_delan.data.arrays import DerivativeSettings, save_arrays
 from mbrl_delan.data.buffer import check_finite
@@ -74,6 +71,9 @@ from mbrl_delan.models.inverse import (
     InverseDynamicsModel,
 )
 from mbrl_delan.models.rigid_body import WhiteBoxInverse
+from mbrl_delan.registry import (
+    INVERSE_MODELS,
+)
 from mbrl_delan.systems.arms import ARMS, FRICTION_KINDS, arm, friction_kind
 from mbrl_delan.systems.system import HINGE
 from mbrl_delan.training.inverse_fit import (

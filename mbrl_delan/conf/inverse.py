@@ -1,7 +1,7 @@
 """Fit's inverse-dynamics models from their config group: the registry's built-ins (delan,
 tree_delan, mlp, ensemble, white_box), each with the schema that types its group, and
 `build_inverse_model`, which builds any registered one (a plugin's:
-`mbrl_delan.conf.registry.register_inverse_model`) on an `InverseContext`."""
+`mbrl_delan.registry.register_inverse_model`) on an `InverseContext`."""
 
 from __future__ import annotations
 
@@ -13,8 +13,6 @@ from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from mbrl_delan.conf.checks import ConfigError, schema_error_message
-from mbrl_delan.conf.registry import INVERSE_MODELS, register_inverse_model
-from mbrl_delan.conf.schema import rule
 from mbrl_delan.conf.structure import read_structure
 from mbrl_delan.models.inverse import (
     MLP_ACTIVATIONS,
@@ -27,6 +25,8 @@ from mbrl_delan.models.rigid_body import FRICTION_LAWS, WhiteBoxInverse, data_fr
 from mbrl_delan.models.structure import Structure
 from mbrl_delan.models.tangent_mlp import ACTIVATIONS as DELAN_ACTIVATIONS
 from mbrl_delan.models.tree import RigidBodyTree, TreeStart, armature_start
+from mbrl_delan.registry import INVERSE_MODELS, register_inverse_model
+from mbrl_delan.rules import rule
 from mbrl_delan.systems.system import JointLayout
 
 

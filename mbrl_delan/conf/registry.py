@@ -1,176 +1,43 @@
-"""Registries of the parts a run is built from: envs, world models and planners.
+"""The registries (`mbrl_delan.registry`, the package's bottom floor: envs register there
+without reaching up into the config code), also importable from here, as plugins written
+against ``mbrl_delan.conf.registry`` do."""
 
-Each family maps a name (the config's ``env.name``, ``model.name``, ``planner.name``) to an
-entry, filled by a decorator where the part is defined::
+from mbrl_delan.registry import (
+    ENVS,
+    INVERSE_MODELS,
+    MODELS,
+    PLANNERS,
+    PLUGIN_GROUP,
+    Entry,
+    EnvSpec,
+    PluginError,
+    Registry,
+    TaskFactory,
+    UnknownNameError,
+    load_entry_points,
+    load_plugins,
+    register_env,
+    register_inverse_model,
+    register_model,
+    register_planner,
+)
 
-    from mbrl_delan.conf.registry import register_model
-
-    @register_model("linear", schema=LinearConfig)
-    def build_linear(cfg, system):  # cfg: the model group, system: the env's System
-        return LinearModel(system.nq, system.nv, system.nu, cfg.hidden)
-
-The package's own parts are registered by the modules named as each registry's `builtins`,
-imported on the first look-up; a user's module is imported by naming it in the config's
-``plugins`` list (`load_plugins`) or by a Python entry point in the group ``mbrl_delan.plugins``.
-See docs/architecture.md, "How to add an env / a task / a model / a planner".
-"""
-
-from __future__ import annotations
-
-import importlib
-import importlib.metadata
-import logging
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Any, Generic, TypeVar
-
-log = logging.getLogger(__name__)
-
-T = TypeVar("T")
-PLUGIN_GROUP = "mbrl_delan.plugins"  # Python entry points loaded with the registries
-
-
-class UnknownNameError(KeyError):
-    """A name no entry of the family is registered under; the message lists the valid ones."""
-
-    def __str__(self) -> str:
-        return str(self.args[0])
-
-
-class PluginError(ImportError):
-    """A plugin module could not be imported; the message names it and why."""
-
-
-@dataclass(frozen=True)
-class Entry(Generic[T]):
-    """One registered part: `build` makes it from its config group, `schema` types that group
-    (a dataclass, or None for an untyped group)."""
-
-    name: str
-    build: T
-    schema: type | None = None
-
-
-class Registry(Generic[T]):
-    """Name -> `Entry` of one family (``env``, ``model``, ``planner``)."""
-
-    def __init__(self, family: str, builtins: Sequence[str]) -> None:
-        self.family = family
-        self._builtins = tuple(builtins)  # modules that register the package's own entries
-        self._entries: dict[str, Entry[T]] = {}
-        self._loaded = False
-
-    def add(self, name: str, build: T, schema: type | None = None) -> T:
-        """Register `build` as `name`; registering the same object again is a no-op, another
-        object under a taken name is a ValueError."""
-        old = self._entries.get(name)
-        if old is not None and old.build != build:
-            raise ValueError(f"{self.family} {name!r} is already registered ({old.build!r})")
-        self._entries[name] = Entry(name, build, schema)
-        return build
-
-    def register(self, name: str, schema: type | None = None) -> Callable[[T], T]:
-        """Decorator form of `add`."""
-        return lambda build: self.add(name, build, schema)
-
-    def _load(self) -> None:
-        if not self._loaded:
-            self._loaded = True
-            for module in self._builtins:
-                importlib.import_module(module)
-            load_entry_points()
-
-    def __getitem__(self, name: str) -> Entry[T]:
-        self._load()
-        if name not in self._entries:
-            raise UnknownNameError(
-                f"{self.family}.name={name!r} is not registered; choose one of: "
-                f"{', '.join(self.names())} (a plugin's own names need its module in plugins=[...])"
-            )
-        return self._entries[name]
-
-    def __contains__(self, name: object) -> bool:
-        self._load()
-        return name in self._entries
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self.names())
-
-    def names(self) -> tuple[str, ...]:
-        """The registered names in registration order: a plugin imported before the first
-        lookup comes before the package's own, which are imported then (and the
-        entry points' plugins after them)."""
-        self._load()
-        return tuple(self._entries)
-
-
-def load_plugins(modules: Sequence[str]) -> None:
-    """Import the user's modules that register parts (the config's ``plugins``); a module that
-    cannot be imported is a `PluginError` naming it and the cause."""
-    for module in modules:
-        try:
-            importlib.import_module(module)
-        except ImportError as err:
-            raise PluginError(f"plugins: cannot import {module!r} ({err})") from err
-
-
-def load_entry_points() -> None:
-    """Import the modules of the installed entry points in the group ``mbrl_delan.plugins``
-    (a module already imported is not imported again)."""
-    for point in importlib.metadata.entry_points(group=PLUGIN_GROUP):
-        log.debug("plugin %s: %s", point.name, point.value)
-        point.load()
-
-
-TaskFactory = Callable[[Any, "int | None", "dict[str, Any]"], Any]
-
-
-@dataclass(frozen=True)
-class EnvSpec:
-    """An env: the MuJoCo system and how to make its task.
-
-    asset: the MJCF, as a stem under ``mbrl_delan/systems/assets``, a path, or a function
-        returning the path (for files found at run time).
-    frame_skip: MuJoCo steps per control step.
-    make_task: (system, episode_len or None for the task's default, task options) -> Task.
-    options: the task options the env takes (config ``env.task``) with their defaults.
-    physics: the MJCF the env simulates where it differs from `asset`, the one the world
-        models are given (an env whose physics the models' structure cannot express); None:
-        the asset.
-    """
-
-    asset: str | Path | Callable[[], Path]
-    frame_skip: int
-    make_task: TaskFactory
-    options: Mapping[str, Any] | None = None
-    physics: str | Path | Callable[[], Path] | None = None
-
-
-def register_env(
-    name: str,
-    asset: str | Path | Callable[[], Path],
-    frame_skip: int,
-    options: Mapping[str, Any] | None = None,
-    physics: str | Path | Callable[[], Path] | None = None,
-) -> Callable[[TaskFactory], TaskFactory]:
-    """Decorator: register the decorated task factory, with its MJCF `asset` and `frame_skip`,
-    as env `name` (see `EnvSpec`)."""
-
-    def add(make_task: TaskFactory) -> TaskFactory:
-        ENVS.add(name, EnvSpec(asset, frame_skip, make_task, options, physics))
-        return make_task
-
-    return add
-
-
-# the package's own builders register themselves in these modules (read on first use)
-ENVS: Registry[Any] = Registry("env", ["mbrl_delan.envs.registry"])
-MODELS: Registry[Any] = Registry("model", ["mbrl_delan.conf.builders"])
-PLANNERS: Registry[Any] = Registry("planner", ["mbrl_delan.conf.builders"])
-# fit's inverse-dynamics models (python -m mbrl_delan.fit model=NAME)
-INVERSE_MODELS: Registry[Any] = Registry("model", ["mbrl_delan.conf.inverse"])
-register_model = MODELS.register  # builder: (model config group, System) -> WorldModel
-register_planner = PLANNERS.register  # builder: (planner config group, System, dtype) -> planner
-# builder: (fit's model config group, fit.InverseContext) -> InverseDynamicsModel
-register_inverse_model = INVERSE_MODELS.register
+__all__ = [
+    "ENVS",
+    "INVERSE_MODELS",
+    "MODELS",
+    "PLANNERS",
+    "PLUGIN_GROUP",
+    "Entry",
+    "EnvSpec",
+    "PluginError",
+    "Registry",
+    "TaskFactory",
+    "UnknownNameError",
+    "load_entry_points",
+    "load_plugins",
+    "register_env",
+    "register_inverse_model",
+    "register_model",
+    "register_planner",
+]

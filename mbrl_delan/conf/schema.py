@@ -10,7 +10,7 @@ naming the key. Ranges and the rules that tie keys together are checked by
 `mbrl_delan.conf.checks.validate_train_config`, which reads the ``low`` / ``high`` / ``choices``
 metadata of these fields (`mbrl_delan.rules.field_rule`).
 
-A user's model or planner brings its own schema (`mbrl_delan.conf.registry.register_model(name,
+A user's model or planner brings its own schema (`mbrl_delan.registry.register_model(name,
 schema=...)`), an env YAML of their own extends ``/base_env@_here_``.
 """
 
@@ -173,7 +173,7 @@ class EnsembleConfig(ModelConfig):
 @dataclass
 class WhiteBoxConfig(ModelConfig):
     """``model=white_box``: the env's MJCF with parameters identified from the replay buffer
-    (`models/whitebox.py`)."""
+    (`training/whitebox.py`)."""
 
     lr: float | None = None  # no gradient fit
     start: str = rule("documented", choices=("documented", "mjcf"))

@@ -15,8 +15,8 @@ import torch
 from torchrl.envs import GymEnv
 
 from mbrl_delan import gym_id, keys, register_gym_id
-from mbrl_delan.conf.registry import ENVS
 from mbrl_delan.envs.registry import EnvParts, TaskOptions, make_env_parts
+from mbrl_delan.registry import ENVS
 from mbrl_delan.systems.system import State
 from mbrl_delan.training.video import VideoRecorder, root_travels
 

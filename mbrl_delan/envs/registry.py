@@ -1,6 +1,6 @@
 """The package's envs (which MJCF system, which task, their defaults) and `make_env_parts`.
 
-Each env is an entry of `mbrl_delan.conf.registry.ENVS`, added with `register_env`; a user's own
+Each env is an entry of `mbrl_delan.registry.ENVS`, added with `register_env`; a user's own
 env registers the same way from their module (docs/architecture.md, "How to add an env").
 """
 
@@ -12,7 +12,7 @@ from typing import Any, TypeVar
 
 import torch
 
-from mbrl_delan.conf.registry import ENVS, EnvSpec, TaskFactory, register_env
+from mbrl_delan.registry import ENVS, EnvSpec, TaskFactory, register_env
 from mbrl_delan.systems.external import humanoid_cmu_xml, humanoid_v5_exo_xml, humanoid_v5_xml
 from mbrl_delan.systems.system import System, load_system
 from mbrl_delan.tasks import AcrobotSwingup, ArmReach, CartpoleSwingup, PendulumSwingup

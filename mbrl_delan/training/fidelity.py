@@ -132,7 +132,7 @@ def build_reference(
 ) -> FidelityReference:
     """The reference of one oracle episode `rollout` (T,) whose planner's factory was
     wrapped by `recorder` (a plan every control step)."""
-    from mbrl_delan.models.whitebox import MjStepper  # the white-box stepper, also the truth
+    from mbrl_delan.training.whitebox import MjStepper  # the white-box stepper, also the truth
 
     q = rollout.get(keys.Q).to(torch.float64)
     qd = rollout.get(keys.QD).to(torch.float64)
