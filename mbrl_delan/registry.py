@@ -171,6 +171,35 @@ PLANNERS: Registry[Any] = Registry("planner", ["mbrl_delan.conf.builders"])
 # fit's inverse-dynamics models (python -m mbrl_delan.fit model=NAME)
 INVERSE_MODELS: Registry[Any] = Registry("model", ["mbrl_delan.conf.inverse"])
 register_model = MODELS.register  # builder: (model config group, System) -> WorldModel
-register_planner = PLANNERS.register  # builder: (planner config group, System, dtype) -> planner
+# what the planning policy calls on a planner (`planners.base.Planner`), beside its `horizon`
+PLANNER_METHODS = ("initial_mean", "shift", "carry", "warm_start", "plan")
+
+
+def lacking(planner: object) -> list[str]:
+    """The `PLANNER_METHODS` a planner, or its class, does not have."""
+    return [m for m in PLANNER_METHODS if not callable(getattr(planner, m, None))]
+
+
+def register_planner(
+    name: str, schema: type | None = None, planner: type | None = None
+) -> Callable[[Any], Any]:
+    """Decorator: register the decorated builder ``(planner group, System, dtype) -> planner``
+    as planner `name`. Given the class it builds (`planner`, or the builder's own ``planner``
+    attribute, as `conf.builders.sampling_builder`'s has), a class without a method the
+    planning policy calls is refused here, a `PluginError` naming it."""
+
+    def add(build: Any) -> Any:
+        cls = planner or getattr(build, "planner", None)
+        missing = lacking(cls) if cls is not None else []
+        if missing:
+            raise PluginError(
+                f"planner {name!r}: its {cls.__name__} has no {', '.join(missing)}, which the "
+                "planning policy calls (the Planner protocol, mbrl_delan/planners/base.py)"
+            )
+        return PLANNERS.add(name, build, schema)
+
+    return add
+
+
 # builder: (fit's model config group, fit.InverseContext) -> InverseDynamicsModel
 register_inverse_model = INVERSE_MODELS.register

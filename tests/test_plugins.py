@@ -332,3 +332,41 @@ def test_a_planner_without_warm_start_is_a_config_error_naming_it(
         build_planner(OmegaConf.create({"name": "no_warm_start"}), system, torch.float32)
     plain = build_planner(OmegaConf.create({"name": "plain"}), system, torch.float32)
     assert isinstance(plain, CEMPlanner)
+
+
+def test_a_planner_class_without_warm_start_is_refused_when_registered(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """`register_planner(name, planner=Class)` (and `sampling_builder`'s builders, which
+    carry their class) checks the Planner protocol at registration: a class without
+    `warm_start` is a PluginError naming it, and through ``plugins=[...]`` one config error
+    line, exit 2, before any run folder."""
+    from mbrl_delan.registry import PluginError, register_planner
+
+    class NoWarmStart:
+        horizon = 3
+
+        def initial_mean(self): ...
+        def shift(self, mean, steps): ...
+        def carry(self, result): ...
+        def plan(self, problem, init, generator): ...
+
+    monkeypatch.setattr(PLANNERS, "_entries", dict(PLANNERS._entries))  # leave the registry be
+    with pytest.raises(PluginError, match=r"planner 'no_warm': its NoWarmStart has no warm_start"):
+        register_planner("no_warm", planner=NoWarmStart)(lambda cfg, system, dtype: None)
+    assert "no_warm" not in PLANNERS._entries
+    module = tmp_path / "no_warm_plugin.py"
+    module.write_text(
+        "from mbrl_delan.registry import register_planner\n"
+        "class Lazy:\n    def plan(self, problem, init, generator): ...\n"
+        "register_planner('lazy', planner=Lazy)(lambda cfg, system, dtype: Lazy())\n"
+    )
+    run_dir = tmp_path / "run"
+    out = _run_module(
+        tmp_path, "-m", "mbrl_delan.train", "plugins=[no_warm_plugin]", "planner=cem",
+        "logger=none", f"hydra.run.dir={run_dir}",
+    )  # fmt: skip
+    text = out.stdout + out.stderr
+    assert out.returncode == 2 and "Traceback" not in text, text
+    assert "has no initial_mean, shift, carry, warm_start, which the planning policy" in text
+    assert not run_dir.exists()

@@ -34,12 +34,12 @@ from mbrl_delan.models.tree import (
     geometric_start,
 )
 from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus
-from mbrl_delan.planners.base import PLANNER_METHODS, Planner, SamplingPlanner
+from mbrl_delan.planners.base import Planner, SamplingPlanner
 from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.predictive import PredictiveSampling
-from mbrl_delan.registry import MODELS, PLANNERS
+from mbrl_delan.registry import MODELS, PLANNERS, lacking
 from mbrl_delan.systems.forward_kinematics import ForwardKinematics
 from mbrl_delan.systems.system import FREE, System
 from mbrl_delan.training.whitebox import IdentifyConfig, WhiteBoxModel
@@ -115,7 +115,7 @@ def build_planner(cfg: DictConfig, system: System, dtype: torch.dtype) -> Planne
         values = OmegaConf.to_container(cfg, resolve=True)
         cfg = OmegaConf.merge(OmegaConf.structured(entry.schema), values)
     planner = entry.build(cfg, system, dtype)
-    missing = [m for m in PLANNER_METHODS if not callable(getattr(planner, m, None))]
+    missing = lacking(planner)
     if not hasattr(planner, "horizon"):
         missing.append("horizon")
     if missing:
@@ -251,6 +251,7 @@ def sampling_builder(planner: type[SamplingPlanner]) -> PlannerBuilder:
         settings = planner.Settings(**{f.name: cfg[f.name] for f in fields(planner.Settings)})
         return planner(cfg.horizon, system.ctrl_low, system.ctrl_high, settings, dtype)
 
+    build.planner = planner  # type: ignore[attr-defined]  # checked when registered
     return build
 
 

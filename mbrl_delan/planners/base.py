@@ -123,12 +123,10 @@ def clean_returns(returns: Tensor, num_samples: int) -> Tensor:
     return torch.nan_to_num(returns, nan=-math.inf, posinf=big, neginf=-math.inf)
 
 
-# what `PlannerPolicy` calls on a planner, beside its `horizon` (the `Planner` protocol below)
-PLANNER_METHODS = ("initial_mean", "shift", "carry", "warm_start", "plan")
-
-
 class Planner(Protocol):
-    """What `PlannerPolicy` runs: a planner over plans (H, nu), warm-started by shifting.
+    """What `PlannerPolicy` runs: a planner over plans (H, nu), warm-started by shifting
+    (its methods' names, `mbrl_delan.registry.PLANNER_METHODS`, are checked when a planner
+    is registered with its class and when one is built).
 
     `plan(problem, init, generator, **warm)` returns a result whose `mean` (H, nu) is the plan
     to execute and whose `best_return` is logged. `problem` is what the policy's factory made
