@@ -39,7 +39,7 @@ from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
 from mbrl_delan.planners.mppi import MPPIPlanner
 from mbrl_delan.planners.predictive import PredictiveSampling
-from mbrl_delan.registry import MODELS, PLANNERS, lacking
+from mbrl_delan.registry import MODELS, PLANNERS, lacking, register_planner
 from mbrl_delan.systems.forward_kinematics import ForwardKinematics
 from mbrl_delan.systems.system import FREE, System
 from mbrl_delan.training.whitebox import IdentifyConfig, WhiteBoxModel
@@ -255,6 +255,7 @@ def sampling_builder(planner: type[SamplingPlanner]) -> PlannerBuilder:
     return build
 
 
-for _name, _planner in (("cem", CEMPlanner), ("icem", ICEMPlanner), ("mppi", MPPIPlanner),
-                        ("predictive", PredictiveSampling)):  # fmt: skip
-    PLANNERS.add(_name, sampling_builder(_planner), PLANNER_SCHEMAS[_name])
+SAMPLING_PLANNERS = {"cem": CEMPlanner, "icem": ICEMPlanner, "mppi": MPPIPlanner,
+                     "predictive": PredictiveSampling}  # fmt: skip
+for _name, _planner in SAMPLING_PLANNERS.items():  # as a user's are: checked when registered
+    register_planner(_name, PLANNER_SCHEMAS[_name])(sampling_builder(_planner))

@@ -189,9 +189,7 @@ def _check_fit_rules(cfg: DictConfig) -> None:
         )
     if "start_level" in cfg.model and "diag_shift" in cfg.model:
         check_residual_start(cfg.model)
-    {"arrays": _check_arrays, "excitation": _check_excitation, "cmu_mocap": _check_mocap}[
-        cfg.data.name
-    ](cfg.data)
+    DATA_CHECKS[cfg.data.name](cfg.data)
     tree_models = ("white_box", "tree_delan")
     if cfg.model.name in tree_models and cfg.data.name == "arrays" and cfg.data.mjcf is None:
         raise ConfigError(
@@ -251,6 +249,10 @@ def _check_mocap(cfg: DictConfig) -> None:
         )
     if len(set(clips)) != len(clips):
         raise ConfigError(f"data.clips={clips} is not valid: a clip is listed twice")
+
+
+# each data group's rules between its keys (`_check_fit_rules`), beside its schema's types
+DATA_CHECKS = {"arrays": _check_arrays, "excitation": _check_excitation, "cmu_mocap": _check_mocap}
 
 
 def _split_names(data: DictConfig) -> tuple[str, ...]:
