@@ -19,10 +19,13 @@ def rule(
     above: bool = False,
     below: bool = False,
     choices: tuple[str, ...] | None = None,
+    nonempty: bool = False,
 ) -> Any:
     """A dataclass field with its valid range: low <= value <= high (strict with `above` /
-    `below`) or a value among `choices`; None is always allowed for an Optional field."""
-    meta = {"low": low, "high": high, "above": above, "below": below, "choices": choices}
+    `below`) or a value among `choices` (a list's rule: each element's; `nonempty`: at least
+    one); None is always allowed for an Optional field."""
+    meta = {"low": low, "high": high, "above": above, "below": below, "choices": choices,
+            "nonempty": nonempty}  # fmt: skip
     return field(
         default=default,
         metadata={k: v for k, v in meta.items() if v is not None and v is not False},
@@ -38,9 +41,12 @@ class FieldRule:
     above: bool = False
     below: bool = False
     choices: tuple[str, ...] | None = None
+    nonempty: bool = False
 
     def describe(self, value: Any = 0.0) -> str:
         """What a valid value is, in words (`value`: an int is described as a whole number)."""
+        if self.nonempty and isinstance(value, list | tuple | ListConfig) and not value:
+            return "give at least one value (or null)"
         if self.choices:
             return "choose one of: " + ", ".join(self.choices)
         parts = []
@@ -53,7 +59,7 @@ class FieldRule:
 
     def allows(self, value: Any) -> bool:
         if isinstance(value, list | tuple | ListConfig):  # a list: each element
-            return all(self.allows(v) for v in value)
+            return bool(value or not self.nonempty) and all(self.allows(v) for v in value)
         if self.choices:
             return value in self.choices
         if isinstance(value, bool) or not isinstance(value, int | float):

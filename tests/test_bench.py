@@ -20,7 +20,7 @@ from hydra import compose, initialize_config_dir
 from mbrl_delan.bench import run
 from mbrl_delan.benchmarks import (
     SUITE_NAMES,
-    SuiteOptions,
+    BenchSettings,
     TimingConfig,
     UnknownSuiteError,
     get_suite,
@@ -164,9 +164,7 @@ def test_unknown_suite_names_the_valid_ones(tmp_path: Path) -> None:
 
 
 def test_too_slow_figure_is_recorded_as_skipped_with_a_note() -> None:
-    opts = SuiteOptions(
-        nv=(2,),
-        batch=(32,),
+    opts = BenchSettings(
         device=torch.device("cpu"),
         timing=TimingConfig(repeats=1, min_time_s=1e-3, warmup=0),
         max_call_s=1e-9,

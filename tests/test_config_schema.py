@@ -123,7 +123,8 @@ def test_migrate_moves_the_acceleration_keys_an_old_delan_config_held() -> None:
         saved.model.update(compile=True, cuda_graph=False, rollout_threads=2, compile_fit=True)
     typed = validate_train_config(migrate(saved))
     assert OmegaConf.to_container(typed.accel) == {
-        "compile": True, "cuda_graph": False, "rollout_threads": 2, "compile_fit": True,
+        "compile": True, "cuda_graph": False, "rollout_threads": 2, "compile_loop": True,
+        "compile_fit": True,
     }  # fmt: skip
     assert "compile" not in typed.model
     other = OmegaConf.create(OmegaConf.to_container(compose_train("model=ensemble"), resolve=True))

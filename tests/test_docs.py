@@ -547,7 +547,8 @@ CONFIG_SECTIONS = {
     "fit/data/*.yaml": ("mbrl_delan.fit", "`data=`"),
     "fit/model/*.yaml": ("mbrl_delan.fit", "`model=`"),
     "fit/logger/*.yaml": ("mbrl_delan.fit", "`logger=`"),
-    "bench/config.yaml": ("mbrl_delan.bench", ""),
+    "bench/config.yaml": ("mbrl_delan.bench", "Top level"),
+    "bench/suite/*.yaml": ("mbrl_delan.bench", "`suite=`"),
     "launchers/hydra/launcher/*.yaml": ("Hydra settings", "`hydra/launcher=`"),
 }
 

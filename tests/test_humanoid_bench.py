@@ -162,9 +162,9 @@ def test_models_and_rollout_steps_options() -> None:
         cfg = compose("config", overrides=["suite=humanoid", "models=[delan]", "rollout_steps=3"])
         bad_model = compose("config", overrides=["suite=humanoid", "models=[pendulum_delan]"])
         bad_steps = compose("config", overrides=["suite=humanoid", "rollout_steps=0"])
-    chosen = suite_config(build_options(cfg))
+    chosen = suite_config(build_options(cfg)[0])
     assert chosen.models == ("delan",) and chosen.rollout_steps == 3
-    assert suite_config(build_options(cfg)).sizes == (10_000, 50_000)
+    assert chosen.sizes == (10_000, 50_000)
     with pytest.raises(ConfigError, match="models"):
         build_options(bad_model)  # a planner-suite case is not a humanoid-suite model
     with pytest.raises(ConfigError, match="rollout_steps"):
@@ -199,7 +199,7 @@ def test_the_suite_builds_the_loops_model_and_oracle_planner() -> None:
 def test_oracle_options() -> None:
     def options(*overrides: str, suite: str = "humanoid"):
         with initialize_config_dir(config_dir=str(CONFIGS / "bench"), version_base=None):
-            return build_options(compose("config", overrides=[f"suite={suite}", *overrides]))
+            return build_options(compose("config", overrides=[f"suite={suite}", *overrides]))[0]
 
     default = suite_config(options())
     assert default.oracle_tasks == ("humanoid_stand", "humanoid_walk", "cmu_track")
@@ -325,7 +325,7 @@ def test_data_run_gives_a_runs_buffered_episodes_in_order(tmp_path: Path) -> Non
 
 def test_a_diverged_fit_is_recorded_and_the_suite_goes_on(monkeypatch) -> None:
     import mbrl_delan.benchmarks.humanoid as suite
-    from mbrl_delan.benchmarks import SuiteOptions, TimingConfig
+    from mbrl_delan.benchmarks import BenchSettings
     from mbrl_delan.training.fit import FitReport, TrainingDivergedError
 
     fit = suite.fit_world_model
@@ -337,7 +337,7 @@ def test_a_diverged_fit_is_recorded_and_the_suite_goes_on(monkeypatch) -> None:
 
     monkeypatch.setattr(suite, "fit_world_model", diverging)
     cfg = replace(HumanoidBenchConfig.quick(), models=("delan", "ensemble"), oracle_tasks=())
-    opts = SuiteOptions(nv=(2,), batch=(1,), device=torch.device("cpu"), timing=TimingConfig())
+    opts = BenchSettings(device=torch.device("cpu"))
     records = list(suite.run_humanoid(cfg, opts))
     delan = [r for r in records if r.case.startswith("delan-")]
     assert len(delan) == 1 and delan[0].value is None

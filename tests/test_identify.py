@@ -13,7 +13,7 @@ import torch
 from torch.nn import functional as F
 
 from mbrl_delan import keys
-from mbrl_delan.benchmarks import SUITE_NAMES, SuiteOptions, TimingConfig, get_suite
+from mbrl_delan.benchmarks import SUITE_NAMES, get_suite
 from mbrl_delan.benchmarks.identify import (
     METRICS,
     SYSTEMS,
@@ -30,6 +30,7 @@ from mbrl_delan.benchmarks.identify import (
     torque_r2,
 )
 from mbrl_delan.benchmarks.records import BASE_FIELDS, RecordWriter, read_records
+from mbrl_delan.conf.bench_schema import IdentifySuiteConfig
 from mbrl_delan.data.synthetic import dynamics_dataset, reference_terms
 from mbrl_delan.systems.system import load_system
 
@@ -124,8 +125,8 @@ def test_quick_suite_writes_every_metric(tmp_path: Path) -> None:
 
 def test_suite_is_registered_and_reads_its_options() -> None:
     assert "identify" in SUITE_NAMES and get_suite("identify") is run_identify_suite
-    base = SuiteOptions(nv=(2,), batch=(4,), device=torch.device("cpu"), timing=TimingConfig())
-    cfg = suite_config(replace(base, quick=True, n_samples=100))
+    base = IdentifySuiteConfig()
+    cfg = suite_config(replace(base, n_samples=100), quick=True)
     assert cfg.n_samples == 100 and cfg.max_epochs == IdentifyConfig.quick().max_epochs
     assert suite_config(replace(base, max_epochs=7)) == replace(IdentifyConfig(), max_epochs=7)
     assert suite_config(base) == IdentifyConfig()

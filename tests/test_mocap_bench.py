@@ -13,7 +13,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from mbrl_delan.bench import run
-from mbrl_delan.benchmarks import SUITE_NAMES, SuiteOptions, TimingConfig, get_suite
+from mbrl_delan.benchmarks import SUITE_NAMES, BenchSettings, TimingConfig, get_suite
 from mbrl_delan.benchmarks.mocap import (
     METRICS,
     QUICK_OVERRIDES,
@@ -26,9 +26,7 @@ from mbrl_delan.conf.checks import CONFIGS
 from mbrl_delan.data.mocap import humanoid_cmu_xml
 
 MODELS = ("delan", "mlp", "ensemble")
-OPTS = SuiteOptions(
-    nv=(2,),
-    batch=(4,),
+OPTS = BenchSettings(
     device=torch.device("cpu"),
     timing=TimingConfig(repeats=2, min_time_s=0.005, warmup=1),
     quick=True,

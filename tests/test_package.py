@@ -48,7 +48,7 @@ def _groups(help_text: str) -> dict[str, list[str]]:
     [
         (train.main, {"env", "logger", "model", "plan", "planner"}),
         (fit.main, {"data", "logger", "model"}),
-        (bench.main, set()),
+        (bench.main, {"suite"}),
     ],
     ids=["train", "fit", "bench"],
 )

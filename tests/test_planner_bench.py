@@ -9,13 +9,14 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
 
 from mbrl_delan.accelerate import CompiledStep
 from mbrl_delan.bench import build_options
 from mbrl_delan.benchmarks import (
     PLANNER_MODELS,
     SUITE_NAMES,
-    SuiteOptions,
+    BenchSettings,
     TimingConfig,
     get_suite,
 )
@@ -39,9 +40,7 @@ from mbrl_delan.benchmarks.planner import (
 from mbrl_delan.benchmarks.records import BASE_FIELDS, RecordWriter, read_records
 from mbrl_delan.conf.checks import CONFIGS, ConfigError
 
-OPTS = SuiteOptions(
-    nv=(2,),
-    batch=(4,),
+OPTS = BenchSettings(
     device=torch.device("cpu"),
     timing=TimingConfig(repeats=2, min_time_s=0.005, warmup=1),
     quick=True,
@@ -55,12 +54,10 @@ def bench_config(*overrides: str):
 
 # ---------------------------------------------------------------------------- options
 def test_options_reach_the_suites() -> None:
-    opts = build_options(
+    options, bench = build_options(
         bench_config(
             "suite=planner",
             "quick=true",
-            "n_samples=100",
-            "max_epochs=3",
             "planners=[cem,icem]",
             "models=[pendulum_delan]",
             "num_samples=[32,64]",
@@ -69,8 +66,8 @@ def test_options_reach_the_suites() -> None:
             "torchrl=false",
         )
     )
-    assert opts.quick and opts.n_samples == 100 and opts.max_epochs == 3
-    grid = grid_from_options(opts)
+    assert bench.quick and bench.timing.repeats == 3
+    grid = grid_from_options(options, bench.quick)
     assert grid == PlannerGrid(
         models=("pendulum_delan",),
         planners=("cem", "icem"),
@@ -79,10 +76,25 @@ def test_options_reach_the_suites() -> None:
         iterations=(2,),
         torchrl=False,
     )
-    defaults = build_options(bench_config("suite=planner"))
-    assert not defaults.quick and defaults.n_samples is None and defaults.planners is None
+    defaults, bench = build_options(bench_config("suite=planner"))
+    assert not bench.quick and defaults.planners is None
     assert grid_from_options(defaults) == PlannerGrid()
-    assert grid_from_options(replace(defaults, quick=True)) == PlannerGrid.quick()
+    assert grid_from_options(defaults, quick=True) == PlannerGrid.quick()
+
+
+def test_a_suite_takes_only_its_own_options() -> None:
+    """Each suite's keys are its config group's: another suite's is refused when Hydra
+    composes the config; the suite's own are typed by its schema."""
+    with pytest.raises(ConfigCompositionException, match="n_samples"):
+        bench_config("suite=planner", "n_samples=100")
+    options, _ = build_options(bench_config("suite=identify", "n_samples=100", "max_epochs=3"))
+    assert (options.n_samples, options.max_epochs) == (100, 3)
+    for bad in ("n_samples=0", "max_epochs=1.5"):
+        with pytest.raises(ConfigError, match=bad.split("=")[0]):
+            build_options(bench_config("suite=identify", bad))
+    for bad in ("nv=[0]", "nv=[]"):
+        with pytest.raises(ConfigError, match="nv"):
+            build_options(bench_config("suite=delan", bad))
 
 
 @pytest.mark.parametrize(
@@ -92,15 +104,10 @@ def test_options_reach_the_suites() -> None:
         "models=[cartpole]",
         "num_samples=[0]",
         "horizons=[]",
-        "n_samples=0",
-        "max_epochs=1.5",
         "rollout_threads=0",
         "repeats=1.5",  # a float for an integer key
-        "nv=[0]",
-        "nv=[]",
         "max_memory_gb=0",
         "min_time_s=nan",
-        "suite=nope",
     ],
 )
 def test_bad_option_values_are_config_errors(override: str) -> None:
@@ -157,16 +164,16 @@ def counting_call():
 
 def test_slow_prediction_times_single_calls_within_the_budget() -> None:
     calls, call = counting_call()
-    timing = time_plan(call, predicted=10.0, opts=replace(OPTS, max_call_s=5.0), sync=lambda: None)
+    timing = time_plan(call, predicted=10.0, bench=replace(OPTS, max_call_s=5.0), sync=lambda: None)
     assert len(calls) == 1 and timing.repeats == 1 and timing.calls_per_measurement == 1
     calls.clear()
-    timing = time_plan(call, predicted=1.0, opts=replace(OPTS, max_call_s=5.0), sync=lambda: None)
+    timing = time_plan(call, predicted=1.0, bench=replace(OPTS, max_call_s=5.0), sync=lambda: None)
     assert len(calls) == 2 == timing.repeats  # min(repeats 2, floor(2.5 s / 1 s))
 
 
 def test_fast_call_gets_an_untimed_call_then_time_call() -> None:
     calls, call = counting_call()
-    timing = time_plan(call, predicted=0.0, opts=OPTS, sync=lambda: None)
+    timing = time_plan(call, predicted=0.0, bench=OPTS, sync=lambda: None)
     assert len(calls) > 1 + OPTS.timing.repeats and timing.calls_per_measurement > 1
 
 
@@ -246,7 +253,7 @@ def test_a_compiling_call_is_timed_after_two_untimed_calls() -> None:
     opts = replace(OPTS, max_call_s=5.0)
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr("mbrl_delan.benchmarks.planner.time.perf_counter", lambda: clock["now"])
-        timing = time_plan(call, predicted=1.0, opts=opts, sync=lambda: None, compiles=True)
+        timing = time_plan(call, predicted=1.0, bench=opts, sync=lambda: None, compiles=True)
     # repeats from the warm 0.5 s: min(repeats 2, floor(2.5 s / 0.5 s)); the 30 s is not timed
     assert len(calls) == 2 + timing.repeats and timing.repeats == 2
     assert timing.seconds_per_call == pytest.approx(0.5)

@@ -16,7 +16,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from mbrl_delan.bench import build_options
-from mbrl_delan.benchmarks import SuiteOptions, TimingConfig
+from mbrl_delan.benchmarks import BenchSettings, TimingConfig
 from mbrl_delan.benchmarks.realtime import (
     PLANNER_FIELDS,
     RealtimeConfig,
@@ -73,8 +73,7 @@ def test_the_delan_case_plans_with_the_loops_policy() -> None:
     cfg = case_config("pendulum", "delan", ("accel.compile=false", "planner.num_samples=16"))
     assert cfg.model.name == "delan" and cfg.planner.num_samples == 16
     assert case_config("pendulum", "delan", ()).accel.compile  # the suite's default: compiled
-    opts = SuiteOptions(nv=(2,), batch=(1,), device=torch.device("cpu"),
-                        timing=TimingConfig(repeats=1, min_time_s=0.01, warmup=1))  # fmt: skip
+    opts = BenchSettings(torch.device("cpu"), TimingConfig(repeats=1, min_time_s=0.01, warmup=1))
     ms, timing = model_case(cfg, "pendulum", opts, seed=0)
     assert math.isfinite(ms) and ms > 0 and timing["repeats"] == 1
 
@@ -82,7 +81,7 @@ def test_the_delan_case_plans_with_the_loops_policy() -> None:
 def test_realtime_options() -> None:
     def options(*overrides: str):
         with initialize_config_dir(config_dir=str(CONFIGS / "bench"), version_base=None):
-            return build_options(compose("config", overrides=["suite=realtime", *overrides]))
+            return build_options(compose("config", overrides=["suite=realtime", *overrides]))[0]
 
     default = RealtimeConfig.from_options(options())
     assert default.tasks == ("humanoid_stand", "humanoid_walk", "pendulum")

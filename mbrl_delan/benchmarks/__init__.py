@@ -1,7 +1,9 @@
-"""Benchmark suites, their shared options and timing, and the registry of suite names.
+"""Benchmark suites, what they share (`BenchSettings`, timing) and the suites by name.
 
-A suite is a function `SuiteOptions -> Iterator[BenchRecord]`, registered by name in
-`SUITE_NAMES` and imported lazily by `get_suite` (so listing suites imports nothing heavy).
+A suite is a function ``(options, bench) -> Iterator[BenchRecord]``: `options` an instance of
+the schema registered with it in `mbrl_delan.conf.bench_schema.SUITES` (its own settings),
+`bench` the `BenchSettings` every suite gets. `get_suite` imports it lazily (so listing and
+checking suites imports nothing heavy).
 """
 
 from __future__ import annotations
@@ -32,13 +34,12 @@ from mbrl_delan.conf.bench_names import (  # noqa: F401 - the suites' names, re-
     PLANNER_MODELS,
     REALTIME_DYNAMICS,
     REALTIME_TASKS,
-    SUITE_NAMES,
-    SUITES,
     plugin_case,
     split_plugin_case,
 )
+from mbrl_delan.conf.bench_schema import SUITE_NAMES, SUITES  # noqa: F401 - re-exported
 
-Suite = Callable[["SuiteOptions"], Iterator[BenchRecord]]
+Suite = Callable[[Any, "BenchSettings"], Iterator[BenchRecord]]
 
 
 class UnknownSuiteError(KeyError):
@@ -53,7 +54,7 @@ def get_suite(name: str) -> Suite:
         raise UnknownSuiteError(
             f"unknown benchmark suite {name!r}; valid suites: {', '.join(SUITE_NAMES)}"
         )
-    module, function = SUITES[name].split(":")
+    module, function = SUITES[name].target.split(":")
     return getattr(importlib.import_module(module), function)
 
 
@@ -94,60 +95,14 @@ class Timing:
 
 
 @dataclass(frozen=True)
-class SuiteOptions:
-    """Everything a suite needs; built by the entry point from the Hydra config."""
+class BenchSettings:
+    """What every suite gets beside its own options: where and how its figures are measured."""
 
-    nv: tuple[int, ...]
-    batch: tuple[int, ...]
     device: torch.device
-    timing: TimingConfig
+    timing: TimingConfig = TimingConfig()
     max_call_s: float = 5.0  # skip a figure whose single call is predicted to take longer
     max_memory_bytes: int = 2 * 1024**3  # skip a figure whose main tensors are predicted larger
-    matmul_size: int = 2048  # side of the square float32 matmul that gives the peak FLOP/s
-    humanoid: bool = True  # nv=62: dm_control's humanoid_CMU.xml when available
-    compile_batch: tuple[int, ...] = ()  # suite delan: batches also timed through torch.compile
-    quick: bool = False  # tiny sizes; each suite applies its own quick sizes
-    # suite identify (None: the suite's default, or its quick size under `quick`)
-    n_samples: int | None = None  # training + validation samples per system
-    max_epochs: int | None = None  # epochs over all learning-rate stages
-    # suite planner (None: the suite's default, or its quick sizes under `quick`)
-    planners: tuple[str, ...] | None = None  # of "mppi", "cem", "icem"
-    models: tuple[str, ...] | None = None  # world-model cases (suites planner and humanoid)
-    num_samples: tuple[int, ...] | None = None  # samples N per iteration
-    horizons: tuple[int, ...] | None = None  # planning horizons H (control steps)
-    iterations: tuple[int, ...] | None = None  # planner iterations per control step
-    torchrl: bool = True  # also time TorchRL's MPPIPlanner / CEMPlanner where they apply
-    paired: bool = False  # also their latency ratio, ours and TorchRL's timed in alternation
-    rollout_threads: int | None = None  # compiled cases on CPU (None: torch's thread count)
-    compile_loop: bool = True  # compiled cases on CPU: the horizon as one loop (False: per step)
-    # suite humanoid (None: the suite's default, or its quick size under `quick`)
-    transitions: tuple[int, ...] | None = None  # training-set sizes
-    rollout_steps: int | None = None  # K of the K-step rollout loss of models that take it
-    oracle_tasks: tuple[str, ...] | None = None  # tasks of the oracle's episodes (() for none)
-    oracle_steps: int | None = None  # control steps of each oracle episode at most
-    clips: tuple[str, ...] | None = None  # cmu_track's oracle: one episode per clip
-    oracle_planner: str | None = None  # a sampling planner's name or "ilqr" (tracking tasks)
-    oracle_overrides: tuple[str, ...] = ()  # planner overrides of the sampling oracle
-    seed: int | None = None  # data, fits and oracle starts (test episodes: seed + 1000)
-    data_run: str | None = None  # a loop run dir: its checkpointed buffer's episodes as data
-    # suite realtime
-    tasks: tuple[str, ...] | None = None  # of REALTIME_TASKS (None: all)
-    overrides: tuple[str, ...] = ()  # train-config overrides of every case
-    # suite robust (None: the suite's default, or its quick size under `quick`)
-    seeds: tuple[int, ...] | None = None  # planner seeds
-    starts: int | None = None  # episodes per seed
-    push: float | None = None  # m/s added to the whole body's x velocity at push_step
-    push_step: int = 200
-    # suite fidelity
-    runs: tuple[str, ...] = ()  # train run dirs whose final world models are scored
-    env: str | None = None  # of FIDELITY_ENVS (None: humanoid_stand)
-    save_models: str | None = None  # a folder that keeps each fitted case as a record folder
-    # suite own_arm (None: the suite's default, or its quick size under `quick`)
-    robots: tuple[str, ...] | None = None  # of OWN_ARM_ROBOTS
-    friction: tuple[str, ...] | None = None  # the arms' friction kinds (OWN_ARM_FRICTION)
-    samples: tuple[int, ...] | None = None  # training-set sizes (data.samples)
-    designs: tuple[str, ...] | None = None  # training data's excitation designs
-    test_designs: tuple[str, ...] | None = None  # test trajectories' designs (None: the same)
+    quick: bool = False  # tiny sizes: each suite applies its own quick sizes
 
 
 def synchronizer(device: torch.device) -> Callable[[], None]:

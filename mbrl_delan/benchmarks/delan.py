@@ -1,6 +1,6 @@
 """Suite `delan`: the speed of DeLaN's dynamics against a naive DeLaN and MuJoCo itself.
 
-For each nv in `SuiteOptions.nv` the system is a serial chain of nv unlimited hinges (every
+For each nv in the suite's `nv` the system is a serial chain of nv unlimited hinges (every
 feature periodic: sin and cos), the model `DeLaN` with its constructor's defaults (hidden 64,
 2 layers, softplus, RK4) in float32, and for each batch size:
 
@@ -30,7 +30,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +46,7 @@ from torch.nn import functional as F
 from mbrl_delan import keys
 from mbrl_delan.accelerate import compile_dynamics
 from mbrl_delan.benchmarks import (
-    SuiteOptions,
+    BenchSettings,
     Timing,
     host_fields,
     single_call_seconds,
@@ -54,6 +54,7 @@ from mbrl_delan.benchmarks import (
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.bench_schema import DelanSuiteConfig
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.field import LagrangianNetwork
 from mbrl_delan.systems.external import humanoid_cmu_xml
@@ -280,18 +281,18 @@ class Measured:
 def _measure(
     make: Make,
     x: Inputs,
-    opts: SuiteOptions,
+    bench: BenchSettings,
     sync: Callable[[], None],
     memory_bytes: int = 0,
 ) -> Measured:
     """Time `make(x)`, unless its memory or its predicted call time is over the limits."""
-    if memory_bytes > opts.max_memory_bytes:
+    if memory_bytes > bench.max_memory_bytes:
         gib = memory_bytes / 1024**3
         return Measured(None, f"skipped: needs about {gib:.1f} GiB (max_memory_gb)")
-    predicted = _predict_call_s(make, x, opts.max_call_s, sync)
-    if predicted > opts.max_call_s:
+    predicted = _predict_call_s(make, x, bench.max_call_s, sync)
+    if predicted > bench.max_call_s:
         return Measured(None, f"skipped: one call predicted {predicted:.1f} s > max_call_s")
-    return Measured(time_call(make(x), opts.timing, sync))
+    return Measured(time_call(make(x), bench.timing, sync))
 
 
 def _predict_call_s(make: Make, x: Inputs, max_call_s: float, sync: Callable[[], None]) -> float:
@@ -331,21 +332,27 @@ def _record(
     return BenchRecord(SUITE, case, metric, value, unit, str(device), extra)
 
 
-def matmul_flops_per_s(opts: SuiteOptions) -> tuple[float, Timing]:
-    """FLOP/s of a square float32 matmul of side `opts.matmul_size` (2 s^3 FLOPs a call)."""
-    size = opts.matmul_size
+def matmul_flops_per_s(size: int, bench: BenchSettings) -> tuple[float, Timing]:
+    """FLOP/s of a square float32 matmul of side `size` (2 s^3 FLOPs a call)."""
     g = torch.Generator().manual_seed(0)
-    a, b = (torch.randn(size, size, generator=g).to(opts.device, DTYPE) for _ in range(2))
-    out = torch.empty(size, size, device=opts.device, dtype=DTYPE)
-    timing = time_call(lambda: torch.mm(a, b, out=out), opts.timing, synchronizer(opts.device))
+    a, b = (torch.randn(size, size, generator=g).to(bench.device, DTYPE) for _ in range(2))
+    out = torch.empty(size, size, device=bench.device, dtype=DTYPE)
+    timing = time_call(lambda: torch.mm(a, b, out=out), bench.timing, synchronizer(bench.device))
     return 2.0 * size**3 / timing.seconds_per_call, timing
 
 
 def _model_records(
-    model: DeLaN, nv: int, batch: int, opts: SuiteOptions, peak: float, host: dict[str, Any]
+    model: DeLaN,
+    nv: int,
+    batch: int,
+    compiled: bool,
+    bench: BenchSettings,
+    peak: float,
+    host: dict[str, Any],
 ) -> Iterator[BenchRecord]:
-    sync = synchronizer(opts.device)
-    x = random_inputs(nv, batch, opts.device)
+    """The figures of one chain and batch (`compiled`: the compiled forward dynamics too)."""
+    sync = synchronizer(bench.device)
+    x = random_inputs(nv, batch, bench.device)
     case = f"chain{nv}-b{batch}"
     trunk = _network(model).trunk
     fields = dict(
@@ -357,37 +364,41 @@ def _model_records(
         layers=len(trunk.hidden),
         **host,
     )
-    fwd = _measure(_fwd(model), x, opts, sync)
-    yield _record(case, "fwd_dyn_per_s", "evals/s", opts.device, fields, fwd, batch)
-    yield _flops_record(case, model, fwd, peak, opts, fields)
-    if batch in opts.compile_batch:
-        yield _compiled_record(model, x, opts, case, fields)
-    inv = _measure(_inv(model), x, opts, sync)
-    yield _record(case, "inv_dyn_per_s", "evals/s", opts.device, fields, inv, batch)
+    fwd = _measure(_fwd(model), x, bench, sync)
+    yield _record(case, "fwd_dyn_per_s", "evals/s", bench.device, fields, fwd, batch)
+    yield _flops_record(case, model, fwd, peak, bench, fields)
+    if compiled:
+        yield _compiled_record(model, x, bench, case, fields)
+    inv = _measure(_inv(model), x, bench, sync)
+    yield _record(case, "inv_dyn_per_s", "evals/s", bench.device, fields, inv, batch)
     element = torch.empty((), dtype=DTYPE).element_size()
-    naive = _measure(_naive(model), x, opts, sync, naive_bytes(nv, batch, element))
-    yield _record(case, "naive_fwd_dyn_per_s", "evals/s", opts.device, fields, naive, batch)
+    naive = _measure(_naive(model), x, bench, sync, naive_bytes(nv, batch, element))
+    yield _record(case, "naive_fwd_dyn_per_s", "evals/s", bench.device, fields, naive, batch)
     state = {k: v.clone() for k, v in model.state_dict().items()}
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-5)
-    train = _measure(_train(model, optimizer), x, opts, sync)
+    train = _measure(_train(model, optimizer), x, bench, sync)
     model.load_state_dict(state)  # the other figures see the same weights for every batch
     train_fields = {**fields, "integrator": model.integrator, "loss": model.loss_kind}
-    yield _record(case, "train_samples_per_s", "samples/s", opts.device, train_fields, train, batch)
+    yield _record(
+        case, "train_samples_per_s", "samples/s", bench.device, train_fields, train, batch
+    )
 
 
 def _compiled_record(
-    model: DeLaN, x: Inputs, opts: SuiteOptions, case: str, fields: dict[str, Any]
+    model: DeLaN, x: Inputs, bench: BenchSettings, case: str, fields: dict[str, Any]
 ) -> BenchRecord:
     """`compiled_fwd_dyn_per_s`, with the compile time (first call) in the record."""
-    sync = synchronizer(opts.device)
+    sync = synchronizer(bench.device)
     call = _compiled_fwd(model)(x)  # no trial batches: each new shape would recompile
     start = time.perf_counter()
     call()
     sync()
     compile_s = time.perf_counter() - start
-    measured = Measured(time_call(call, opts.timing, sync))
+    measured = Measured(time_call(call, bench.timing, sync))
     extra = {**fields, "compile_seconds": compile_s}
-    return _record(case, "compiled_fwd_dyn_per_s", "evals/s", opts.device, extra, measured, x.batch)
+    return _record(
+        case, "compiled_fwd_dyn_per_s", "evals/s", bench.device, extra, measured, x.batch
+    )
 
 
 def _flops_record(
@@ -395,7 +406,7 @@ def _flops_record(
     model: DeLaN,
     fwd: Measured,
     peak: float,
-    opts: SuiteOptions,
+    bench: BenchSettings,
     fields: dict[str, Any],
 ) -> BenchRecord:
     flops = model_flops(model)
@@ -407,7 +418,7 @@ def _flops_record(
         achieved = flops * fields["batch"] / fwd.timing.seconds_per_call
         extra["achieved_flops_per_s"] = achieved
         value = achieved / peak
-    return BenchRecord(SUITE, case, "flops_fraction", value, "fraction", str(opts.device), extra)
+    return BenchRecord(SUITE, case, "flops_fraction", value, "fraction", str(bench.device), extra)
 
 
 # ----------------------------------------------------------------------------- MuJoCo
@@ -512,8 +523,10 @@ def _rollout_call(
     return call
 
 
-def _mujoco_records(nv: int, opts: SuiteOptions, host: dict[str, Any]) -> Iterator[BenchRecord]:
-    system = mujoco_system(nv, opts.humanoid)
+def _mujoco_records(
+    nv: int, options: DelanSuiteConfig, bench: BenchSettings, host: dict[str, Any]
+) -> Iterator[BenchRecord]:
+    system = mujoco_system(nv, options.humanoid)
     model, data = system.model, _random_data(system.model)
     case = f"mj-{system.name}{nv}"
     threads = host["threads"]
@@ -521,13 +534,13 @@ def _mujoco_records(nv: int, opts: SuiteOptions, host: dict[str, Any]) -> Iterat
     fields.update(host)
     if system.note is not None:
         fields["note"] = system.note
-    loop = Measured(time_call(lambda: mujoco.mj_forward(model, data), opts.timing))
+    loop = Measured(time_call(lambda: mujoco.mj_forward(model, data), bench.timing))
     loop_fields = {**fields, "batch": 1, "method": "python_loop", "threads": 1}
     yield _record(case, "mujoco_fwd_per_s", "evals/s", "cpu", loop_fields, loop, 1)
     with mj_rollout.Rollout(nthread=threads if threads > 1 else 0) as runner:
-        for batch in (b for b in opts.batch if b > 1):
+        for batch in (b for b in options.batch if b > 1):
             call = _rollout_call(model, data, batch, runner)
-            measured = Measured(time_call(call, opts.timing))
+            measured = Measured(time_call(call, bench.timing))
             extra = {**fields, "batch": batch, "method": "rollout", "threads": threads}
             yield _record(
                 f"{case}-b{batch}",
@@ -543,22 +556,28 @@ def _mujoco_records(nv: int, opts: SuiteOptions, host: dict[str, Any]) -> Iterat
 # ----------------------------------------------------------------------------- the suite
 
 
-def run_delan_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
+QUICK = {"nv": [2], "batch": [4], "matmul_size": 256, "compile_batch": []}  # quick=true
+
+
+def run_delan_suite(options: DelanSuiteConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
     """Every figure of the suite, one record at a time (see the module docstring)."""
-    host = host_fields(opts.device)
-    peak, timing = matmul_flops_per_s(opts)
+    if bench.quick:
+        options = replace(options, **QUICK)
+    host = host_fields(bench.device)
+    peak, timing = matmul_flops_per_s(options.matmul_size, bench)
     yield BenchRecord(
         SUITE,
-        f"matmul{opts.matmul_size}",
+        f"matmul{options.matmul_size}",
         "matmul_flops_per_s",
         peak,
         "FLOP/s",
-        str(opts.device),
-        {"dtype": "float32", "size": opts.matmul_size, **host, **timing.fields()},
+        str(bench.device),
+        {"dtype": "float32", "size": options.matmul_size, **host, **timing.fields()},
     )
-    for nv in opts.nv:
-        model = chain_model(nv).to(device=opts.device, dtype=DTYPE)
-        for batch in opts.batch:
+    for nv in options.nv:
+        model = chain_model(nv).to(device=bench.device, dtype=DTYPE)
+        for batch in options.batch:
             log.info("delan suite: nv=%d batch=%d", nv, batch)
-            yield from _model_records(model, nv, batch, opts, peak, host)
-        yield from _mujoco_records(nv, opts, host)
+            compiled = batch in options.compile_batch
+            yield from _model_records(model, nv, batch, compiled, bench, peak, host)
+        yield from _mujoco_records(nv, options, bench, host)

@@ -47,9 +47,10 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 
 from mbrl_delan import keys
-from mbrl_delan.benchmarks import FIDELITY_CASES, SuiteOptions, host_fields
+from mbrl_delan.benchmarks import FIDELITY_CASES, BenchSettings, host_fields
 from mbrl_delan.benchmarks.humanoid import first_transitions, split_run_episodes
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.bench_schema import FidelitySuiteConfig
 from mbrl_delan.conf.checks import DTYPES, compose_train_config
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import EnvParts, make_env_parts
@@ -287,28 +288,28 @@ def _planning_overrides(overrides: Sequence[str]) -> list[str]:
     return [o for o in overrides if not o.lstrip("+~").startswith("model.")]
 
 
-def run_fidelity_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
-    seed = opts.seed or 0
-    steps = opts.oracle_steps or (QUICK_STEPS if opts.quick else STEPS)
+def run_fidelity_suite(options: FidelitySuiteConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
+    seed = options.seed or 0
+    steps = options.oracle_steps or (QUICK_STEPS if bench.quick else STEPS)
     nthread = max(1, torch.get_num_threads())
-    task = opts.env or TASK
-    cfg = compose_train_config([f"env={task}", *_planning_overrides(opts.overrides)])
+    task = options.env or TASK
+    cfg = compose_train_config([f"env={task}", *_planning_overrides(options.overrides)])
     parts = make_env_parts(task, None, None)
     reference = reference_episode(cfg, parts, steps, seed, nthread)
     host = host_fields(torch.device("cpu"))
     base = dict(env=task, seed=seed, oracle_steps=steps, starts=int(reference.q.shape[0]),
                 candidate_starts=int(reference.candidate_starts.numel()),
-                overrides=list(opts.overrides))  # fmt: skip
-    cases = REFERENCE_CASES if opts.models is None else opts.models
+                overrides=list(options.overrides))  # fmt: skip
+    cases = REFERENCE_CASES if options.models is None else options.models
     data: TensorDict | None = None
     for name in (c for c in cases if c in FIT_CASES):
         if data is None:
-            data, described = training_data(opts, parts, seed)
+            data, described = training_data(options, parts, seed)
         case_cfg = compose_train_config([f"env={task}", *FIT_CASES[name], f"seed={seed}",
-                                         *opts.overrides])  # fmt: skip
+                                         *options.overrides])  # fmt: skip
         model, seconds = fitted_model(case_cfg, parts, data, seed)
-        if opts.save_models is not None:
-            keep_model(Path(opts.save_models) / f"{name}_s{seed}", case_cfg, model)
+        if options.save_models is not None:
+            keep_model(Path(options.save_models) / f"{name}_s{seed}", case_cfg, model)
         yield from _case(case_cfg, parts, model, name, described, reference, steps, seed,
                          base | host | {"transitions": int(data.shape[0])},
                          {"fit_seconds": seconds})  # fmt: skip
@@ -317,7 +318,7 @@ def run_fidelity_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
         what = PERTURBATIONS[name].what if name in PERTURBATIONS else CASE_NOTES[name]
         yield from _case(cfg, parts, model, name, "none (MuJoCo: " + what + ")", reference,
                          steps, seed, base | host)  # fmt: skip
-    for run_dir in opts.runs:
+    for run_dir in options.runs:
         run_cfg, model, data = _run_model(run_dir)
         name = f"{run_cfg.model.name}:{Path(run_dir).name}"
         yield from _case(run_cfg, parts, model, name, data, reference, steps, seed, base | host)
@@ -332,14 +333,16 @@ def keep_model(folder: Path, cfg: DictConfig, model: WorldModel) -> None:
     log.info("fidelity: the fitted model kept in %s", folder)
 
 
-def training_data(opts: SuiteOptions, parts: EnvParts, seed: int) -> tuple[TensorDict, str]:
+def training_data(
+    options: FidelitySuiteConfig, parts: EnvParts, seed: int
+) -> tuple[TensorDict, str]:
     """The learned cases' transitions and what they are: the first `transitions[0]` of
     `data_run`'s buffer, or random-action episodes from the task's starts (seed `seed`)."""
-    n = (opts.transitions or (DEFAULT_TRANSITIONS,))[0]
-    if opts.data_run is not None:
-        train, _ = split_run_episodes(opts.data_run, parts.task.name, 0)
-        return (first_transitions(train, n, opts.data_run),
-                f"the first {n} transitions of {Path(opts.data_run).name}")  # fmt: skip
+    n = (options.transitions or (DEFAULT_TRANSITIONS,))[0]
+    if options.data_run is not None:
+        train, _ = split_run_episodes(options.data_run, parts.task.name, 0)
+        return (first_transitions(train, n, options.data_run),
+                f"the first {n} transitions of {Path(options.data_run).name}")  # fmt: skip
     return random_episodes(parts, n, seed), f"{n} transitions of random actions (seed {seed})"
 
 

@@ -36,10 +36,11 @@ import torch
 from tensordict import TensorDict
 
 from mbrl_delan import keys
-from mbrl_delan.benchmarks import SuiteOptions, host_fields
+from mbrl_delan.benchmarks import BenchSettings, host_fields
 from mbrl_delan.benchmarks.identify import IdentifyConfig, fit_identification, make_model
 from mbrl_delan.benchmarks.own_arm import friction_torque_share
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.bench_schema import FitArraysSuiteConfig
 from mbrl_delan.conf.fitting import fit_inverse_dynamics
 from mbrl_delan.data.arrays import save_arrays
 from mbrl_delan.data.inverse_data import FitSystem, array_inverse_data
@@ -170,8 +171,12 @@ def run_fit_arrays(cfg: FitArraysConfig) -> Iterator[BenchRecord]:
             yield from run_system(name, cfg, Path(tmp))
 
 
-def run_fit_arrays_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
-    """The registered suite, on the CPU (`FitArraysConfig.quick` under `opts.quick`); the
-    fits' seed from `opts.seed` (the data stay those of seed 0)."""
-    cfg = FitArraysConfig.quick() if opts.quick else FitArraysConfig()
-    yield from run_fit_arrays(replace(cfg, fit_seed=opts.seed or 0))
+def run_fit_arrays_suite(
+    options: FitArraysSuiteConfig, bench: BenchSettings
+) -> Iterator[BenchRecord]:
+    """The registered suite, on the CPU (`FitArraysConfig.quick` under `bench.quick`); the
+    fits' seed from the options' `seed` (the data stay those of seed 0), their `overrides`
+    added to every fit's."""
+    cfg = FitArraysConfig.quick() if bench.quick else FitArraysConfig()
+    overrides = (*cfg.overrides, *options.overrides)
+    yield from run_fit_arrays(replace(cfg, fit_seed=options.seed or 0, overrides=overrides))

@@ -40,7 +40,7 @@ Records: case ``{model}-n{n}``, metric ``rollout_error`` (field ``horizon``), an
 with). Case ``oracle-{task}``: metric ``oracle_return`` (the episode's return; fields
 ``steps`` run, ``episode_len`` asked, ``fell``, ``mean_reward``, the planner's settings; on
 cmu_track also ``tracking_errors``) and ``oracle_step_s`` (seconds per control step).
-Everything runs on `opts.device` except MuJoCo.
+Everything runs on `bench.device` except MuJoCo.
 """
 
 from __future__ import annotations
@@ -62,10 +62,11 @@ from mbrl_delan import keys
 from mbrl_delan.benchmarks import (
     HUMANOID_MODELS,
     HUMANOID_ORACLE_TASKS,
-    SuiteOptions,
+    BenchSettings,
     host_fields,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.bench_schema import HumanoidSuiteConfig
 from mbrl_delan.conf.builders import build_model, build_planner
 from mbrl_delan.conf.checks import ConfigError, compose_train_config
 from mbrl_delan.envs.real import env_parts_of, make_real_env
@@ -495,10 +496,10 @@ def _oracle_run(
     return ep, {k: p[k] for k in settings if k in p} | plan_physics
 
 
-def run_humanoid(cfg: HumanoidBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord]:
+def run_humanoid(cfg: HumanoidBenchConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
     parts = make_env_parts(cfg.env)
     system, task = parts.system, parts.task
-    host = host_fields(opts.device)
+    host = host_fields(bench.device)
     yield from oracle_records(cfg, host)
     if not cfg.models:
         return
@@ -521,52 +522,41 @@ def run_humanoid(cfg: HumanoidBenchConfig, opts: SuiteOptions) -> Iterator[Bench
             log.info("humanoid suite: fitting %s on %d transitions", name, n)
             case = f"{name}-n{n}"
             try:
-                fitted = fit_world_model(name, system, train, cfg, opts.device)
+                fitted = fit_world_model(name, system, train, cfg, bench.device)
             except TrainingDivergedError as err:  # recorded; the other models still run
                 log.error("%s: the fit diverged (%s); no rollout errors for it", case, err)
                 note = {**fields, "note": f"fit diverged: {err}"}
-                yield BenchRecord(SUITE, case, "fit_s", None, "s", str(opts.device), note)
+                yield BenchRecord(SUITE, case, "fit_s", None, "s", str(bench.device), note)
                 continue
             model_fields = {**fields, "rollout_steps": fitted.rollout_steps}
             yield BenchRecord(
-                SUITE, case, "fit_s", fitted.seconds, "s", str(opts.device), model_fields
+                SUITE, case, "fit_s", fitted.seconds, "s", str(bench.device), model_fields
             )
             for h in cfg.horizons:
                 value = rollout_error(fitted.model, system, test, h)
                 log.info("%s: rollout_error h=%d %s", case, h, value)
                 yield BenchRecord(
-                    SUITE, case, "rollout_error", value, "normalised RMS", str(opts.device),
+                    SUITE, case, "rollout_error", value, "normalised RMS", str(bench.device),
                     {**model_fields, "horizon": h},
                 )  # fmt: skip
 
 
-def suite_config(opts: SuiteOptions) -> HumanoidBenchConfig:
-    cfg = HumanoidBenchConfig.quick() if opts.quick else HumanoidBenchConfig()
-    if opts.transitions:
-        cfg = replace(cfg, sizes=opts.transitions)
-    if opts.models is not None:
-        cfg = replace(cfg, models=opts.models)
-    if opts.horizons:
-        cfg = replace(cfg, horizons=opts.horizons)
-    if opts.rollout_steps is not None:
-        cfg = replace(cfg, rollout_steps=opts.rollout_steps)
-    if opts.oracle_tasks is not None:
-        cfg = replace(cfg, oracle_tasks=opts.oracle_tasks)
-    if opts.oracle_steps is not None:
-        cfg = replace(cfg, oracle_steps=opts.oracle_steps)
-    if opts.clips is not None:
-        cfg = replace(cfg, clips=opts.clips)
-    if opts.oracle_planner is not None:
-        cfg = replace(cfg, oracle_method=opts.oracle_planner)
-    if opts.oracle_overrides:
-        cfg = replace(cfg, oracle_overrides=(*cfg.oracle_overrides, *opts.oracle_overrides))
-    if opts.seed is not None:
-        cfg = replace(cfg, seed=opts.seed)
-    if opts.data_run is not None:
-        cfg = replace(cfg, data_run=opts.data_run)
-    return cfg
+def suite_config(options: HumanoidSuiteConfig, quick: bool = False) -> HumanoidBenchConfig:
+    """`HumanoidBenchConfig.quick()` under `quick`, else the defaults; then every option that
+    is not None (`oracle_overrides`: added to the config's)."""
+    cfg = HumanoidBenchConfig.quick() if quick else HumanoidBenchConfig()
+    given = {
+        "sizes": options.transitions, "models": options.models, "horizons": options.horizons,
+        "rollout_steps": options.rollout_steps, "oracle_tasks": options.oracle_tasks,
+        "oracle_steps": options.oracle_steps, "clips": options.clips,
+        "oracle_method": options.oracle_planner, "seed": options.seed,
+        "data_run": options.data_run,
+        "oracle_overrides": (*cfg.oracle_overrides, *options.oracle_overrides),
+    }  # fmt: skip
+    return replace(cfg, **{k: tuple(v) if isinstance(v, list) else v
+                            for k, v in given.items() if v is not None})  # fmt: skip
 
 
-def run_humanoid_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
+def run_humanoid_suite(options: HumanoidSuiteConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
     """The registered suite."""
-    return run_humanoid(suite_config(opts), opts)
+    return run_humanoid(suite_config(options, bench.quick), bench)

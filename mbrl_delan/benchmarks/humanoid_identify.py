@@ -31,7 +31,7 @@ from tensordict import TensorDict
 
 from mbrl_delan import keys
 from mbrl_delan.accelerate.compile import compile_fit
-from mbrl_delan.benchmarks import SuiteOptions, host_fields
+from mbrl_delan.benchmarks import BenchSettings, host_fields
 from mbrl_delan.benchmarks.identify import (
     IdentifyConfig,
     fit_identification,
@@ -40,6 +40,7 @@ from mbrl_delan.benchmarks.identify import (
     torque_r2,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.bench_schema import IdentifySuiteConfig
 from mbrl_delan.data.synthetic import inverse_dynamics_dataset, reference_terms
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.structure import Structure
@@ -162,19 +163,21 @@ def identify_humanoid(name: str, cfg: HumanoidIdentifyConfig) -> HumanoidIdentif
     return HumanoidIdentification(fit.model, evaluate(fit.model, system, test), seconds, fit.epochs)
 
 
-def suite_config(opts: SuiteOptions) -> HumanoidIdentifyConfig:
-    """Quick sizes under `opts.quick`; `opts.n_samples` and `opts.max_epochs` override."""
-    cfg = HumanoidIdentifyConfig.quick() if opts.quick else HumanoidIdentifyConfig()
-    if opts.n_samples is not None:
-        cfg = replace(cfg, n_samples=opts.n_samples)
-    if opts.max_epochs is not None:
-        cfg = replace(cfg, fit=replace(cfg.fit, max_epochs=opts.max_epochs))
+def suite_config(options: IdentifySuiteConfig, quick: bool = False) -> HumanoidIdentifyConfig:
+    """Quick sizes under `quick`; the options' `n_samples` and `max_epochs` override."""
+    cfg = HumanoidIdentifyConfig.quick() if quick else HumanoidIdentifyConfig()
+    if options.n_samples is not None:
+        cfg = replace(cfg, n_samples=options.n_samples)
+    if options.max_epochs is not None:
+        cfg = replace(cfg, fit=replace(cfg.fit, max_epochs=options.max_epochs))
     return cfg
 
 
-def run_identify_humanoid_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
+def run_identify_humanoid_suite(
+    options: IdentifySuiteConfig, bench: BenchSettings
+) -> Iterator[BenchRecord]:
     """The registered suite: every metric for every humanoid, on the CPU."""
-    cfg = suite_config(opts)
+    cfg = suite_config(options, bench.quick)
     host = host_fields(torch.device("cpu"))
     for name in cfg.systems:
         result = identify_humanoid(name, cfg)

@@ -42,8 +42,9 @@ from tensordict import TensorDict
 from torch import Tensor
 
 from mbrl_delan import keys
-from mbrl_delan.benchmarks import SuiteOptions, host_fields
+from mbrl_delan.benchmarks import BenchSettings, host_fields
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.bench_schema import IdentifySuiteConfig
 from mbrl_delan.data.synthetic import F64, PassiveMuJoCo, dynamics_dataset, reference_terms
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.integrators import integrate
@@ -421,20 +422,20 @@ def run_identify(cfg: IdentifyConfig) -> Iterator[BenchRecord]:
             yield BenchRecord(SUITE, name, metric, value, UNIT, device, dict(fields))
 
 
-def suite_config(opts: SuiteOptions) -> IdentifyConfig:
-    """The suite's config from the bench options: `IdentifyConfig.quick()` under `opts.quick`,
-    else the defaults; then `opts.n_samples` and `opts.max_epochs` where they are not None."""
-    cfg = IdentifyConfig.quick() if opts.quick else IdentifyConfig()
+def suite_config(options: IdentifySuiteConfig, quick: bool = False) -> IdentifyConfig:
+    """The suite's config: `IdentifyConfig.quick()` under `quick`, else the defaults; then
+    the options' `n_samples` and `max_epochs` where they are not None."""
+    cfg = IdentifyConfig.quick() if quick else IdentifyConfig()
     overrides = {
         name: value
-        for name, value in (("n_samples", opts.n_samples), ("max_epochs", opts.max_epochs))
+        for name, value in (("n_samples", options.n_samples), ("max_epochs", options.max_epochs))
         if value is not None
     }
     return replace(cfg, **overrides)
 
 
-def run_identify_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
-    """The registered suite: `run_identify` with `suite_config(opts)`, on the CPU."""
-    if opts.device.type != "cpu":
-        log.warning("suite identify runs on the CPU (asked for %s)", opts.device)
-    yield from run_identify(suite_config(opts))
+def run_identify_suite(options: IdentifySuiteConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
+    """The registered suite: `run_identify` with `suite_config`, on the CPU."""
+    if bench.device.type != "cpu":
+        log.warning("suite identify runs on the CPU (asked for %s)", bench.device)
+    yield from run_identify(suite_config(options, bench.quick))

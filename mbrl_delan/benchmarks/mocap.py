@@ -18,7 +18,7 @@ own builders:
   / seconds per epoch;
 - `fit_epoch_s` (one record per model): the seconds of that epoch (the same timing).
 
-`SuiteOptions.quick`: the one small clip of tests/data (09_06) and tiny sizes
+`quick=true`: the one small clip of tests/data (09_06) and tiny sizes
 (`QUICK_OVERRIDES`). Clips that are not found give `value: null` records with a note.
 """
 
@@ -39,7 +39,7 @@ from tensordict import TensorDict
 from mbrl_delan import keys
 from mbrl_delan.accelerate.compile import compile_fit
 from mbrl_delan.benchmarks import (
-    SuiteOptions,
+    BenchSettings,
     Timing,
     TimingConfig,
     host_fields,
@@ -47,6 +47,7 @@ from mbrl_delan.benchmarks import (
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.bench_schema import OverridesSuiteConfig
 from mbrl_delan.conf.checks import DTYPES, compose_config
 from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, make_dataset, validate_fit_config
 from mbrl_delan.conf.inverse import InverseContext, build_inverse_model
@@ -85,6 +86,7 @@ QUICK_OVERRIDES = (  # the small clip of tests/data and tiny networks (seconds i
     "model.hidden=16",
     "model.ensemble_size=2",
 )
+
 BUILD_MAX_REPEATS = 3  # one build takes seconds: at most this many timed builds
 BUILD_MAX_WARMUP = 1
 
@@ -284,14 +286,14 @@ def _fit_records(
     mj_model: mujoco.MjModel,
     train: TensorDict,
     cfg: MocapBenchConfig,
-    opts: SuiteOptions,
+    bench: BenchSettings,
     host: dict[str, Any],
 ) -> Iterator[BenchRecord]:
     torch.manual_seed(cfg.fit.seed)
     layout, parents = joint_layout(mj_model), mj_model.dof_parentid.tolist()
     armature = mj_model.dof_armature.tolist()
     model = make_inverse_model(name, layout, cfg, parents, armature)
-    model = model.to(device=opts.device, dtype=cfg.dtype)
+    model = model.to(device=bench.device, dtype=cfg.dtype)
     if cfg.models[name].get("compile_fit", False):
         compile_fit(model)
     model.fit_normalization(train)
@@ -307,19 +309,19 @@ def _fit_records(
         "compile_fit": bool(cfg.models[name].get("compile_fit", False)),
         **host,
     }
-    timing = time_call(epoch_call(model, train, cfg), opts.timing, synchronizer(opts.device))
+    timing = time_call(epoch_call(model, train, cfg), bench.timing, synchronizer(bench.device))
     seconds, case, device = (
         timing.seconds_per_call,
         f"{name}-b{cfg.fit.batch_size}",
-        str(opts.device),
+        str(bench.device),
     )
     yield _record(case, "fit_samples_per_s", "samples/s", device, fields, timing, n / seconds)
     yield _record(case, "fit_epoch_s", "s", device, fields, timing, seconds)
 
 
-def run_mocap(cfg: MocapBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord]:
+def run_mocap(cfg: MocapBenchConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
     """Every figure of the suite for ``cfg``, one record at a time."""
-    host = host_fields(opts.device)
+    host = host_fields(bench.device)
     case = f"cmu_mocap-{len(cfg.clips)}clips"
     fields = _data_fields(cfg, host)
     try:
@@ -328,33 +330,33 @@ def run_mocap(cfg: MocapBenchConfig, opts: SuiteOptions) -> Iterator[BenchRecord
     except (ClipNotFoundError, FileNotFoundError, ModuleNotFoundError) as err:
         log.warning("mocap suite: %s", err)
         note = f"skipped: {type(err).__name__}: {err}"
-        yield from _missing_records(case, fields, cfg, str(opts.device), note)
+        yield from _missing_records(case, fields, cfg, str(bench.device), note)
         return
     frames = count_frames(files)
     log.info("mocap suite: retargeting %d clips (%d frames)", len(files), frames)
-    timing = time_call(retarget_call(files, mj_model, cfg.filter), opts.timing)
+    timing = time_call(retarget_call(files, mj_model, cfg.filter), bench.timing)
     value = frames / timing.seconds_per_call
     retarget_fields = {**fields, "frames": frames}
     yield _record(case, "retarget_frames_per_s", "frames/s", "cpu", retarget_fields, timing, value)
     log.info("mocap suite: building the dataset")
     builder = DatasetBuilder(cfg)
-    timing = time_call(builder, _build_timing(opts.timing))
+    timing = time_call(builder, _build_timing(bench.timing))
     dataset = builder.last if builder.last is not None else builder()  # time_call built it
     build_fields = {**fields, "samples": len(dataset)}
     seconds = timing.seconds_per_call
     yield _record(case, "dataset_build_s", "s", "cpu", build_fields, timing, seconds)
-    train = training_split(dataset, opts.device, cfg.dtype)
+    train = training_split(dataset, bench.device, cfg.dtype)
     for name in cfg.models:
         log.info("mocap suite: one epoch of %s on %d samples", name, train.shape[0])
-        yield from _fit_records(name, mj_model, train, cfg, opts, host)
+        yield from _fit_records(name, mj_model, train, cfg, bench, host)
 
 
-def suite_config(opts: SuiteOptions) -> MocapBenchConfig:
-    """The suite's settings: the fit's defaults, or `QUICK_OVERRIDES` under ``opts.quick``;
-    then the fit-config overrides ``opts.overrides``."""
-    return mocap_config([*(QUICK_OVERRIDES if opts.quick else ()), *opts.overrides])
+def suite_config(options: OverridesSuiteConfig, quick: bool = False) -> MocapBenchConfig:
+    """The suite's settings: the fit's defaults, or `QUICK_OVERRIDES` under `quick`; then the
+    options' fit-config `overrides`."""
+    return mocap_config([*(QUICK_OVERRIDES if quick else ()), *options.overrides])
 
 
-def run_mocap_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
-    """The registered suite: `run_mocap` with `suite_config(opts)`."""
-    yield from run_mocap(suite_config(opts), opts)
+def run_mocap_suite(options: OverridesSuiteConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
+    """The registered suite: `run_mocap` with `suite_config`."""
+    yield from run_mocap(suite_config(options, bench.quick), bench)

@@ -40,16 +40,17 @@ import logging
 import tempfile
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from mbrl_delan import keys
-from mbrl_delan.benchmarks import OWN_ARM_MODELS, OWN_ARM_ROBOTS, SuiteOptions, host_fields
+from mbrl_delan.benchmarks import OWN_ARM_MODELS, OWN_ARM_ROBOTS, BenchSettings, host_fields
 from mbrl_delan.benchmarks.figures import describe_curves, plot_error_curves, read_record_files
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.bench_schema import OwnArmSuiteConfig
 from mbrl_delan.conf.checks import compose_config
 from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, fit_splits
 from mbrl_delan.models.inverse import DeLaNInverse, InverseDynamicsModel
@@ -180,16 +181,15 @@ def run_own_arm(cfg: OwnArmConfig) -> Iterator[BenchRecord]:
                 yield BenchRecord(SUITE, case.name, metric, value, unit, "cpu", fields)
 
 
-def run_own_arm_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
-    """The registered suite, on the CPU (`OwnArmConfig.quick` under `opts.quick`); `robots`,
-    `friction`, `samples`, `models`, `seed` and `overrides` from the options."""
-    cfg = OwnArmConfig.quick() if opts.quick else OwnArmConfig()
-    given: dict[str, Any] = {
-        "robots": opts.robots, "friction": opts.friction, "samples": opts.samples,
-        "models": opts.models, "designs": opts.designs, "test_designs": opts.test_designs,
-    }  # fmt: skip
-    cfg = replace(cfg, **{k: v for k, v in given.items() if v is not None})
-    cfg = replace(cfg, seed=opts.seed or 0, overrides=cfg.overrides + tuple(opts.overrides))
+def run_own_arm_suite(options: OwnArmSuiteConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
+    """The registered suite, on the CPU (`OwnArmConfig.quick` under `bench.quick`); every
+    option that is not None replaces its field (`overrides`: added to the config's)."""
+    cfg = OwnArmConfig.quick() if bench.quick else OwnArmConfig()
+    given = {f.name: getattr(options, f.name) for f in fields(options)}
+    given["overrides"] = (*cfg.overrides, *options.overrides)
+    given["seed"] = options.seed or 0
+    cfg = replace(cfg, **{k: tuple(v) if isinstance(v, list) else v
+                          for k, v in given.items() if v is not None})  # fmt: skip
     yield from run_own_arm(cfg)
 
 

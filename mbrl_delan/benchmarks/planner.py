@@ -56,7 +56,7 @@ import math
 import statistics
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import torch
@@ -72,7 +72,7 @@ from mbrl_delan.benchmarks import (
     COMPILED_SUFFIX,
     GRAPH_SUFFIX,
     PLANNER_MODELS,
-    SuiteOptions,
+    BenchSettings,
     Timing,
     host_fields,
     split_plugin_case,
@@ -80,6 +80,7 @@ from mbrl_delan.benchmarks import (
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.bench_schema import PlannerSuiteConfig
 from mbrl_delan.conf.builders import build_model
 from mbrl_delan.conf.builders import build_planner as config_build_planner
 from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError, compose_train_config
@@ -145,6 +146,8 @@ class PlannerGrid:
     iterations: tuple[int, ...] = (1, 5)
     torchrl: bool = True
     paired: bool = False  # also `latency_ratio_vs_torchrl` (ours and TorchRL's in alternation)
+    rollout_threads: int | None = None  # compiled cases on CPU (None: torch's thread count)
+    compile_loop: bool = True  # compiled cases on CPU: the horizon as one loop (False: per step)
 
     @classmethod
     def quick(cls) -> PlannerGrid:
@@ -168,16 +171,13 @@ class PlannerGrid:
         return sorted(grid, key=lambda s: (s.work, s.num_samples, s.horizon))
 
 
-def grid_from_options(opts: SuiteOptions) -> PlannerGrid:
-    """`PlannerGrid.quick()` under `opts.quick`, else the defaults; then every option that is
-    not None replaces its field."""
-    grid = PlannerGrid.quick() if opts.quick else PlannerGrid()
-    overrides = {
-        name: getattr(opts, name)
-        for name in ("models", "planners", "num_samples", "horizons", "iterations")
-        if getattr(opts, name) is not None
-    }
-    return replace(grid, torchrl=opts.torchrl, paired=opts.paired, **overrides)
+def grid_from_options(options: PlannerSuiteConfig, quick: bool = False) -> PlannerGrid:
+    """`PlannerGrid.quick()` under `quick`, else the defaults; then every option that is not
+    None replaces its field."""
+    grid = PlannerGrid.quick() if quick else PlannerGrid()
+    given = {f.name: getattr(options, f.name) for f in fields(options)}
+    return replace(grid, **{k: tuple(v) if isinstance(v, list) else v
+                            for k, v in given.items() if v is not None})  # fmt: skip
 
 
 # ----------------------------------------------------------------------------- cases
@@ -391,7 +391,7 @@ def _seconds(call: Callable[[], object], sync: Callable[[], None]) -> float:
 def time_plan(
     call: Callable[[], object],
     predicted: float,
-    opts: SuiteOptions,
+    bench: BenchSettings,
     sync: Callable[[], None],
     compiles: bool = False,
 ) -> Timing:
@@ -406,14 +406,14 @@ def time_plan(
     second one whose time, without compiling, sets the number of repeats.
     """
     estimate = predicted
-    if predicted < opts.timing.min_time_s or compiles:
+    if predicted < bench.timing.min_time_s or compiles:
         estimate = _seconds(call, sync)  # untimed: the cold start
         if compiles:
             estimate = _seconds(call, sync)  # untimed: the first call compiled
-        if estimate < opts.timing.min_time_s:
-            return time_call(call, replace(opts.timing, warmup=0), sync)
-    budget = opts.max_call_s / 2
-    repeats = max(1, min(opts.timing.repeats, math.floor(budget / estimate)))
+        if estimate < bench.timing.min_time_s:
+            return time_call(call, replace(bench.timing, warmup=0), sync)
+    budget = bench.max_call_s / 2
+    repeats = max(1, min(bench.timing.repeats, math.floor(budget / estimate)))
     samples = [_seconds(call, sync) for _ in range(repeats)]
     median = statistics.median(samples)
     return Timing(median, 1, repeats, (max(samples) - min(samples)) / median)
@@ -423,20 +423,20 @@ def measure(
     make: Callable[[], Callable[[], object]],
     setting: Setting,
     predictor: LatencyPredictor,
-    opts: SuiteOptions,
+    bench: BenchSettings,
     sync: Callable[[], None],
     compiles: bool = False,
 ) -> Measured:
     """Build the call with `make()` and time it (`time_plan`), unless predicted too slow or
     unbuildable."""
     predicted = predictor.predict(setting)
-    if predicted > opts.max_call_s:
+    if predicted > bench.max_call_s:
         return Measured(None, f"skipped: one call predicted {predicted:.1f} s > max_call_s")
     try:
         call = make()
     except ValueError as err:  # a planner constructor's check, e.g. N too small for iCEM
         return Measured(None, f"not run: {err}")
-    timing = time_plan(call, predicted, opts, sync, compiles)
+    timing = time_plan(call, predicted, bench, sync, compiles)
     predictor.observe(setting, timing.seconds_per_call)
     return Measured(timing)
 
@@ -523,13 +523,13 @@ def our_call(
 
 
 def our_records(
-    case: Case, kind: str, grid: PlannerGrid, opts: SuiteOptions, host: dict[str, Any]
+    case: Case, kind: str, grid: PlannerGrid, bench: BenchSettings, host: dict[str, Any]
 ) -> Iterator[BenchRecord]:
     """`plan_latency_ms` and `realtime_factor` of our planner `kind` on every setting."""
     oracle = case.model is None
-    device = torch.device("cpu") if oracle else opts.device
+    device = torch.device("cpu") if oracle else bench.device
     dtype = torch.float64 if oracle else DTYPE
-    factory = _objective_factory(case, device, opts.rollout_threads, opts.compile_loop)
+    factory = _objective_factory(case, device, grid.rollout_threads, grid.compile_loop)
     q0, qd0 = case.q0.to(device, dtype), case.qd0.to(device, dtype)
     sync, predictor = synchronizer(device), LatencyPredictor()
     for setting in grid.settings():
@@ -545,7 +545,7 @@ def our_records(
             measured = Measured(None, "not run: CUDA graphs need device=cuda")
         else:
             compiles = case.compile or case.cuda_graph  # its first call compiles or captures
-            measured = measure(make, setting, predictor, opts, sync, compiles)
+            measured = measure(make, setting, predictor, bench, sync, compiles)
         fields.update(_threads_field(factory))  # as timed (shares stop if the loop ran eagerly)
         name = f"{case.name}-{kind}-{setting.tag()}"
         yield from latency_records(
@@ -604,12 +604,12 @@ def torchrl_model(case: Case) -> WorldModel:
 
 
 def torchrl_records(
-    case: Case, kind: str, grid: PlannerGrid, opts: SuiteOptions, host: dict[str, Any]
+    case: Case, kind: str, grid: PlannerGrid, bench: BenchSettings, host: dict[str, Any]
 ) -> Iterator[BenchRecord]:
     """`torchrl_plan_latency_ms` and `realtime_factor` of TorchRL's planner `kind`."""
-    env = ModelEnv(torchrl_model(case), case.task, case.system, device=opts.device, dtype=DTYPE)
+    env = ModelEnv(torchrl_model(case), case.task, case.system, device=bench.device, dtype=DTYPE)
     start = _start_tensordict(case, env)
-    sync, predictor = synchronizer(opts.device), LatencyPredictor()
+    sync, predictor = synchronizer(bench.device), LatencyPredictor()
     note = torchrl_note(case)
     for setting in grid.settings():
         log.info("planner suite: %s torchrl_%s %s", case.name, kind, setting.tag())
@@ -622,14 +622,14 @@ def torchrl_records(
         def make(setting: Setting = setting, actions: list[Tensor] = actions) -> Callable[[], Any]:
             return torchrl_call(build_torchrl_planner(kind, setting, env), start, actions)
 
-        measured = measure(make, setting, predictor, opts, sync, case.compile)
+        measured = measure(make, setting, predictor, bench, sync, case.compile)
         if actions:
             fields["action_finite"] = all(bool(torch.isfinite(a).all()) for a in actions)
             if not fields["action_finite"]:
                 fields["note"] += "; it returned a non-finite action"
         name = f"{case.name}-torchrl_{kind}-{setting.tag()}"
         yield from latency_records(
-            name, "torchrl_plan_latency_ms", measured, case.system.control_dt, opts.device, fields
+            name, "torchrl_plan_latency_ms", measured, case.system.control_dt, bench.device, fields
         )
 
 
@@ -679,18 +679,18 @@ PAIRED_METRIC = "latency_ratio_vs_torchrl"
 
 
 def paired_records(
-    case: Case, kind: str, grid: PlannerGrid, opts: SuiteOptions, host: dict[str, Any]
+    case: Case, kind: str, grid: PlannerGrid, bench: BenchSettings, host: dict[str, Any]
 ) -> Iterator[BenchRecord]:
     """`latency_ratio_vs_torchrl` of our planner `kind` on `case` against TorchRL's on the
     case's eager model, for every setting (see the module docstring)."""
-    device = opts.device
+    device = bench.device
     eager = make_case(case.name.removesuffix(COMPILED_SUFFIX), device) if case.compile else case
     env = ModelEnv(eager.model, eager.task, eager.system, device=device, dtype=DTYPE)
-    factory = _objective_factory(case, device, opts.rollout_threads, opts.compile_loop)
+    factory = _objective_factory(case, device, grid.rollout_threads, grid.compile_loop)
     start = _start_tensordict(eager, env)
     q0, qd0 = case.q0.to(device, DTYPE), case.qd0.to(device, DTYPE)
     sync = synchronizer(device)
-    one = replace(opts.timing, repeats=1, warmup=0)
+    one = replace(bench.timing, repeats=1, warmup=0)
 
     def seconds_per_call(call: Callable[[], object]) -> float:
         return time_call(call, one, sync).seconds_per_call
@@ -704,10 +704,10 @@ def paired_records(
         _seconds(ours, sync)  # untimed: the first call compiles (a compiled case)
         slowest = max(_seconds(ours, sync), _seconds(theirs, sync))
         value = None
-        if slowest > opts.max_call_s:
+        if slowest > bench.max_call_s:
             fields["note"] += f"; not timed: a call took {slowest:.1f} s > max_call_s"
         else:
-            paired = paired_ratio(ours, theirs, opts.timing.repeats, seconds_per_call)
+            paired = paired_ratio(ours, theirs, bench.timing.repeats, seconds_per_call)
             value = paired.ratio
             fields.update(
                 _threads_field(factory),
@@ -723,21 +723,21 @@ def paired_records(
 # ----------------------------------------------------------------------------- the suite
 
 
-def run_planner(grid: PlannerGrid, opts: SuiteOptions) -> Iterator[BenchRecord]:
+def run_planner(grid: PlannerGrid, bench: BenchSettings) -> Iterator[BenchRecord]:
     """Every figure of the grid, one record at a time."""
-    host = host_fields(opts.device)
+    host = host_fields(bench.device)
     for name in grid.models:
-        case = make_case(name, opts.device)
+        case = make_case(name, bench.device)
         for kind in grid.planners:
-            yield from our_records(case, kind, grid, opts, host)
+            yield from our_records(case, kind, grid, bench, host)
         if case.model is None or case.cuda_graph or not grid.torchrl:
             continue  # TorchRL's planners on a graph case would time the compiled case again
         for kind in (k for k in grid.planners if k in TORCHRL_PLANNERS):
-            yield from torchrl_records(case, kind, grid, opts, host)
+            yield from torchrl_records(case, kind, grid, bench, host)
         for kind in (k for k in grid.planners if k in TORCHRL_PLANNERS and grid.paired):
-            yield from paired_records(case, kind, grid, opts, host)
+            yield from paired_records(case, kind, grid, bench, host)
 
 
-def run_planner_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
-    """The registered suite: `run_planner` on `grid_from_options(opts)`."""
-    yield from run_planner(grid_from_options(opts), opts)
+def run_planner_suite(options: PlannerSuiteConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
+    """The registered suite: `run_planner` on `grid_from_options`."""
+    yield from run_planner(grid_from_options(options, bench.quick), bench)

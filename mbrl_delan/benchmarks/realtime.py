@@ -42,12 +42,13 @@ from mbrl_delan import keys
 from mbrl_delan.benchmarks import (
     REALTIME_DYNAMICS,
     REALTIME_TASKS,
-    SuiteOptions,
+    BenchSettings,
     host_fields,
     synchronizer,
     time_call,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.bench_schema import RealtimeSuiteConfig
 from mbrl_delan.conf.checks import compose_train_config
 from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import make_env_parts
@@ -82,15 +83,15 @@ class RealtimeConfig:
     seed: int = 0
 
     @classmethod
-    def from_options(cls, opts: SuiteOptions) -> RealtimeConfig:
+    def from_options(cls, options: RealtimeSuiteConfig, quick: bool = False) -> RealtimeConfig:
         """The options' choices; None keeps the default (`quick`: 5-step mujoco episodes)."""
-        steps = opts.oracle_steps
+        steps = options.oracle_steps
         return cls(
-            tasks=opts.tasks or REALTIME_TASKS,
-            dynamics=REALTIME_DYNAMICS if opts.models is None else opts.models,
-            overrides=opts.overrides,
-            oracle_steps=QUICK_STEPS if opts.quick and steps is None else steps,
-            seed=opts.seed or 0,
+            tasks=tuple(options.tasks or REALTIME_TASKS),
+            dynamics=tuple(REALTIME_DYNAMICS if options.models is None else options.models),
+            overrides=tuple(options.overrides),
+            oracle_steps=QUICK_STEPS if quick and steps is None else steps,
+            seed=options.seed or 0,
         )
 
 
@@ -166,19 +167,19 @@ def _root_speed(system: System, rollout: TensorDictBase) -> dict[str, float]:
     )
 
 
-def model_case(cfg: DictConfig, task: str, opts: SuiteOptions, seed: int) -> tuple[float, dict]:
+def model_case(cfg: DictConfig, task: str, bench: BenchSettings, seed: int) -> tuple[float, dict]:
     """The loop's policy over an untrained model: ms per control step, timed over whole
     replanning cycles (`planner.replan_every` calls of `act`, the first of them a
     warm-started plan) and divided by their length."""
     from mbrl_delan.conf.loop import build_policy, build_world_model
 
     parts = make_env_parts(task, None, None)
-    model = build_world_model(cfg, parts.system, opts.device, torch.float32)
-    generator = torch.Generator(device=opts.device).manual_seed(seed)
+    model = build_world_model(cfg, parts.system, bench.device, torch.float32)
+    generator = torch.Generator(device=bench.device).manual_seed(seed)
     policy = build_policy(cfg, parts.system, parts.task, model, generator)
     start = parts.task.initial_state((), torch.Generator().manual_seed(seed))
-    q = start.q.to(opts.device, torch.float32)
-    qd = start.qd.to(opts.device, torch.float32)
+    q = start.q.to(bench.device, torch.float32)
+    qd = start.qd.to(bench.device, torch.float32)
     policy.reset()
     cycle = policy.replan_every
 
@@ -186,13 +187,13 @@ def model_case(cfg: DictConfig, task: str, opts: SuiteOptions, seed: int) -> tup
         for _ in range(cycle):
             policy.act(q, qd)
 
-    timing = time_call(control_steps, opts.timing, synchronizer(opts.device))
+    timing = time_call(control_steps, bench.timing, synchronizer(bench.device))
     return 1e3 * timing.seconds_per_call / cycle, timing.fields()
 
 
-def run_realtime_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
-    rt = RealtimeConfig.from_options(opts)
-    host = host_fields(opts.device)
+def run_realtime_suite(options: RealtimeSuiteConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
+    rt = RealtimeConfig.from_options(options, bench.quick)
+    host = host_fields(bench.device)
     for task in rt.tasks:
         for dynamics in rt.dynamics:
             cfg = case_config(task, dynamics, rt.overrides)
@@ -203,7 +204,7 @@ def run_realtime_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
                 ms, extra = mujoco_case(cfg, task, rt.oracle_steps, rt.seed)
                 device = "cpu"
             else:
-                ms, extra = model_case(cfg, task, opts, rt.seed)
-                device = opts.device.type
+                ms, extra = model_case(cfg, task, bench, rt.seed)
+                device = bench.device.type
             case = f"{task}-{dynamics}"
             yield BenchRecord(SUITE, case, METRIC, ms, "ms", device, fields | extra | host)

@@ -48,9 +48,10 @@ import torch
 from matplotlib.ticker import NullFormatter
 from omegaconf import DictConfig
 
-from mbrl_delan.benchmarks import SuiteOptions, host_fields
+from mbrl_delan.benchmarks import BenchSettings, host_fields
 from mbrl_delan.benchmarks.figures import read_record_files
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.bench_schema import RobustSuiteConfig
 from mbrl_delan.conf.checks import compose_train_config
 from mbrl_delan.envs.real import MujocoTaskEnv
 from mbrl_delan.figure_style import page_figure, save_figure
@@ -142,15 +143,16 @@ class RobustConfig:
     push: Push | None = None
 
     @classmethod
-    def from_options(cls, opts: SuiteOptions) -> RobustConfig:
-        quick = QUICK if opts.quick else {}
-        push = None if opts.push is None else Push(opts.push, opts.push_step)
+    def from_options(cls, options: RobustSuiteConfig, quick: bool = False) -> RobustConfig:
+        """The options' choices; None keeps the default (or the quick size under `quick`)."""
+        sizes = QUICK if quick else {}
+        push = None if options.push is None else Push(options.push, options.push_step)
         return cls(
-            tasks=opts.tasks or TASKS,
-            seeds=opts.seeds or quick.get("seeds", SEEDS),
-            starts=opts.starts or quick.get("starts", STARTS),
-            steps=opts.oracle_steps or quick.get("steps"),
-            overrides=opts.overrides,
+            tasks=tuple(options.tasks or TASKS),
+            seeds=tuple(options.seeds or sizes.get("seeds", SEEDS)),
+            starts=options.starts or sizes.get("starts", STARTS),
+            steps=options.oracle_steps or sizes.get("steps"),
+            overrides=tuple(options.overrides),
             push=push,
         )
 
@@ -188,8 +190,8 @@ def seed_episodes(task: str, seed: int, rc: RobustConfig) -> tuple[DictConfig, l
     return cfg, episodes
 
 
-def run_robust_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
-    rc = RobustConfig.from_options(opts)
+def run_robust_suite(options: RobustSuiteConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
+    rc = RobustConfig.from_options(options, bench.quick)
     host = host_fields(torch.device("cpu"))
     for task in rc.tasks:
         for seed in rc.seeds:

@@ -25,8 +25,9 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from mbrl_delan.benchmarks import SuiteOptions, host_fields
+from mbrl_delan.benchmarks import BenchSettings, host_fields
 from mbrl_delan.benchmarks.records import BenchRecord
+from mbrl_delan.conf.bench_schema import SuiteConfig
 
 log = logging.getLogger(__name__)
 
@@ -79,10 +80,11 @@ def soak_rounds(rounds: int, device: str, extra: tuple[str, ...] = ()) -> list[d
     return rows
 
 
-def run_soak_suite(opts: SuiteOptions) -> Iterator[BenchRecord]:
-    """The registered suite: `rss_mb` and `round_s` per round, then `rss_growth_mb`."""
-    rounds, extra = (QUICK_ROUNDS, QUICK_OVERRIDES) if opts.quick else (ROUNDS, ())
-    device, host = str(opts.device), host_fields(opts.device)
+def run_soak_suite(options: SuiteConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
+    """The registered suite: `rss_mb` and `round_s` per round, then `rss_growth_mb` (the
+    suite has no options of its own)."""
+    rounds, extra = (QUICK_ROUNDS, QUICK_OVERRIDES) if bench.quick else (ROUNDS, ())
+    device, host = str(bench.device), host_fields(bench.device)
     rows = soak_rounds(rounds, device, extra)
     for row in rows:
         fields = {"round": row["round"], "env_steps": row["env_steps"], **host}

@@ -1,23 +1,7 @@
-"""The names `python -m mbrl_delan.bench` accepts: its suites (and where each one lives) and the
+"""The names `python -m mbrl_delan.bench` accepts (its suites are `conf.bench_schema.SUITES`): the
 cases, tasks and robots of the suites, so that the bench config's schema checks them without
 importing a suite (`mbrl_delan.benchmarks` re-exports them)."""
 
-# name -> "module:function"
-SUITES = {
-    "delan": "mbrl_delan.benchmarks.delan:run_delan_suite",
-    "identify": "mbrl_delan.benchmarks.identify:run_identify_suite",
-    "mocap": "mbrl_delan.benchmarks.mocap:run_mocap_suite",
-    "identify_humanoid": "mbrl_delan.benchmarks.humanoid_identify:run_identify_humanoid_suite",
-    "planner": "mbrl_delan.benchmarks.planner:run_planner_suite",
-    "humanoid": "mbrl_delan.benchmarks.humanoid:run_humanoid_suite",
-    "realtime": "mbrl_delan.benchmarks.realtime:run_realtime_suite",
-    "robust": "mbrl_delan.benchmarks.robust:run_robust_suite",
-    "fit_arrays": "mbrl_delan.benchmarks.fit_arrays:run_fit_arrays_suite",
-    "soak": "mbrl_delan.benchmarks.soak:run_soak_suite",
-    "fidelity": "mbrl_delan.benchmarks.fidelity:run_fidelity_suite",
-    "own_arm": "mbrl_delan.benchmarks.own_arm:run_own_arm_suite",
-}
-SUITE_NAMES = tuple(SUITES)
 # world-model cases of suite planner (here so the entry point can check names without
 # importing the suite): DeLaN on the pendulum and on Humanoid-v5's layout, the MLP ensemble on
 # the pendulum, and MuJoCo's true pendulum dynamics (the oracle); the two DeLaN cases again

@@ -31,6 +31,7 @@ from mbrl_delan.conf.checks import (
     check_device,
     check_rollout_steps,
 )
+from mbrl_delan.conf.schema import AccelConfig
 from mbrl_delan.data.buffer import (
     free_device_bytes,
     make_replay_buffer,
@@ -167,9 +168,7 @@ def build_policy(
         discount=cfg.planner.discount,
         generator=generator,
         risk=cfg.planner.risk,
-        compile=cfg.accel.compile,
-        cuda_graph=cfg.accel.cuda_graph,
-        rollout_threads=cfg.accel.rollout_threads,
+        accel=OmegaConf.to_object(OmegaConf.merge(OmegaConf.structured(AccelConfig), cfg.accel)),
     )
     planner = _planner(cfg, system, place.dtype)
     return _policy(cfg.planner, planner, factory, cfg.seed, place.device)

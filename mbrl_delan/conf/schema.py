@@ -22,15 +22,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
-from mbrl_delan.conf.bench_names import (
-    FIDELITY_ENVS,
-    HUMANOID_ORACLE_TASKS,
-    ORACLE_PLANNERS,
-    OWN_ARM_DESIGNS,
-    OWN_ARM_FRICTION,
-    OWN_ARM_ROBOTS,
-    SUITE_NAMES,
-)
+from mbrl_delan.objectives.model import RolloutSettings
 from mbrl_delan.planners import (
     CEMSettings,
     ICEMSettings,
@@ -261,13 +253,11 @@ class BufferConfig:
 
 
 @dataclass
-class AccelConfig:
-    """``accel``: how the loop's planning rollouts and refits run fast, for any world model
-    (`mbrl_delan.accelerate` through `objectives.model.model_objective_factory`)."""
+class AccelConfig(RolloutSettings):
+    """``accel``: how the loop's planning rollouts (`RolloutSettings`, which the model
+    objective takes: `objectives.model.ModelObjectiveFactory`) and refits run fast, for any
+    world model (`mbrl_delan.accelerate`)."""
 
-    compile: bool = False
-    cuda_graph: bool = False
-    rollout_threads: int | None = rule(None, low=1)
     compile_fit: bool = False
 
 
@@ -314,64 +304,6 @@ PLANNER_SCHEMAS = {
     "mppi": MPPIConfig,
     "predictive": PredictiveConfig,
 }
-
-
-@dataclass
-class BenchConfig:
-    """``python -m mbrl_delan.bench`` (``mbrl_delan/configs/bench/config.yaml``); a rule on a
-    list holds for each element. Which `models` a suite knows and the oracle's planner per task
-    are checked by `mbrl_delan.bench.build_options`."""
-
-    suite: str = rule(choices=SUITE_NAMES)
-    out: str | None = None
-    device: str = "cpu"
-    threads: int | None = rule(None, low=1)
-    quick: bool = False
-    repeats: int = rule(low=1)
-    min_time_s: float = rule(low=0, above=True)
-    warmup: int = rule(low=0)
-    max_call_s: float = rule(low=0, above=True)
-    max_memory_gb: float = rule(low=0, above=True)
-    matmul_size: int = rule(low=1)
-    humanoid: bool = True
-    nv: list[int] = rule(low=1)
-    batch: list[int] = rule(low=1)
-    compile_batch: list[int] = rule(low=1)
-    n_samples: int | None = rule(None, low=1)
-    max_epochs: int | None = rule(None, low=1)
-    planners: list[str] | None = None  # registered ones (plugins too): checked by build_options
-    plugins: list[str] = field(default_factory=list)
-    models: list[str] | None = None
-    num_samples: list[int] | None = rule(None, low=1)
-    horizons: list[int] | None = rule(None, low=1)
-    iterations: list[int] | None = rule(None, low=1)
-    torchrl: bool = True
-    paired: bool = False
-    rollout_threads: int | None = rule(None, low=1)
-    compile_loop: bool = True
-    transitions: list[int] | None = rule(None, low=1)
-    rollout_steps: int | None = rule(None, low=1)
-    oracle_tasks: list[str] | None = rule(None, choices=HUMANOID_ORACLE_TASKS)
-    oracle_steps: int | None = rule(None, low=1)
-    clips: list[str] | None = None  # suite humanoid: cmu_track's oracle, one episode per clip
-    oracle_planner: str | None = rule(None, choices=ORACLE_PLANNERS)
-    oracle_overrides: list[str] = field(default_factory=list)
-    seed: int | None = rule(None, low=0)
-    data_run: str | None = None  # suite humanoid: a train run dir whose buffer gives the data
-    tasks: list[str] | None = None  # suite realtime: registered envs (a plugin's too)
-    overrides: list[str] = field(default_factory=list)
-    seeds: list[int] | None = rule(None, low=0)  # suite robust: planner seeds
-    starts: int | None = rule(None, low=1)  # suite robust: episodes per seed
-    push: float | None = None  # suite robust: m/s added to the body's x velocity at push_step
-    push_step: int = rule(200, low=0)
-    runs: list[str] = field(default_factory=list)  # suite fidelity: train run dirs to score
-    env: str | None = rule(None, choices=FIDELITY_ENVS)  # suite fidelity: its env
-    save_models: str | None = None  # suite fidelity: keep each fitted case in <this>/<case>_s<seed>
-    robots: list[str] | None = rule(None, choices=OWN_ARM_ROBOTS)  # suite own_arm
-    friction: list[str] | None = rule(None, choices=OWN_ARM_FRICTION)  # suite own_arm
-    samples: list[int] | None = rule(None, low=1)  # suite own_arm: training-set sizes
-    designs: list[str] | None = rule(None, choices=OWN_ARM_DESIGNS)  # suite own_arm: training
-    test_designs: list[str] | None = rule(None, choices=OWN_ARM_DESIGNS)  # ... and test
 
 
 def store_schemas(store: ConfigStore) -> None:

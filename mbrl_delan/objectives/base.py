@@ -8,7 +8,7 @@ A planner sees only an `Objective`: a batch of action sequences (N, H, nu) -> th
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 from torch import Tensor
@@ -16,19 +16,48 @@ from torch import Tensor
 Objective = Callable[[Tensor], Tensor]  # actions (N, H, nu) -> returns (N,)
 
 
+@runtime_checkable
 class ObjectiveFactory(Protocol):
     """(q0 (nq,), qd0 (nv,), step) -> `Objective` from that state.
 
     `time_indexed`: the task depends on the episode step, and the factory is called with the
-    step of the first action (`step=t`). `close()` releases what the factory holds (threads).
-    A plain callable ``(q0, qd0) -> Objective`` serves where neither is needed.
+    step of the first action (`step=t`). `planning_threads`: intra-op threads for the
+    planner's own work while it plans on this factory (None: leave them as they are).
+    `close()` releases what the factory holds (threads). A class that subclasses this
+    protocol inherits the defaults (not time-indexed, None, nothing to close); a plain
+    callable ``(q0, qd0) -> Objective`` is adapted by `as_objective_factory`.
     """
 
-    time_indexed: bool
+    time_indexed: bool = False
+    planning_threads: int | None = None
 
     def __call__(self, q0: Tensor, qd0: Tensor, step: int = 0) -> Objective: ...
 
-    def close(self) -> None: ...
+    def close(self) -> None:
+        return None
+
+
+class CallableFactory(ObjectiveFactory):
+    """A callable that lacks some of `ObjectiveFactory`'s members, with the defaults for
+    them (its own `time_indexed` and `close` where it has them)."""
+
+    def __init__(self, make: Callable[..., Any]) -> None:
+        self.make = make
+        self.time_indexed = bool(getattr(make, "time_indexed", False))
+
+    def __call__(self, q0: Tensor, qd0: Tensor, step: int = 0) -> Objective:
+        return self.make(q0, qd0, step=step) if self.time_indexed else self.make(q0, qd0)
+
+    def close(self) -> None:
+        close = getattr(self.make, "close", None)
+        if close is not None:
+            close()
+
+
+def as_objective_factory(factory: ObjectiveFactory | Callable[..., Any]) -> ObjectiveFactory:
+    """`factory` itself where it has every member of `ObjectiveFactory`, else adapted
+    (`CallableFactory`)."""
+    return factory if isinstance(factory, ObjectiveFactory) else CallableFactory(factory)
 
 
 def discounted_masked_return(rewards: Tensor, terminated: Tensor, discount: float = 1.0) -> Tensor:

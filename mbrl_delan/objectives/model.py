@@ -15,13 +15,20 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any
 
 import torch
 from torch import Tensor, while_loop
 
 from mbrl_delan.accelerate import CompiledLoop, GraphedCalls, RolloutThreads, compile_dynamics
 from mbrl_delan.models.base import Placement, WorldModel, eval_mode, model_placement
-from mbrl_delan.objectives.base import discounted_masked_return, risk_adjusted_return
+from mbrl_delan.objectives.base import (
+    ObjectiveFactory,
+    discounted_masked_return,
+    risk_adjusted_return,
+)
+from mbrl_delan.rules import rule
 from mbrl_delan.tasks.base import Task
 
 log = logging.getLogger(__name__)
@@ -62,8 +69,49 @@ class ModelObjective:
         return returns.to(actions.device, dtype)
 
 
-class ModelObjectiveFactory:
-    """(q0 (nq,), qd0 (nv,)) -> `ModelObjective`. See `model_objective_factory`."""
+@dataclass
+class RolloutSettings:
+    """How the model objective's rollouts run (the loop's ``accel`` section extends it).
+
+    compile: `torch.compile` the rollout (for deterministic models such as DeLaN): on CPU all
+        H steps with their rewards and terminations as one compiled loop (`while_loop`), on
+        CUDA each control step as one compiled call.
+    cuda_graph: on a CUDA device, replay each rollout (all H steps and the returns) from a
+        CUDA graph captured once per batch shape (`GraphedCalls`); with `compile`, the graph
+        replays the compiled steps' kernels.
+    rollout_threads: with `compile` on CPU and a deterministic model (DeLaN), the compiled
+        rollouts (the loop, or one compiled call per step) run on this many shares of the
+        samples at once, each in its own worker thread with one intra-op thread
+        (`RolloutThreads`); 1 runs the whole batch on torch's intra-op threads. None: torch's
+        thread count at construction.
+    compile_loop: with `compile` on CPU, the H steps as one compiled loop where the model
+        allows it (`WorldModel.loops_compile`); False: one compiled call per step.
+    """
+
+    compile: bool = False
+    cuda_graph: bool = False
+    rollout_threads: int | None = rule(None, low=1)
+    compile_loop: bool = True
+
+
+class ModelObjectiveFactory(ObjectiveFactory):
+    """(q0 (nq,), qd0 (nv,)) -> `ModelObjective`: objectives over (N, H, nu) action sequences
+    rolled out in the learned world model.
+
+    Args:
+        model: the world model; used in eval mode and under inference mode, on its own
+            device and dtype (a model without floating parameters or buffers computes in
+            float64 on the actions' device).
+        task: reward and termination.
+        particles: P rollouts per sample (flat index n * P + p), scored together.
+        discount: per-step discount in (0, 1].
+        generator: randomness of stochastic models (on the model's device).
+        dtype: compute dtype override.
+        risk: k in score = mean - k * std of the P particles' returns (population std, see
+            `risk_adjusted_return`); 0 (default) is the plain mean, > 0 is risk-averse.
+        accel: how the rollouts run (`RolloutSettings`; the loop's typed ``accel`` section);
+            `changes` replace its fields (``compile=True``).
+    """
 
     def __init__(
         self,
@@ -74,10 +122,8 @@ class ModelObjectiveFactory:
         generator: torch.Generator | None = None,
         dtype: torch.dtype | None = None,
         risk: float = 0.0,
-        compile: bool = False,
-        cuda_graph: bool = False,
-        rollout_threads: int | None = None,
-        compile_loop: bool = True,
+        accel: RolloutSettings | None = None,
+        **changes: Any,
     ) -> None:
         if particles < 1:
             raise ValueError(f"particles must be >= 1, got {particles}")
@@ -85,6 +131,7 @@ class ModelObjectiveFactory:
             raise ValueError(f"discount must be in (0, 1], got {discount}")
         if not math.isfinite(risk):
             raise ValueError(f"risk must be finite, got {risk}")
+        accel = replace(accel or RolloutSettings(), **changes)
         self.model = model
         self.task = task
         self.particles = particles
@@ -92,19 +139,20 @@ class ModelObjectiveFactory:
         self.generator = generator
         self.dtype = dtype
         self.risk = float(risk)
-        self.compile = compile
+        self.compile, self.cuda_graph = accel.compile, accel.cuda_graph
         self._compiled: Callable[[Tensor, Tensor, Tensor, Tensor], Transition] | None = None
         self._compiled_loop: CompiledLoop | None = None
         # the whole horizon as one compiled loop where the model allows (False once it failed)
-        self._loop_compiles = model.loops_compile and compile_loop
-        self.cuda_graph = cuda_graph
-        threads = torch.get_num_threads() if rollout_threads is None else rollout_threads
+        self._loop_compiles = model.loops_compile and accel.compile_loop
+        threads = (
+            torch.get_num_threads() if accel.rollout_threads is None else accel.rollout_threads
+        )
         if threads < 1:
-            raise ValueError(f"rollout_threads must be >= 1, got {rollout_threads}")
+            raise ValueError(f"rollout_threads must be >= 1, got {accel.rollout_threads}")
         # shares of a batch in parallel (the compiled loop, or one compiled call per step: both
         # release the GIL) where the model draws no random numbers (a generator shared by
         # threads would make the draws' order vary)
-        shares = compile and threads > 1 and model.deterministic
+        shares = accel.compile and threads > 1 and model.deterministic
         self._threads = RolloutThreads(threads) if shares else None
         self._graphs = GraphedCalls(
             self._returns,
@@ -116,24 +164,23 @@ class ModelObjectiveFactory:
         """Scores of action sequences from one start, on the model's device and dtype.
 
         (nq,), (nv,), (N*P, H, nu) with particle p of sample n at n * P + p, episode step of
-        the first action () int64 -> (N,). With `cuda_graph` and CUDA tensors, replayed from a
-        CUDA graph per shape (`GraphedCalls`). With `compile` on CPU, the compiled loop
-        (`_looped_returns`) where it compiles, else one compiled call per step; either with
-        `rollout_threads` in shares of the samples on worker threads.
+        the first action () int64 -> (N,), by the rollout `_rollout` chooses.
         """
-        if self.cuda_graph and actions.is_cuda:
-            return self._graphs(q0, qd0, actions, step)
-        if not self.compile or actions.is_cuda:
-            return self._returns(q0, qd0, actions, step)
-        if self._loop_compiles:
-            try:
-                return self._loop_returns(q0, qd0, actions, step)
-            except torch._dynamo.exc.TorchDynamoException as err:
-                # e.g. the humanoids: the compiler's C++ loop does not yet declare the index
-                # tensors their quaternion arithmetic caches (torch 2.13)
-                self._loop_compiles = False
-                reason = str(err).strip().splitlines()[0]
-                log.warning("no compiled rollout loop (%s): one compiled call per step", reason)
+        return self._rollout(actions.is_cuda)(q0, qd0, actions, step)
+
+    def _rollout(self, cuda: bool) -> Callable[[Tensor, Tensor, Tensor, Tensor], Tensor]:
+        """How a batch is rolled out: with `cuda_graph` on CUDA, replayed from a CUDA graph
+        per shape (`GraphedCalls`); uncompiled, or compiled on CUDA (each step compiled),
+        step by step (`_returns`); compiled on CPU, the compiled loop where it compiles
+        (`_loop_returns`), else one compiled call per step (`_step_returns`)."""
+        if self.cuda_graph and cuda:
+            return self._graphs
+        if not self.compile or cuda:
+            return self._returns
+        return self._loop_returns if self._loop_compiles else self._step_returns
+
+    def _step_returns(self, q0: Tensor, qd0: Tensor, actions: Tensor, step: Tensor) -> Tensor:
+        """One compiled call per step, with `rollout_threads` in shares (`_shared`). (N,)"""
         if self._threads is None:
             return self._returns(q0, qd0, actions, step)
         shared = lambda share: self._returns(q0, qd0, share, step)  # noqa: E731
@@ -154,8 +201,21 @@ class ModelObjectiveFactory:
         return torch.cat(threads.map(fn, shares))[:n]  # (N,)
 
     def _loop_returns(self, q0: Tensor, qd0: Tensor, actions: Tensor, step: Tensor) -> Tensor:
-        """The compiled loop on the whole batch, or with `rollout_threads` in shares (`_shared`).
-        (N,)"""
+        """The compiled loop on the whole batch, or with `rollout_threads` in shares (`_shared`);
+        where the compiler fails it, one compiled call per step from then on. (N,)"""
+        try:
+            return self._compiled_loop_returns(q0, qd0, actions, step)
+        except torch._dynamo.exc.TorchDynamoException as err:
+            # e.g. the humanoids: the compiler's C++ loop does not yet declare the index
+            # tensors their quaternion arithmetic caches (torch 2.13)
+            self._loop_compiles = False
+            reason = str(err).strip().splitlines()[0]
+            log.warning("no compiled rollout loop (%s): one compiled call per step", reason)
+        return self._step_returns(q0, qd0, actions, step)
+
+    def _compiled_loop_returns(
+        self, q0: Tensor, qd0: Tensor, actions: Tensor, step: Tensor
+    ) -> Tensor:
         if self._compiled_loop is None:
             self._compiled_loop = CompiledLoop(self._looped_returns)
         loop = self._compiled_loop
@@ -282,56 +342,4 @@ class ModelObjectiveFactory:
         return ModelObjective(self, q0, qd0, step)
 
 
-def model_objective_factory(
-    model: WorldModel,
-    task: Task,
-    particles: int = 1,
-    discount: float = 1.0,
-    generator: torch.Generator | None = None,
-    dtype: torch.dtype | None = None,
-    risk: float = 0.0,
-    compile: bool = False,
-    cuda_graph: bool = False,
-    rollout_threads: int | None = None,
-    compile_loop: bool = True,
-) -> ModelObjectiveFactory:
-    """Objectives over (N, H, nu) action sequences rolled out in the learned world model.
-
-    Args:
-        model: the world model; used in eval mode and under inference mode, on its own
-            device and dtype (a model without floating parameters or buffers computes in
-            float64 on the actions' device).
-        task: reward and termination.
-        particles: P rollouts per sample (flat index n * P + p), scored together.
-        discount: per-step discount in (0, 1].
-        generator: randomness of stochastic models (on the model's device).
-        dtype: compute dtype override.
-        risk: k in score = mean - k * std of the P particles' returns (population std, see
-            `risk_adjusted_return`); 0 (default) is the plain mean, > 0 is risk-averse.
-        compile: `torch.compile` the rollout (for deterministic models such as DeLaN): on
-            CPU all H steps with their rewards and terminations as one compiled loop
-            (`while_loop`), on CUDA each control step as one compiled call.
-        cuda_graph: on a CUDA device, replay each rollout (all H steps and the returns)
-            from a CUDA graph captured once per batch shape (`GraphedCalls`); with
-            `compile`, the graph replays the compiled steps' kernels.
-        rollout_threads: with `compile` on CPU and a deterministic model (DeLaN), the
-            compiled rollouts (the loop, or one compiled call per step) run on this many
-            shares of the samples at once, each in its own worker thread with one intra-op
-            thread (`RolloutThreads`); 1 runs the whole batch on torch's intra-op threads.
-            None: torch's thread count at construction.
-        compile_loop: with `compile` on CPU, the H steps as one compiled loop where the model
-            allows it (`WorldModel.loops_compile`); False: one compiled call per step.
-    """
-    return ModelObjectiveFactory(
-        model,
-        task,
-        particles=particles,
-        discount=discount,
-        generator=generator,
-        dtype=dtype,
-        risk=risk,
-        compile=compile,
-        cuda_graph=cuda_graph,
-        rollout_threads=rollout_threads,
-        compile_loop=compile_loop,
-    )
+model_objective_factory = ModelObjectiveFactory  # the name the loop and its docs use

@@ -23,7 +23,7 @@ import torch
 from mujoco import rollout as mj_rollout
 from torch import Tensor
 
-from mbrl_delan.objectives.base import discounted_masked_return
+from mbrl_delan.objectives.base import ObjectiveFactory, discounted_masked_return
 from mbrl_delan.systems.system import State, System
 from mbrl_delan.tasks.base import Task
 
@@ -186,7 +186,7 @@ class OracleRollout:
     sensors: Tensor | None = None  # (N, H, nsensordata) at those states (a `SensedTask`'s)
 
 
-class MujocoObjectiveFactory:
+class MujocoObjectiveFactory(ObjectiveFactory):
     """Builds oracle objectives for start states; owns the MjModel, MjData and threads.
 
     Use as `factory(q0, qd0)(actions)`. `model`: the MjModel to plan on and its steps per

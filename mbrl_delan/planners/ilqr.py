@@ -38,6 +38,7 @@ from scipy.linalg import cho_factor, cho_solve
 from threadpoolctl import ThreadpoolController
 from torch import Tensor
 
+from mbrl_delan.objectives.base import ObjectiveFactory
 from mbrl_delan.objectives.mujoco import FULLPHYSICS, HeldControlRollout
 
 log = logging.getLogger(__name__)
@@ -282,7 +283,7 @@ class ILQRStart:
     step: int
 
 
-class ILQRStarts:
+class ILQRStarts(ObjectiveFactory):
     """What `PlannerPolicy` asks of its objective factory, for `ILQRPlanner`: the state and
     episode step a plan starts from (the cost is the planner's `ResidualCost`)."""
 

@@ -13,7 +13,7 @@ from tensordict.nn import TensorDictModuleBase
 from torch import Tensor
 
 from mbrl_delan import keys
-from mbrl_delan.objectives.base import ObjectiveFactory
+from mbrl_delan.objectives.base import ObjectiveFactory, as_objective_factory
 from mbrl_delan.planners.base import Planner
 
 log = logging.getLogger(__name__)
@@ -155,14 +155,12 @@ class PlannerPolicy(TensorDictModuleBase):
             init = self.planner.initial_mean(device=self.plan_device)
         else:
             init = self.planner.shift(self._plan, self._steps_since_plan)
-        if getattr(self.objective_factory, "time_indexed", False):
-            objective = self.objective_factory(q, qd, step=self._episode_step)
-        else:
-            objective = self.objective_factory(q, qd)
+        factory = self.objective_factory
+        objective = factory(q, qd, step=self._episode_step if factory.time_indexed else 0)
         warm = {}
         if self._plan is not None:
             warm = self.planner.warm_start(self._carried, self._steps_since_plan)
-        with intra_op_threads(getattr(self.objective_factory, "planning_threads", None)):
+        with intra_op_threads(self.objective_factory.planning_threads):
             result = self.planner.plan(objective, init, self.generator, **warm)
         if log.isEnabledFor(logging.DEBUG):  # float() syncs with the device
             log.debug("planned: best return %.4g", float(result.best_return))
@@ -198,6 +196,16 @@ class PlannerPolicy(TensorDictModuleBase):
         action = torch.stack(actions).reshape(*tensordict.batch_size, -1)  # (*B, nu)
         tensordict.set(keys.ACTION, action)
         return tensordict
+
+    @property
+    def objective_factory(self) -> ObjectiveFactory:
+        """What the planner plans on (set to any factory or plain callable: adapted by
+        `as_objective_factory`)."""
+        return self._objective_factory
+
+    @objective_factory.setter
+    def objective_factory(self, factory: ObjectiveFactory | Callable[..., Any]) -> None:
+        self._objective_factory = as_objective_factory(factory)
 
     def _for_env(self, i: int) -> PlannerPolicy:
         """The policy of env i of a batch: this one's planner and objective, seed + i."""

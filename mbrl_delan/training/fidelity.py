@@ -48,6 +48,7 @@ from torch import Tensor
 from mbrl_delan import keys
 from mbrl_delan.models.base import WorldModel, eval_mode, model_placement
 from mbrl_delan.models.inertial import dof_stiffness, rigid_body_at
+from mbrl_delan.objectives.base import ObjectiveFactory, as_objective_factory
 from mbrl_delan.objectives.mujoco import ENV_PHYSICS, MujocoObjectiveFactory
 from mbrl_delan.systems.system import FREE, System
 from mbrl_delan.tasks.humanoid import HumanoidTask
@@ -57,23 +58,28 @@ EVERY = 10  # a start every this many control steps of the oracle's episode
 VELOCITY_NOISE = 0.1  # perturbed starts: qd + this x the episode's per-DoF std x N(0, 1)
 
 
-class CandidateRecorder:
+class CandidateRecorder(ObjectiveFactory):
     """An objective factory that passes through to `factory` and keeps, every `every`-th
     objective it makes (of its first `until`; None: all), the start (q0, qd0) and the first
     batch of actions (N, H, nu) the planner scores (its candidates)."""
 
     def __init__(self, factory: Any, every: int = EVERY, until: int | None = None) -> None:
-        self.factory, self.every, self.until = factory, every, until
+        self.factory = as_objective_factory(factory)
+        self.every, self.until = every, until
         self.calls = 0
         self.starts: list[tuple[int, Tensor, Tensor]] = []  # (plan number, q0, qd0)
         self.candidates: list[Tensor] = []
 
     @property
     def time_indexed(self) -> bool:
-        return getattr(self.factory, "time_indexed", False)
+        return self.factory.time_indexed
+
+    @property
+    def planning_threads(self) -> int | None:
+        return self.factory.planning_threads
 
     def __call__(self, q0: Tensor, qd0: Tensor, step: int = 0) -> Callable[[Tensor], Tensor]:
-        objective = self.factory(q0, qd0, step) if self.time_indexed else self.factory(q0, qd0)
+        objective = self.factory(q0, qd0, step)
         number, self.calls = self.calls, self.calls + 1
         if number % self.every or (self.until is not None and number >= self.until):
             return objective
@@ -90,9 +96,7 @@ class CandidateRecorder:
         return recorded
 
     def close(self) -> None:
-        close = getattr(self.factory, "close", None)
-        if close is not None:
-            close()
+        self.factory.close()
 
 
 @dataclass

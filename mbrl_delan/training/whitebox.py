@@ -41,6 +41,7 @@ from torch import Tensor
 from mbrl_delan import keys
 from mbrl_delan.models.base import LossOutput, RigidBody, WorldModel
 from mbrl_delan.models.inertial import dof_stiffness, rigid_body_at
+from mbrl_delan.objectives.base import ObjectiveFactory
 from mbrl_delan.objectives.mujoco import (
     FULLPHYSICS,
     QPOS,
@@ -588,7 +589,7 @@ def _spread(x: Tensor, floor_ratio: float = 1e-2) -> Tensor:
     return std.clamp_min(floor_ratio * float(std.max().clamp_min(1e-8)))
 
 
-class WhiteBoxObjectiveFactory:
+class WhiteBoxObjectiveFactory(ObjectiveFactory):
     """The white-box model's planning objective: an oracle objective (`MujocoObjectiveFactory`)
     on the model's MjModel, rebuilt when its multipliers change."""
 
