@@ -21,8 +21,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from mbrl_delan.benchmarks import BenchSettings, TimingConfig, UnknownSuiteError, get_suite
 from mbrl_delan.benchmarks.records import RecordWriter, format_table
-from mbrl_delan.conf.bench_schema import SuiteConfig, typed_bench_config
+from mbrl_delan.conf.bench_schema import SuiteConfig, check_suite_keys, typed_bench_config
 from mbrl_delan.conf.checks import (
+    CONFIGS,
     ConfigError,
     check_device,
     exit_on_config_errors,
@@ -86,9 +87,16 @@ def hydra_main(cfg: DictConfig) -> None:
         sys.exit(2)
 
 
+def _checked_main() -> None:
+    defaults = OmegaConf.load(CONFIGS / "bench" / "config.yaml").defaults
+    default_suite = next(d.suite for d in defaults if "suite" in d)
+    check_suite_keys(sys.argv[1:], default_suite)  # Hydra's message would not name the suite
+    hydra_main()
+
+
 def main() -> None:
     """``python -m mbrl_delan.bench``: a config error, Hydra's included, exits 2 naming it."""
-    exit_on_config_errors(hydra_main)
+    exit_on_config_errors(_checked_main)
 
 
 if __name__ == "__main__":

@@ -38,6 +38,7 @@ from mbrl_delan.benchmarks.planner import (
     torchrl_model,
 )
 from mbrl_delan.benchmarks.records import BASE_FIELDS, RecordWriter, read_records
+from mbrl_delan.conf.bench_schema import check_suite_keys
 from mbrl_delan.conf.checks import CONFIGS, ConfigError
 
 OPTS = BenchSettings(
@@ -87,6 +88,10 @@ def test_a_suite_takes_only_its_own_options() -> None:
     composes the config; the suite's own are typed by its schema."""
     with pytest.raises(ConfigCompositionException, match="n_samples"):
         bench_config("suite=planner", "n_samples=100")
+    with pytest.raises(ConfigError, match="n_samples is not an option of suite planner; it is "
+                       "an option of suite identify, identify_humanoid"):  # fmt: skip
+        check_suite_keys(["suite=planner", "n_samples=100"], "delan")  # the entry point's line
+    check_suite_keys(["suite=identify", "n_samples=100", "quick=true", "hydra.run.dir=x"], "delan")
     options, _ = build_options(bench_config("suite=identify", "n_samples=100", "max_epochs=3"))
     assert (options.n_samples, options.max_epochs) == (100, 3)
     for bad in ("n_samples=0", "max_epochs=1.5"):

@@ -244,6 +244,24 @@ def typed_bench_config(cfg: DictConfig) -> tuple[DictConfig, DictConfig]:
     return shared, _typed(SUITES[shared.suite].schema, own)
 
 
+def check_suite_keys(overrides: list[str], suite: str) -> None:
+    """A `ConfigError` for a plain ``key=value`` override that is neither a shared key nor
+    an option of the suite chosen (``suite=NAME`` among `overrides`, else `suite`, the
+    config's default), naming the suites that take it (Hydra alone says only that the key is
+    not in the config)."""
+    pairs = [o.split("=", 1) for o in overrides if "=" in o and o[0].isalpha()]
+    chosen = next((v for k, v in reversed(pairs) if k == "suite"), suite)
+    if chosen not in SUITES:
+        return  # Hydra names the valid suites
+    own = {f.name for f in fields(SUITES[chosen].schema)}
+    for key, _ in pairs:
+        if "." in key or "/" in key or key in SHARED_KEYS or key in own:
+            continue
+        takers = [n for n, e in SUITES.items() if key in {f.name for f in fields(e.schema)}]
+        where = f"; it is an option of suite {', '.join(takers)}" if takers else ""
+        raise ConfigError(f"{key} is not an option of suite {chosen}{where}")
+
+
 def _typed(schema: type, cfg: DictConfig) -> DictConfig:
     try:
         typed = OmegaConf.merge(OmegaConf.structured(schema), cfg)
