@@ -5,6 +5,8 @@ is positive definite, reloads to the same torques, and needs an MJCF."""
 
 from __future__ import annotations
 
+import math
+
 import mujoco
 import numpy as np
 import pytest
@@ -18,6 +20,7 @@ from mbrl_delan.conf.fitting import (
     build_system_model,
     load_fit_model,
     make_inverse_data,
+    validate_fit_config,
 )
 from mbrl_delan.models.inverse import DeLaNInverse
 from mbrl_delan.models.tree import TreeDynamics
@@ -73,3 +76,21 @@ def test_tree_delan_without_a_model_file_is_a_config_error(tmp_path) -> None:
     with pytest.raises(ConfigError, match="model=tree_delan needs the robot's kinematic tree"):
         _run(compose_config(FIT_CONFIG_DIR, overrides), tmp_path / "run")
     assert not (tmp_path / "run").exists()
+
+
+def test_the_coulomb_terms_width_is_the_model_groups() -> None:
+    """``model.coulomb_velocity`` v: the Coulomb force is F tanh(qd / v) (at qd = v, F
+    tanh(1) beside the viscous D qd); v <= 0 is a config error naming the key."""
+    cfg = compose_config(FIT_CONFIG_DIR, [*SMALL, "model.coulomb_velocity=0.002"])
+    data = make_inverse_data(cfg.data)
+    model = build_system_model(cfg, data.system).double()
+    friction = model.dynamics.dissipation
+    assert friction.coulomb_velocity == 0.002
+    qd = torch.full((1, 6), 0.002, dtype=torch.float64)
+    with torch.no_grad():
+        coulomb = friction(qd) - friction.viscous * qd
+        expected = friction.coulomb_scale * torch.nn.functional.softplus(friction.raw_coulomb)
+    torch.testing.assert_close(coulomb[0], expected * math.tanh(1.0))
+    bad = compose_config(FIT_CONFIG_DIR, [*SMALL, "model.coulomb_velocity=0"])
+    with pytest.raises(ConfigError, match="model.coulomb_velocity=0"):
+        validate_fit_config(bad)

@@ -62,6 +62,7 @@ class DeLaNInverseConfig(InverseModelConfig):
     diag_shift: float = rule(low=0, above=True)
     dissipation: bool = MISSING
     coulomb: bool = MISSING
+    coulomb_velocity: float = rule(0.01, low=0, above=True)
     still_first_order: bool = MISSING
     tree_sparse: bool = False
     armature: bool = False

@@ -12,7 +12,7 @@ from mbrl_delan.models.structure import Structure
 
 # the model-group keys that are `Structure` fields of the same name (where a group has them)
 STRUCTURE_KEYS = (
-    "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb",
+    "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb", "coulomb_velocity",
     "still_first_order", "translation_invariant", "yaw_invariant", "inertia_scaling", "residual",
 )  # fmt: skip
 

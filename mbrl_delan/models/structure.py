@@ -30,6 +30,7 @@ class Structure:
     dissipation, coulomb: viscous friction, and Coulomb friction beside it (`Dissipation`).
     coulomb_lead: the Coulomb friction opposes qd + l qdd with a learned lead l per DoF (a
         soft friction constraint's, as MuJoCo's ``frictionloss``); not with `yaw_invariant`.
+    coulomb_velocity: the Coulomb force's width, F tanh(qd / coulomb_velocity) (> 0).
     translation_invariant: M and V's network do not see a free root's height; V gains an
         exact gravity term w z in it (`LagrangianNetwork`, ``heights``).
     yaw_invariant: a free root's heading and horizontal position enter nothing; M turns with
@@ -64,6 +65,7 @@ class Structure:
     dissipation: bool = True
     coulomb: bool = True
     coulomb_lead: bool = False
+    coulomb_velocity: float = 0.01
     translation_invariant: bool = False
     yaw_invariant: bool = False
     still_first_order: bool = False
@@ -139,7 +141,13 @@ class Structure:
         if self.friction_init is not None:  # softplus(raw) = friction_init
             raw_init = math.log(math.expm1(self.friction_init))
         dissipation = (
-            Dissipation(n, coulomb=self.coulomb, raw_init=raw_init, lead=self.coulomb_lead)
+            Dissipation(
+                n,
+                coulomb=self.coulomb,
+                coulomb_velocity=self.coulomb_velocity,
+                raw_init=raw_init,
+                lead=self.coulomb_lead,
+            )  # fmt: skip
             if self.dissipation
             else None
         )
