@@ -13,9 +13,9 @@ import platform
 import statistics
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 
@@ -40,6 +40,7 @@ from mbrl_delan.conf.bench_names import (  # noqa: F401 - the suites' names, re-
 from mbrl_delan.conf.bench_schema import SUITE_NAMES, SUITES  # noqa: F401 - re-exported
 
 Suite = Callable[[Any, "BenchSettings"], Iterator[BenchRecord]]
+C = TypeVar("C")
 
 
 class UnknownSuiteError(KeyError):
@@ -103,6 +104,13 @@ class BenchSettings:
     max_call_s: float = 5.0  # skip a figure whose single call is predicted to take longer
     max_memory_bytes: int = 2 * 1024**3  # skip a figure whose main tensors are predicted larger
     quick: bool = False  # tiny sizes: each suite applies its own quick sizes
+
+
+def with_options(cfg: C, given: dict[str, Any]) -> C:
+    """`cfg` (a suite's frozen config) with each of `given` that is not None in place of its
+    field of that name; a list (as an options schema holds it) becomes a tuple."""
+    set_ = {k: tuple(v) if isinstance(v, list) else v for k, v in given.items() if v is not None}
+    return replace(cfg, **set_)
 
 
 def synchronizer(device: torch.device) -> Callable[[], None]:

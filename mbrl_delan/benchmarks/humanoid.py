@@ -64,6 +64,7 @@ from mbrl_delan.benchmarks import (
     HUMANOID_ORACLE_TASKS,
     BenchSettings,
     host_fields,
+    with_options,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.conf.bench_schema import HumanoidSuiteConfig
@@ -553,8 +554,7 @@ def suite_config(options: HumanoidSuiteConfig, quick: bool = False) -> HumanoidB
         "data_run": options.data_run,
         "oracle_overrides": (*cfg.oracle_overrides, *options.oracle_overrides),
     }  # fmt: skip
-    return replace(cfg, **{k: tuple(v) if isinstance(v, list) else v
-                            for k, v in given.items() if v is not None})  # fmt: skip
+    return with_options(cfg, given)
 
 
 def run_humanoid_suite(options: HumanoidSuiteConfig, bench: BenchSettings) -> Iterator[BenchRecord]:

@@ -40,14 +40,20 @@ import logging
 import tempfile
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, fields, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from mbrl_delan import keys
-from mbrl_delan.benchmarks import OWN_ARM_MODELS, OWN_ARM_ROBOTS, BenchSettings, host_fields
+from mbrl_delan.benchmarks import (
+    OWN_ARM_MODELS,
+    OWN_ARM_ROBOTS,
+    BenchSettings,
+    host_fields,
+    with_options,
+)
 from mbrl_delan.benchmarks.figures import describe_curves, plot_error_curves, read_record_files
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.conf.bench_schema import OwnArmSuiteConfig
@@ -185,11 +191,9 @@ def run_own_arm_suite(options: OwnArmSuiteConfig, bench: BenchSettings) -> Itera
     """The registered suite, on the CPU (`OwnArmConfig.quick` under `bench.quick`); every
     option that is not None replaces its field (`overrides`: added to the config's)."""
     cfg = OwnArmConfig.quick() if bench.quick else OwnArmConfig()
-    given = {f.name: getattr(options, f.name) for f in fields(options)}
-    given["overrides"] = (*cfg.overrides, *options.overrides)
-    given["seed"] = options.seed or 0
-    cfg = replace(cfg, **{k: tuple(v) if isinstance(v, list) else v
-                          for k, v in given.items() if v is not None})  # fmt: skip
+    given = asdict(options) | {"overrides": (*cfg.overrides, *options.overrides),
+                               "seed": options.seed or 0}  # fmt: skip
+    cfg = with_options(cfg, given)
     yield from run_own_arm(cfg)
 
 

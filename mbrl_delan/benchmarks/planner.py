@@ -56,7 +56,7 @@ import math
 import statistics
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import torch
@@ -78,6 +78,7 @@ from mbrl_delan.benchmarks import (
     split_plugin_case,
     synchronizer,
     time_call,
+    with_options,
 )
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.conf.bench_schema import PlannerSuiteConfig
@@ -175,9 +176,7 @@ def grid_from_options(options: PlannerSuiteConfig, quick: bool = False) -> Plann
     """`PlannerGrid.quick()` under `quick`, else the defaults; then every option that is not
     None replaces its field."""
     grid = PlannerGrid.quick() if quick else PlannerGrid()
-    given = {f.name: getattr(options, f.name) for f in fields(options)}
-    return replace(grid, **{k: tuple(v) if isinstance(v, list) else v
-                            for k, v in given.items() if v is not None})  # fmt: skip
+    return with_options(grid, asdict(options))
 
 
 # ----------------------------------------------------------------------------- cases
