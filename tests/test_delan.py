@@ -280,3 +280,28 @@ def test_armature_adds_a_known_diagonal_to_m() -> None:
     torch.testing.assert_close(with_a.dynamics.forward_dynamics(q, qd, tau), qdd)
     with pytest.raises(ValueError, match="armature must be 3 finite values >= 0"):
         model(3, armature=[0.1, -0.1, 0.0])
+
+
+@pytest.mark.parametrize("n", [1, 3])
+def test_spring_potential_is_the_quadratic_and_its_force_matches_autograd(n: int) -> None:
+    """With ``spring_potential`` and the network's V head at zero, V = 1/2 q^T K q + b^T q
+    exactly (K the symmetric part of the learned matrix) and g = K q + b; with the network's
+    V too, g still equals autograd's dV/dq (one DoF included, off the scalar path)."""
+    m = model(n, spring_potential=True)
+    field = m.dynamics.field
+    q, qd = random_state(n, batch=8)
+    with torch.no_grad():
+        field.spring_stiffness.copy_(torch.randn(n, n))
+        field.spring_offset.copy_(torch.randn(n))
+    c_ref, g_ref = reference_terms(m, q, qd)
+    torch.testing.assert_close(m.terms(q, qd).gravity, g_ref, rtol=1e-9, atol=1e-10)
+    with torch.no_grad():
+        field.trunk.head.weight[field.v_row].zero_()
+        field.trunk.head.bias[field.v_row].zero_()
+    K = field.joint_springs()
+    torch.testing.assert_close(K, K.T)
+    terms = m.terms(q, torch.zeros_like(qd))
+    b = field.spring_offset * field.energy_scale
+    torch.testing.assert_close(terms.gravity, q @ K + b, rtol=1e-9, atol=1e-10)
+    quadratic = 0.5 * ((q @ K) * q).sum(-1) + q @ b
+    torch.testing.assert_close(terms.potential_energy, quadratic, rtol=1e-9, atol=1e-10)

@@ -5,31 +5,42 @@ Its figure: ``python -m mbrl_delan.benchmarks.own_arm FILE [FILE ...] --out PNG 
 mean over seeds, a band from the smallest to the largest), the points in the log.
 
 For every robot (`mbrl_delan.systems.arms`: panda, iiwa14, ur5e, slim7, light6), friction
-kind (none, frictionloss, coulomb_viscous), training-set size, training design, test design
-and model (``tree_delan``, ``delan``, ``mlp``, ``white_box``): one fit on the arm's
-excitation data (`mbrl_delan.data.excitation`, seeded by the bench's ``seed``, which also
-seeds the fit). The test split: whole held-out trajectories of the training design, or
-trajectories of another design (``data.test_design``); validation: whole training
-trajectories. One record per figure, case
-``<robot>_<model>_<friction>_<samples>_<train design>[_to_<test design>]``:
+kind (none, frictionloss, coulomb_viscous), structure the MJCF lacks (none, counterbalance,
+coupling: springs in the arm that makes the data only), training-set size, training design,
+test design and model (``tree_delan``, ``delan``, ``mlp``, ``white_box``): one fit on the
+arm's excitation data (`mbrl_delan.data.excitation`, seeded by the bench's ``seed``, which
+also seeds the fit and draws the CAD file), the models given ``model_mjcf`` (exact: the
+arm's own MJCF; cad: its inertials off as a CAD export's, `mbrl_delan.systems.arms`). The
+test split: whole held-out trajectories of the training design, or trajectories of another
+design (``data.test_design``); validation: whole training trajectories. One record per
+figure, case
+``<robot>_<model>_<friction>[_<structure>]_<samples>_<train design>[_to_<test design>][_cad]``:
 
 - ``test_torque_r2``, ``val_torque_r2``: R^2 of the test and validation torques (per-DoF
   normalised, `TorqueErrors`);
 - ``test_torque_mse``: mean over test samples and DoFs of (tau_hat - tau)^2, N^2 m^2;
-- ``truth_torque_r2``: ``test_torque_r2`` of the arm's own dynamics (its MJCF's numbers and
-  friction law, `true_arm`) on the same measured test data: the most any model can reach
-  with the data's noise;
+- ``truth_torque_r2``: ``test_torque_r2`` of the arm's own dynamics (its MJCF's numbers,
+  springs and friction law, `true_arm`) on the same measured test data: the most any model
+  can reach with the data's noise;
 - ``mass_matrix_error`` (delan, tree_delan, white_box): median over the test states of
   ||M_model(q) - M(q)||_F / ||M(q)||_F, M the arm's own (`mj_fullM`, armature included);
 - ``friction_torque_share`` (delan, tree_delan, white_box): RMS over the test samples of the
   model's friction torque / RMS of the test torques;
 - ``fit_wall_s``: the fit's wall time, data made and evaluation included (a learned model
   trains until the validation error stops falling: the time to convergence);
-- ``fit_epoch_s``: the training time per epoch (learned models).
+- ``fit_epoch_s``: the training time per epoch (learned models);
+- with springs, tree_delan: ``spring_stiffness_error``, the median over test states of
+  ||K_res - K||_F / ||K||_F on the springs' joints, K = d tau_spring / dq of the arm's springs
+  (`spring_stiffness_matrix`) and K_res = d g_res / dq of the DeLaN residual's potential
+  force (central differences); ``spring_stiffness``, the residual's learned stiffness (the
+  median of K_res's shoulder diagonal, or of its wrist pair's coupling entry), against the
+  field ``arm_spring_stiffness``;
+- with springs: ``spring_torque_share``, RMS of the springs' torque on their joints over RMS
+  of those joints' test torques.
 
-Fields: ``robot``, ``model``, ``friction``, ``samples`` (training-set size asked:
-``data.samples``), ``train_design``, ``test_design``, ``seed``, ``epochs``,
-``train_samples`` and the host's.
+Fields: ``robot``, ``model``, ``friction``, ``structure``, ``model_mjcf``, ``samples``
+(training-set size asked: ``data.samples``), ``train_design``, ``test_design``, ``seed``,
+``epochs``, ``train_samples`` and the host's.
 """
 
 from __future__ import annotations
@@ -44,6 +55,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from mbrl_delan import keys
@@ -61,13 +73,26 @@ from mbrl_delan.conf.checks import compose_config
 from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, fit_splits
 from mbrl_delan.models.inverse import DeLaNInverse, InverseDynamicsModel
 from mbrl_delan.models.rigid_body import WhiteBoxInverse, data_friction_law
-from mbrl_delan.systems.arms import FRICTION_KINDS, arm_model, coulomb_friction, friction_kind
+from mbrl_delan.systems.arms import (
+    FRICTION_KINDS,
+    arm_model,
+    coulomb_friction,
+    friction_kind,
+    shoulder_joint,
+    spring_torque,
+    wrist_pair,
+)
 from mbrl_delan.training.inverse_fit import evaluate_torques
 
 log = logging.getLogger(__name__)
 
 SUITE = "own_arm"
-UNITS = {"test_torque_mse": "N^2 m^2", "fit_wall_s": "s", "fit_epoch_s": "s"}
+UNITS = {
+    "test_torque_mse": "N^2 m^2",
+    "fit_wall_s": "s",
+    "fit_epoch_s": "s",
+    "spring_stiffness": "N m/rad",
+}
 
 
 @dataclass(frozen=True)
@@ -80,6 +105,8 @@ class OwnArmConfig:
     models: tuple[str, ...] = OWN_ARM_MODELS
     designs: tuple[str, ...] = ("fourier",)
     test_designs: tuple[str | None, ...] = (None,)  # None: the training design's held-out
+    structures: tuple[str, ...] = ("none",)
+    model_mjcf: str = "exact"
     seed: int = 0
     overrides: tuple[str, ...] = ()
 
@@ -113,24 +140,94 @@ class Case:
     model: str
     design: str
     test_design: str | None  # None: the training design's held-out trajectories
+    structure: str = "none"
+    model_mjcf: str = "exact"
 
     @property
     def name(self) -> str:
         cross = f"_to_{self.test_design}" if self.test_design not in (None, self.design) else ""
-        return f"{self.robot}_{self.model}_{self.friction}_{self.samples}_{self.design}{cross}"
+        springs = "" if self.structure == "none" else f"_{self.structure}"
+        cad = "" if self.model_mjcf == "exact" else f"_{self.model_mjcf}"
+        return (f"{self.robot}_{self.model}_{self.friction}{springs}_{self.samples}_"
+                f"{self.design}{cross}{cad}")  # fmt: skip
 
 
-def true_arm(robot: str, friction: str, train: Any) -> WhiteBoxInverse:
-    """The arm's own inverse dynamics as a white box (its MJCF's inertials, friction and
-    armature, the friction's law), in the loss units of the training split `train`."""
+def true_arm(robot: str, friction: str, train: Any, structure: str = "none") -> WhiteBoxInverse:
+    """The arm's own inverse dynamics as a white box (its MJCF's inertials, friction,
+    armature and springs, the friction's law), in the loss units of the training split
+    `train`."""
     truth = arm_model(robot, friction)
-    model = WhiteBoxInverse(arm_model(robot), prior_scale=1.0,
+    model = WhiteBoxInverse(arm_model(robot, structure=structure), prior_scale=1.0,
                             friction_law=data_friction_law(friction))  # fmt: skip
     model.fit_normalization(train)
     model.viscous.copy_(torch.as_tensor(truth.dof_damping))
     model.armature.copy_(torch.as_tensor(truth.dof_armature))
     model.coulomb.copy_(torch.as_tensor(coulomb_friction(robot, friction) + truth.dof_frictionloss))
     return model
+
+
+def spring_joints(robot: str, structure: str) -> tuple[int, ...]:
+    """The joints `structure`'s springs act on (`mbrl_delan.systems.arms`)."""
+    model = arm_model(robot)
+    return (shoulder_joint(model),) if structure == "counterbalance" else wrist_pair(model)
+
+
+def spring_stiffness_matrix(robot: str, structure: str, q: np.ndarray, step: float = 1e-4
+                            ) -> np.ndarray:  # fmt: skip
+    """K = d tau_spring / dq of the arm's springs in configurations q (N, nq), by central
+    differences of `step` (exact for linear springs). (N, nv, nv)"""
+    model = arm_model(robot, structure=structure)
+    columns = []
+    for j in range(model.nv):
+        up, down = q.copy(), q.copy()
+        up[:, j] += step
+        down[:, j] -= step
+        columns.append((spring_torque(model, up) - spring_torque(model, down)) / (2 * step))
+    return np.stack(columns, -1)
+
+
+@torch.no_grad()
+def residual_stiffness_matrix(model: DeLaNInverse, q: torch.Tensor, step: float = 1e-4
+                              ) -> torch.Tensor:  # fmt: skip
+    """K_res = d g_res / dq of the tree's DeLaN residual's potential force at q (N, nq), by
+    central differences of `step` (hinges and slides: nq = nv). (N, nv, nv)"""
+    residual = model.dynamics.residual
+    zero = torch.zeros_like(q)
+    columns = []
+    for j in range(q.shape[-1]):
+        up, down = q.clone(), q.clone()
+        up[:, j] += step
+        down[:, j] -= step
+        slope = residual.terms(up, zero).gravity - residual.terms(down, zero).gravity
+        columns.append(slope / (2 * step))
+    return torch.stack(columns, -1)
+
+
+STIFFNESS_STATES = 256  # test states the springs' stiffness is compared in
+
+
+def spring_figures(case: Case, fitted: InverseDynamicsModel, test: Any) -> dict[str, float]:
+    """The springs' torque share and, for a tree's DeLaN residual, its learned stiffness
+    against the arm's (module docstring); {} without springs."""
+    if case.structure == "none":
+        return {}
+    joints = list(spring_joints(case.robot, case.structure))
+    q = test[keys.Q][:STIFFNESS_STATES].to("cpu", torch.float64)
+    spring = spring_torque(arm_model(case.robot, structure=case.structure),
+                           test[keys.Q].to("cpu", torch.float64).numpy())  # fmt: skip
+    rms = lambda x: float(np.sqrt(np.mean(np.square(x))))  # noqa: E731
+    tau = test[keys.TAU][:, joints].to("cpu", torch.float64).numpy()
+    out = {"spring_torque_share": rms(spring[:, joints]) / rms(tau)}
+    arm = spring_stiffness_matrix(case.robot, case.structure, q.numpy())[:, joints][..., joints]
+    pick = (0, 0) if len(joints) == 1 else (0, 1)  # the shoulder's, the pair's coupling
+    out["arm_spring_stiffness"] = float(np.median(arm[:, pick[0], pick[1]]))
+    if isinstance(fitted, DeLaNInverse) and getattr(fitted.dynamics, "residual", None):
+        learned = residual_stiffness_matrix(fitted, q.to(fitted.tau_scale))
+        learned = learned.to(torch.float64).numpy()[:, joints][..., joints]
+        error = np.linalg.norm(learned - arm, axis=(1, 2)) / np.linalg.norm(arm, axis=(1, 2))
+        out["spring_stiffness_error"] = float(np.median(error))
+        out["spring_stiffness"] = float(np.median(learned[:, pick[0], pick[1]]))
+    return out
 
 
 def fit_case(case: Case, cfg: OwnArmConfig, folder: Path) -> dict[str, float]:
@@ -140,6 +237,7 @@ def fit_case(case: Case, cfg: OwnArmConfig, folder: Path) -> dict[str, float]:
     overrides = [
         "data=excitation", f"data.robot={case.robot}", f"data.friction={case.friction}",
         f"data.samples={case.samples}", f"data.design={case.design}", *test,
+        f"data.structure={case.structure}", f"data.model_mjcf={case.model_mjcf}",
         f"data.seed={cfg.seed}", f"seed={cfg.seed}", f"model={case.model}", "logger=none",
         *cfg.overrides,
     ]  # fmt: skip
@@ -155,7 +253,7 @@ def fit_case(case: Case, cfg: OwnArmConfig, folder: Path) -> dict[str, float]:
         "epochs": summary["epochs"],
         "train_samples": summary["samples"]["train"],
     }
-    truth = true_arm(case.robot, case.friction, splits["train"])
+    truth = true_arm(case.robot, case.friction, splits["train"], case.structure)
     figures["truth_torque_r2"] = evaluate_torques(truth, splits["test"], 4096).r2
     if "mass_matrix_error" in summary:
         figures["mass_matrix_error"] = summary["mass_matrix_error"]["test"]
@@ -164,22 +262,24 @@ def fit_case(case: Case, cfg: OwnArmConfig, folder: Path) -> dict[str, float]:
         figures["friction_torque_share"] = share
     if summary.get("train_s") is not None and case.model != "white_box":
         figures["fit_epoch_s"] = summary["train_s"] / summary["epochs"]
-    return figures
+    return figures | spring_figures(case, fitted, splits["test"])
 
 
 def run_own_arm(cfg: OwnArmConfig) -> Iterator[BenchRecord]:
     host = host_fields(torch.device("cpu"))
     grid = itertools.product(cfg.robots, cfg.friction, cfg.samples, cfg.models, cfg.designs,
-                             cfg.test_designs)  # fmt: skip
+                             cfg.test_designs, cfg.structures, (cfg.model_mjcf,))  # fmt: skip
     with tempfile.TemporaryDirectory() as tmp:
         for case in itertools.starmap(Case, grid):
             figures = fit_case(case, cfg, Path(tmp) / case.name)
+            stiffness = figures.pop("arm_spring_stiffness", None)
             fields = {
                 "robot": case.robot, "model": case.model, "friction": case.friction,
+                "structure": case.structure, "model_mjcf": case.model_mjcf,
                 "samples": case.samples, "train_design": case.design,
                 "test_design": case.test_design or case.design, "seed": cfg.seed,
                 "epochs": figures.pop("epochs"), "train_samples": figures.pop("train_samples"),
-                **host,
+                **({} if stiffness is None else {"arm_spring_stiffness": stiffness}), **host,
             }  # fmt: skip
             for metric, value in figures.items():
                 log.info("%s: %s = %.4g", case.name, metric, value)

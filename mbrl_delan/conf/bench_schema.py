@@ -28,6 +28,7 @@ from mbrl_delan.conf.bench_names import (
     OWN_ARM_FRICTION,
     OWN_ARM_MODELS,
     OWN_ARM_ROBOTS,
+    OWN_ARM_STRUCTURES,
     PLANNER_MODELS,
     REALTIME_DYNAMICS,
     plugin_case,
@@ -177,8 +178,14 @@ class OwnArmSuiteConfig(SuiteConfig):
     designs: list[str] | None = rule(None, choices=OWN_ARM_DESIGNS, nonempty=True)
     test_designs: list[str] | None = rule(None, choices=OWN_ARM_DESIGNS, nonempty=True)
     models: list[str] | None = rule(None, choices=OWN_ARM_MODELS, nonempty=True)
+    structures: list[str] | None = rule(None, choices=OWN_ARM_STRUCTURES, nonempty=True)
+    model_mjcf: str | None = None
     seed: int | None = rule(None, low=0)
     overrides: list[str] = field(default_factory=list)
+
+    def check(self) -> None:
+        if self.model_mjcf is not None and self.model_mjcf not in ("exact", "cad"):
+            raise ConfigError(f"model_mjcf={self.model_mjcf!r} is not valid; choose exact or cad")
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,7 @@ from mbrl_delan.data.arrays import VAL_BY
 from mbrl_delan.data.excitation import CENTRES, DESIGNS
 from mbrl_delan.data.mocap import GAINS, TORQUE_SOURCES
 from mbrl_delan.rules import rule
+from mbrl_delan.systems.arms import STRUCTURES
 from mbrl_delan.systems.system import JOINT_TYPES
 
 LR_SCHEDULES = ("constant", "cosine", "stages")
@@ -63,6 +64,9 @@ class ExcitationDataConfig:
     name: str = MISSING
     robot: str = MISSING
     friction: Any = MISSING  # none | frictionloss | coulomb_viscous, or true / false
+    structure: str = rule(choices=STRUCTURES)
+    model_mjcf: str = MISSING  # exact | cad | an MJCF file (.xml)
+    cad_seed: int | None = rule(None, low=0)
     design: str = rule(choices=tuple(DESIGNS))
     centres: str = rule(choices=CENTRES)
     test_design: str | None = rule(None, choices=tuple(DESIGNS))

@@ -76,6 +76,12 @@ from mbrl_delan.registry import (
 )
 from mbrl_delan.systems.arms import ARMS, FRICTION_KINDS, arm, friction_kind
 from mbrl_delan.systems.system import HINGE
+from mbrl_delan.training.identified import (
+    IDENTIFIED_FILE,
+    identified_numbers,
+    identified_summary,
+    identified_xml,
+)
 from mbrl_delan.training.inverse_fit import (
     EpochResult,
     InverseFitSettings,
@@ -223,6 +229,10 @@ def _check_excitation(cfg: DictConfig) -> None:
         _choice("data.friction", cfg.friction, FRICTION_KINDS)
     if cfg.test_seed is not None and cfg.test_seed == cfg.seed:
         raise ConfigError(f"data.test_seed={cfg.test_seed}: the training data's own seed")
+    given = cfg.get("model_mjcf", "exact")
+    if given not in ("exact", "cad") and not (given.endswith(".xml") and Path(given).is_file()):
+        raise ConfigError(f"data.model_mjcf={given!r} is not valid; give exact, cad or an "
+                          "existing MJCF file (.xml)")  # fmt: skip
     if cfg.cutoff_hz is not None and cfg.cutoff_hz > cfg.rate_hz / 2:
         raise ConfigError(
             f"data.cutoff_hz={cfg.cutoff_hz} is not valid; it must be <= data.rate_hz / 2 "
@@ -354,13 +364,15 @@ def excitation_inverse_data(cfg: DictConfig) -> InverseData:
     friction = friction_kind(cfg.friction)
     if cfg.robot not in ARMS and not Path(cfg.robot).is_file():
         raise ConfigError(f"data.robot={cfg.robot!r}: no such MJCF file")
+    structure = cfg.get("structure", "none")
     try:
-        fields = excitation_arrays(cfg.robot, friction, settings, cfg.seed)
+        fields = excitation_arrays(cfg.robot, friction, settings, cfg.seed, structure)
     except ValueError as err:  # a user MJCF that is not an arm, or without torque limits
         raise ConfigError(f"data.robot={cfg.robot}: {err}") from err
     test_seed = excitation_test_seed(cfg)
     test_design = cfg.get("test_design") or settings.design
     source = {"format": EXCITATION_FORMAT, "robot": cfg.robot, "friction": friction,
+              "structure": structure, "model_mjcf": cfg.get("model_mjcf", "exact"),
               "seed": cfg.seed, "test_seed": test_seed, "settings": asdict(settings),
               "test_design": test_design}  # fmt: skip
     test = None
@@ -368,12 +380,35 @@ def excitation_inverse_data(cfg: DictConfig) -> InverseData:
         size = excitation_settings(cfg, test_design)
         size = replace(size, samples=max(1, round(cfg.samples * cfg.split.test_fraction)))
         test = (f"excitation test data of {cfg.robot} ({test_design})",
-                excitation_arrays(cfg.robot, friction, size, test_seed))  # fmt: skip
+                excitation_arrays(cfg.robot, friction, size, test_seed, structure))  # fmt: skip
     return fields_inverse_data(
-        f"excitation data of {cfg.robot}", fields, FitSystem.of(arm(cfg.robot).asset), source,
+        f"excitation data of {cfg.robot}", fields, model_system(cfg), source,
         val_fraction=cfg.split.val_fraction, test_fraction=cfg.split.test_fraction,
         seed=cfg.split.seed, val_by=cfg.split.val_by, test=test,
     )  # fmt: skip
+
+
+def model_system(cfg: DictConfig) -> FitSystem:
+    """The system `data=excitation`'s models are given (``data.model_mjcf``): the arm's own
+    MJCF, its CAD file (`FitSystem.of_cad`, drawn from ``cad_seed``, else ``data.seed``) or
+    a user's file, which must have the arm's joints."""
+    given = cfg.get("model_mjcf", "exact")
+    if given == "exact":
+        return FitSystem.of(arm(cfg.robot).asset)
+    if given == "cad":
+        seed = cfg.seed if cfg.get("cad_seed") is None else cfg.cad_seed
+        return FitSystem.of_cad(cfg.robot, int(seed))
+    try:
+        system = FitSystem.of(given)
+    except ValueError as err:  # MuJoCo's parse error
+        raise ConfigError(f"data.model_mjcf={given}: not a valid MJCF file ({err})") from err
+    own = FitSystem.of(arm(cfg.robot).asset).layout
+    if system.layout.types != own.types:
+        raise ConfigError(
+            f"data.model_mjcf={given}: joints {list(system.layout.types)} are not "
+            f"data.robot={cfg.robot}'s {list(own.types)}"
+        )
+    return system
 
 
 def build_system_model(cfg: DictConfig, system: FitSystem) -> InverseDynamicsModel:
@@ -455,6 +490,7 @@ def fit_splits(
         summary["train_s"] = train_s  # training (identification) with its evaluations
         summary["wall_time_s"] = time.perf_counter() - start
         recorder.write_summary(summary)
+        _write_identified(model, data.system, run_dir)
         recorder.log_image("loss_curves", _save_model_and_curves(cfg, model, run_dir))
         recorder.log_artifact(run_dir / MODEL_FILE)
     _log_summary(run_dir, summary)
@@ -627,7 +663,8 @@ def fit_summary(
         }
     else:
         where = {"path": provenance["path"]} if "path" in provenance else {
-            k: provenance[k] for k in ("robot", "friction", "seed")
+            k: provenance[k] for k in ("robot", "friction", "structure", "model_mjcf", "seed")
+            if k in provenance
         }  # fmt: skip
         summary |= {**where, "trajectories": len(data.group_names),
                     "splits": split_descriptions(provenance)}  # fmt: skip
@@ -649,8 +686,13 @@ def fit_summary(
         if data.system.mj_model is not None:
             poses = random_poses(data.system.mj_model, RANDOM_POSES).to(q_all)  # off the data
             summary["mass_matrix_random_poses"] = check_mass_matrix(model, poses).as_dict()
-    if isinstance(model, WhiteBoxInverse):
-        summary["identified"] = model.identified()
+    numbers = identified_numbers(model)
+    if numbers is not None and data.system.mj_model is not None:
+        test = splits.get("test")
+        test = test if test is not None and test.shape[0] else None
+        summary["identified"] = identified_summary(model, numbers, data.system.mj_model, test) | (
+            model.identified() if isinstance(model, WhiteBoxInverse) else {}
+        )
     if cfg.data.name == "excitation" and isinstance(model, DeLaNInverse | WhiteBoxInverse):
         summary["mass_matrix_error"] = _mass_matrix_errors(cfg.data, model, splits)  # the arm's
     return summary
@@ -689,6 +731,15 @@ def generalisation_gap(final: dict[str, Any], stop_on: str | None) -> float | No
             final["test"]["r2"], gap, stop_on, final[stop_on]["r2"], stop_on, stop_on,
         )  # fmt: skip
     return gap
+
+
+def _write_identified(model: InverseDynamicsModel, system: FitSystem, run_dir: Path) -> None:
+    """``identified.xml`` (`mbrl_delan.training.identified`) for a model with an MJCF's
+    numbers: the white box and DeLaN on the tree."""
+    numbers = identified_numbers(model)
+    spec = system.mjcf_spec()
+    if numbers is not None and spec is not None:
+        (run_dir / IDENTIFIED_FILE).write_text(identified_xml(spec, numbers))
 
 
 def _mass_matrix_errors(

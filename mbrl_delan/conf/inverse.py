@@ -64,6 +64,7 @@ class DeLaNInverseConfig(InverseModelConfig):
     coulomb: bool = MISSING
     coulomb_velocity: float = rule(0.01, low=0, above=True)
     still_first_order: bool = MISSING
+    spring_potential: bool = False
     tree_sparse: bool = False
     armature: bool = False
     compile_fit: bool = False

@@ -14,6 +14,7 @@ from mbrl_delan.models.structure import Structure
 STRUCTURE_KEYS = (
     "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb", "coulomb_velocity",
     "still_first_order", "translation_invariant", "yaw_invariant", "inertia_scaling", "residual",
+    "spring_potential",
 )  # fmt: skip
 
 

@@ -19,13 +19,13 @@ velocity limit):
 qd and qdd are the designs' exact derivatives. A trajectory whose torques pass a motor's
 limit is shrunk about its mean position until they do not (the gravity torque does not scale
 with it). The true generalized forces come from MuJoCo's inverse dynamics (`mj_inverse`,
-joint friction and armature included when the model has them) plus, for ``coulomb_viscous``
-friction, f sign(qd) (`mbrl_delan.systems.arms.coulomb_friction`), split into M qdd,
-c(q, qd), g(q) and friction. What a robot logs is then made of them: q and tau with
-Gaussian noise (q: `q_noise` rad; tau: `tau_noise` of each joint's torque RMS), qd by
-central differences of zero-phase low-passed q and qdd so of qd. The robot moves on before
-and after each trajectory, as a logged excitation run does: the filters see `PAD_S` of the
-motion on either side (no edge effects).
+joint friction, armature and springs included when the model has them) plus, for
+``coulomb_viscous`` friction, f sign(qd) (`mbrl_delan.systems.arms.coulomb_friction`), split
+into M qdd, c(q, qd), g(q) (gravity and springs: the potential's) and friction. What a
+robot logs is then made of them: q and tau with Gaussian noise (q: `q_noise` rad; tau:
+`tau_noise` of each joint's torque RMS), qd by central differences of zero-phase low-passed
+q and qdd so of qd. The robot moves on before and after each trajectory, as a logged
+excitation run does: the filters see `PAD_S` of the motion on either side (no edge effects).
 
 `excitation_arrays` returns the fields of `data.arrays`' schema (q, qd, qdd, tau, t,
 trajectory and the true tau_inertial, tau_coriolis, tau_gravity, tau_friction), ready for
@@ -235,7 +235,8 @@ def inverse_dynamics(
 ) -> dict[str, np.ndarray]:
     """MuJoCo's generalized forces along states (N, nv), plus `coulomb` (nv,) x sign(qd) when
     given: tau (all of them, friction included) and its parts M qdd (armature included),
-    c(q, qd), g(q) and the joints' friction (the rest)."""
+    c(q, qd), g(q) (the potential's: gravity and the model's springs) and the joints'
+    friction (the rest)."""
     data = mujoco.MjData(model)
     out = {k: np.zeros_like(q) for k in ("tau", *_PARTS)}
     mass = np.zeros((model.nv, model.nv))
@@ -247,8 +248,8 @@ def inverse_dynamics(
         out[keys.TAU_INERTIAL][i] = mass @ qdd[i]
         bias = data.qfrc_bias.copy()
         data.qvel[:] = 0
-        mujoco.mj_forward(model, data)  # the bias at rest: gravity
-        out[keys.TAU_GRAVITY][i] = data.qfrc_bias
+        mujoco.mj_forward(model, data)  # the bias at rest: gravity; the passive: springs
+        out[keys.TAU_GRAVITY][i] = data.qfrc_bias - data.qfrc_passive
         out[keys.TAU_CORIOLIS][i] = bias - data.qfrc_bias
     if coulomb is not None:
         out["tau"] = out["tau"] + coulomb * np.sign(qd)
@@ -263,14 +264,19 @@ _PARTS = (keys.TAU_INERTIAL, keys.TAU_CORIOLIS, keys.TAU_GRAVITY, keys.TAU_FRICT
 
 
 def excitation_arrays(
-    robot: str, friction: str | bool, settings: ExcitationSettings, seed: int
+    robot: str,
+    friction: str | bool,
+    settings: ExcitationSettings,
+    seed: int,
+    structure: str = "none",
 ) -> dict[str, np.ndarray]:
     """Measured excitation data of an arm (a shipped one's name or an MJCF file;
-    `mbrl_delan.systems.arms`) in `data.arrays`' schema (module docstring): whole
-    trajectories of `settings.design` until `settings.samples`, seeded by `seed`."""
+    `mbrl_delan.systems.arms`, with the springs `structure` names) in `data.arrays`' schema
+    (module docstring): whole trajectories of `settings.design` until `settings.samples`,
+    seeded by `seed`."""
     if settings.design not in DESIGNS:
         raise ValueError(f"design {settings.design!r}: choose one of {', '.join(DESIGNS)}")
-    model = arm_model(robot, friction)
+    model = arm_model(robot, friction, structure=structure)
     coulomb = (coulomb_friction(robot, friction)
                if friction_kind(friction) == "coulomb_viscous" else None)  # fmt: skip
     rng = np.random.default_rng(seed)

@@ -29,6 +29,7 @@ from mbrl_delan.data.arrays import (
 )
 from mbrl_delan.data.excitation import EXCITATION_FORMAT
 from mbrl_delan.data.mocap import MocapDataset, dof_groups, humanoid_cmu_xml, split_dataset
+from mbrl_delan.systems.arms import cad_spec
 from mbrl_delan.systems.system import (
     FREE,
     JointLayout,
@@ -67,14 +68,38 @@ class FitSystem:
         `groups` of the model, one per joint by default."""
         xml = mjcf_path(xml)
         model = mujoco.MjModel.from_xml_path(str(xml))
+        return cls.of_model(model, {"mjcf": str(xml.resolve())}, groups)
+
+    @classmethod
+    def of_model(
+        cls,
+        model: mujoco.MjModel,
+        source: dict[str, Any],
+        groups: Callable[[mujoco.MjModel], dict[str, tuple[int, ...]]] | None = None,
+    ) -> FitSystem:
+        """`of_mjcf` of a model in memory; `source` says how to build it again."""
         return cls(
             layout=mujoco_layout(model),
             dof_groups=(groups or _joint_groups)(model),
-            source={"mjcf": str(xml.resolve())},
+            source=source,
             dof_parents=model.dof_parentid.tolist(),
             armature=model.dof_armature.tolist(),
             mj_model=model,
         )
+
+    @classmethod
+    def of_cad(cls, robot: str, seed: int) -> FitSystem:
+        """A shipped arm's (or an MJCF file's) CAD file, its inertials off as drawn from
+        `seed` (`mbrl_delan.systems.arms.cad_spec`)."""
+        return cls.of_model(cad_spec(robot, seed).compile(), {"cad": robot, "cad_seed": seed})
+
+    def mjcf_spec(self) -> mujoco.MjSpec | None:
+        """The MJCF the system was read from, as a spec to edit (None: a joint list)."""
+        if "cad" in self.source:
+            return cad_spec(self.source["cad"], int(self.source["cad_seed"]))
+        if "mjcf" in self.source:
+            return mujoco.MjSpec.from_file(self.source["mjcf"])
+        return None
 
     @classmethod
     def of_joints(cls, joints: Sequence[str]) -> FitSystem:
@@ -120,7 +145,10 @@ def system_of(provenance: dict[str, Any]) -> FitSystem:
     grouped by body part)."""
     if provenance.get("format") not in (ARRAYS_FORMAT, EXCITATION_FORMAT):
         return FitSystem.of_mjcf(mocap_xml(provenance), dof_groups)
-    return FitSystem.of(provenance["system"].get("mjcf") or provenance["system"]["joints"])
+    system = provenance["system"]
+    if "cad" in system:
+        return FitSystem.of_cad(system["cad"], int(system["cad_seed"]))
+    return FitSystem.of(system.get("mjcf") or system["joints"])
 
 
 def mocap_xml(provenance: dict[str, Any]) -> Path:

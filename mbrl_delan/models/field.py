@@ -39,6 +39,12 @@ class LagrangianNetwork(MechanicsField):
     no kinetic term depends on it (its Coriolis force is not identifiable from data in which
     it never moves, and a free network makes up large ones on new motions).
 
+    `springs`: (q index, v index) of hinge and slide coordinates x that V also holds a
+    learned quadratic of, V += 1/2 x^T K x + b^T x with K symmetric (both start at 0, in
+    units of ``energy_scale``): linear springs, each joint's and those that couple joints
+    (a tendon over two joints), exactly and wherever the data did not reach, which an MLP
+    on (sin q, cos q) extrapolates only as far as the data went.
+
     `dof_parents`: each DoF's parent DoF in the kinematic tree (-1 at the root; MuJoCo's
     ``dof_parentid``, parents before children). L is then upper-triangular with entries
     only at (i, j) where DoF i is an ancestor of j: the factor of a tree's mass matrix
@@ -58,6 +64,7 @@ class LagrangianNetwork(MechanicsField):
         still_potential: bool = False,
         dof_parents: Sequence[int] | None = None,
         root_frame: bool = False,
+        springs: Sequence[tuple[int, int]] = (),
     ) -> None:
         super().__init__()
         self.root_frame = root_frame
@@ -101,6 +108,11 @@ class LagrangianNetwork(MechanicsField):
         height_q, height_v = [h[0] for h in heights], [h[1] for h in heights]
         self.register_buffer("height_q", torch.tensor(height_q, dtype=torch.long), persistent=False)
         self.register_buffer("height_v", torch.tensor(height_v, dtype=torch.long), persistent=False)
+        self._index_pairs("spring", springs)
+        self.spring_stiffness: nn.Parameter | None = None
+        if springs:  # K = (W + W^T) / 2 and b, in units of energy_scale
+            self.spring_stiffness = nn.Parameter(torch.zeros(len(springs), len(springs)))
+            self.spring_offset = nn.Parameter(torch.zeros(len(springs)))
         self.height_weight: nn.Parameter | None = None
         if heights:  # w_k in units of energy_scale per metre (m g for a free root's height)
             self.height_weight = nn.Parameter(torch.zeros(len(heights)))
@@ -127,6 +139,30 @@ class LagrangianNetwork(MechanicsField):
         weight, bias = head.weight[rows] * unit, head.bias[rows] * unit.squeeze(-1)
         offset = q.index_select(-1, features.plain_q) - features.plain_mean
         return linear(hidden, weight, bias), offset, weight
+
+    def _index_pairs(self, name: str, pairs: Sequence[tuple[int, int]]) -> None:
+        """Buffers ``<name>_q`` and ``<name>_v`` of (q index, v index) pairs."""
+        for k, suffix in enumerate(("q", "v")):
+            index = torch.tensor([p[k] for p in pairs], dtype=torch.long)
+            self.register_buffer(f"{name}_{suffix}", index, persistent=False)
+
+    def _spring_potential(self, q: Tensor) -> tuple[Tensor, Tensor]:
+        """1/2 x^T K x + b^T x (...) and its force K x + b (..., m) on the spring
+        coordinates x (`springs`), in energy units."""
+        assert self.spring_stiffness is not None
+        weight = self.spring_stiffness
+        stiffness = 0.5 * (weight + weight.T) * self.energy_scale
+        offset = self.spring_offset * self.energy_scale
+        x = q.index_select(-1, self.spring_q).to(stiffness.dtype)
+        force = x @ stiffness + offset
+        return ((0.5 * x @ stiffness + offset) * x).sum(-1), force
+
+    def joint_springs(self) -> Tensor | None:
+        """K of the learned quadratic potential (m, m) over `springs`, in SI (None without)."""
+        if self.spring_stiffness is None:
+            return None
+        weight = self.spring_stiffness
+        return (0.5 * (weight + weight.T) * self.energy_scale).detach()
 
     def _height_potential(self, q: Tensor) -> tuple[Tensor, Tensor]:
         """sum_k w_k q_k (...) and w in SI units (K,)."""
@@ -238,7 +274,8 @@ class LagrangianNetwork(MechanicsField):
 
     def _network_jet(self, q: Tensor, qd: Tensor) -> MechanicsJet:
         """The jet through the trunk: a tangent along qd forward, one reverse pass back."""
-        if self.n == 1 and not self.still_potential and not self.height_q.numel():
+        plain_scalar = not (self.still_potential or self.height_q.numel() or self.spring_q.numel())
+        if self.n == 1 and plain_scalar:
             return self._scalar_jet(q, qd)
         body = self.trunk.body(self.features(q), self.features.jvp(q, qd))
         L, L_dot, factor_to_hidden = self._factor(body)
@@ -250,6 +287,9 @@ class LagrangianNetwork(MechanicsField):
         if self.still_potential:
             still_force, still_offset, still_weight = self._still_terms(q, body.out)
             potential = potential + (still_offset * still_force).sum(-1)
+        if self.spring_q.numel():
+            spring_potential, spring_force = self._spring_potential(q)
+            potential = potential + spring_potential
 
         def pullback(d_L: Tensor, d_V: Tensor) -> Tensor:
             d_hidden = factor_to_hidden(d_L) + d_V.unsqueeze(-1) * v_weight
@@ -261,6 +301,8 @@ class LagrangianNetwork(MechanicsField):
                 grad = grad.index_add(-1, self.features.plain_v, still_grad)
             if self.height_q.numel():
                 grad = grad.index_add(-1, self.height_v, d_V.unsqueeze(-1) * height_weight)
+            if self.spring_q.numel():
+                grad = grad.index_add(-1, self.spring_v, d_V.unsqueeze(-1) * spring_force)
             return grad
 
         return MechanicsJet(L=L, L_dot=L_dot, potential_energy=potential, pullback=pullback)

@@ -18,7 +18,7 @@ from torch import Tensor
 from mbrl_delan.models.features import QFeatures
 from mbrl_delan.models.field import LagrangianNetwork, ResidualForce
 from mbrl_delan.models.lagrangian import Dissipation, LagrangianDynamics
-from mbrl_delan.systems.system import BALL, FREE, JointLayout
+from mbrl_delan.systems.system import BALL, FREE, HINGE, SLIDE, JointLayout
 
 
 @dataclass(frozen=True)
@@ -52,6 +52,9 @@ class Structure:
         the data cannot (its generalized force is zero). None: from the data.
     root_weight: the body's weight m |g| (N); with `translation_invariant` the root height's
         potential starts at it (the data's mean root force is zero: contacts carry the body).
+    spring_potential: V also holds a learned quadratic of the hinge and slide coordinates,
+        1/2 q^T K q + b^T q with a full symmetric K (`LagrangianNetwork`, ``springs``): linear
+        springs, coupled ones too, that the MJCF lacks.
     start_level: the mechanics start near zero, a residual Lagrangian beside a known rigid
         body (`models.tree.TreeDynamics`): L's diagonal at this share of its units (M at its
         square), V and L's other entries at 0 (`LagrangianNetwork.start_small`), the friction
@@ -78,11 +81,13 @@ class Structure:
     root_inertia: tuple[float, ...] | None = None
     root_weight: float | None = None
     start_level: float | None = None
+    spring_potential: bool = False
 
     # what M, V and the friction are made of: `load_mechanics` needs these equal
     MECHANICS: ClassVar[tuple[str, ...]] = (
         "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb", "coulomb_lead",
         "translation_invariant", "yaw_invariant", "still_first_order", "dof_parents", "armature",
+        "spring_potential",
     )  # fmt: skip
 
     def __post_init__(self) -> None:
@@ -136,6 +141,7 @@ class Structure:
             still_potential=self.still_first_order,
             dof_parents=self.dof_parents,
             root_frame=self.yaw_invariant,
+            springs=joint_coordinates(layout) if self.spring_potential else (),
         )
         raw_init = 0.0 if self.diagonal_init else -4.0
         if self.friction_init is not None:  # softplus(raw) = friction_init
@@ -174,6 +180,15 @@ def free_root_heights(layout: JointLayout) -> list[tuple[int, int]]:
         (qa + 2, va + 2)
         for jtype, qa, va in zip(layout.types, layout.qpos_adr, layout.dof_adr, strict=True)
         if jtype == FREE
+    ]
+
+
+def joint_coordinates(layout: JointLayout) -> list[tuple[int, int]]:
+    """(q index, v index) of each hinge and slide."""
+    return [
+        (qa, va)
+        for jtype, qa, va in zip(layout.types, layout.qpos_adr, layout.dof_adr, strict=True)
+        if jtype in (HINGE, SLIDE)
     ]
 
 

@@ -19,6 +19,19 @@ joint's torque limit (`FRICTION`):
 - ``coulomb_viscous``: viscous damping and armature in the model; the Coulomb force
   f sign(qd) of a real joint is not MuJoCo's and comes from `coulomb_friction` (the data's
   torques add it: `mbrl_delan.data.excitation`).
+
+`arm_model(robot, friction, structure=...)` adds springs that a CAD file of the arm lacks
+(`STRUCTURES`; each sized by its torque at the joints' range ends, a share of the joints'
+torque limit, `SPRINGS`):
+
+- ``counterbalance``: a torsion spring on the shoulder (`shoulder_joint`: the joint gravity
+  loads most), resting at the range's middle, as industrial arms balance gravity;
+- ``coupling``: a tendon spring over two wrist joints (`wrist_pair`), MuJoCo's fixed tendon
+  q_a + q_b with a stiffness, so that each joint's spring torque depends on both.
+
+`cad_model(robot, seed)` is the arm's MJCF as a CAD export gives it (`CAD_ERROR`): every
+moving body's mass and rotational inertia scaled by factors drawn in U(0.6, 1.4), its centre
+of mass moved by up to 2 cm; the kinematics are the arm's.
 """
 
 from __future__ import annotations
@@ -35,6 +48,7 @@ from mbrl_delan.systems.system import asset_path
 log = logging.getLogger(__name__)
 
 FRICTION_KINDS = ("none", "frictionloss", "coulomb_viscous")
+STRUCTURES = ("none", "counterbalance", "coupling")
 DEFAULT_VELOCITY = {"hinge": 2.0, "slide": 0.5}  # rad/s, m/s: a user MJCF's joints, if not given
 
 
@@ -66,6 +80,31 @@ class Friction:
 
 
 FRICTION = Friction()
+
+
+@dataclass(frozen=True)
+class Springs:
+    """The added springs' torque at the end of their joints' ranges (the half-width about
+    the middle, at most pi), a share of the joint's torque limit (the smaller of two)."""
+
+    counterbalance: float = 0.6
+    coupling: float = 0.2
+
+
+SPRINGS = Springs()
+
+
+@dataclass(frozen=True)
+class CadError:
+    """How a CAD file's inertials are off: mass and rotational inertia each times a factor
+    in `scale`, the centre of mass moved uniformly within a ball of `com_m` metres."""
+
+    scale: tuple[float, float] = (0.6, 1.4)
+    com_m: float = 0.02
+
+
+CAD_ERROR = CadError()
+POSES = 256  # random poses that choose the shoulder (`shoulder_joint`)
 
 
 def friction_kind(value: str | bool) -> str:
@@ -138,24 +177,117 @@ def check_arm(model: mujoco.MjModel, robot: str) -> None:
 
 
 def arm_model(
-    robot: str, friction: str | bool = "none", law: Friction = FRICTION
+    robot: str, friction: str | bool = "none", law: Friction = FRICTION, structure: str = "none"
 ) -> mujoco.MjModel:
     """The arm's MjModel; with friction (module docstring), each joint's damping, armature
-    and (``frictionloss``) frictionloss set to `law`'s shares of its torque limit."""
+    and (``frictionloss``) frictionloss set to `law`'s shares of its torque limit; with a
+    `structure` (`STRUCTURES`), its springs."""
     kind = friction_kind(friction)
+    if structure not in STRUCTURES:
+        raise ValueError(f"structure {structure!r}: choose one of {', '.join(STRUCTURES)}")
     spec = mujoco.MjSpec.from_file(str(_asset(arm(robot))))
     model = spec.compile()
     check_arm(model, robot)
-    if kind == "none":
+    if kind == "none" and structure == "none":
         return model
-    limits = _finite_limits(model, robot, kind)
-    for joint, limit in zip(spec.joints, limits, strict=True):
-        damping = np.array(joint.damping)  # linear, then MuJoCo's polynomial terms
-        damping[0] = law.viscous * limit
-        joint.damping = damping
-        joint.frictionloss = law.coulomb * limit if kind == "frictionloss" else 0.0
-        joint.armature = law.armature * limit
+    if kind != "none":
+        limits = _finite_limits(model, robot, kind)
+        for joint, limit in zip(spec.joints, limits, strict=True):
+            damping = np.array(joint.damping)  # linear, then MuJoCo's polynomial terms
+            damping[0] = law.viscous * limit
+            joint.damping = damping
+            joint.frictionloss = law.coulomb * limit if kind == "frictionloss" else 0.0
+            joint.armature = law.armature * limit
+    if structure != "none":
+        _add_springs(spec, model, robot, structure)
     return spec.compile()
+
+
+def _middle_and_half(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+    """Each joint's range middle and half-width (at most pi; 0 and pi where unlimited)."""
+    low, high = model.jnt_range[:, 0], model.jnt_range[:, 1]
+    limited = model.jnt_limited > 0
+    middle = np.where(limited, (low + high) / 2, 0.0)
+    return middle, np.minimum(np.where(limited, (high - low) / 2, np.pi), np.pi)
+
+
+def shoulder_joint(model: mujoco.MjModel) -> int:
+    """The joint gravity loads most: the largest RMS of its gravity torque over `POSES`
+    poses drawn uniformly within the ranges (seeded)."""
+    middle, half = _middle_and_half(model)
+    poses = middle + half * np.random.default_rng(0).uniform(-1, 1, (POSES, model.nq))
+    data = mujoco.MjData(model)
+    gravity = np.zeros((POSES, model.nv))
+    for i, q in enumerate(poses):
+        data.qpos[:] = q
+        mujoco.mj_forward(model, data)
+        gravity[i] = data.qfrc_bias
+    return int(np.argmax(np.sqrt((gravity**2).mean(0))))
+
+
+def wrist_pair(model: mujoco.MjModel) -> tuple[int, int]:
+    """The two wrist joints a coupling spring spans: the third and second from the end."""
+    if model.nv < 3:
+        raise ValueError(f"a coupling spring spans two wrist joints; the arm has {model.nv}")
+    return model.nv - 3, model.nv - 2
+
+
+def _add_springs(spec: mujoco.MjSpec, model: mujoco.MjModel, robot: str, kind: str) -> None:
+    """`kind`'s springs (module docstring) added to `spec` of the arm `model`."""
+    limits = _finite_limits(model, robot, f"structure={kind} (sized by the torque limits)")
+    middle, half = _middle_and_half(model)
+    if kind == "counterbalance":
+        j = shoulder_joint(model)
+        joint = spec.joints[j]
+        stiffness = np.array(joint.stiffness)  # linear, then MuJoCo's polynomial terms
+        stiffness[0] = SPRINGS.counterbalance * limits[j] / half[j]
+        joint.stiffness = stiffness
+        joint.springref = middle[j]
+        return
+    a, b = wrist_pair(model)
+    for j in (a, b):
+        spec.joints[j].name = spec.joints[j].name or f"joint{j}"
+    tendon = spec.add_tendon()
+    tendon.name = "coupling"
+    tendon.wrap_joint(spec.joints[a].name, 1.0)
+    tendon.wrap_joint(spec.joints[b].name, 1.0)
+    stiffness = np.zeros_like(np.array(tendon.stiffness))
+    stiffness[0] = SPRINGS.coupling * min(limits[a], limits[b]) / (half[a] + half[b])
+    tendon.stiffness = stiffness
+    tendon.springlength = [middle[a] + middle[b]] * 2
+
+
+def spring_torque(model: mujoco.MjModel, q: np.ndarray) -> np.ndarray:
+    """The torque the motors spend on `model`'s springs (joints' and tendons') at rest in
+    each configuration q (N, nq): -qfrc_passive with qd = 0. (N, nv)"""
+    data = mujoco.MjData(model)
+    out = np.zeros((q.shape[0], model.nv))
+    for i, qi in enumerate(q):
+        data.qpos[:] = qi
+        mujoco.mj_fwdPosition(model, data)
+        mujoco.mj_fwdVelocity(model, data)
+        out[i] = -data.qfrc_passive
+    return out
+
+
+def cad_spec(robot: str, seed: int, error: CadError = CAD_ERROR) -> mujoco.MjSpec:
+    """The arm's MjSpec with inertials off as a CAD export's are (module docstring),
+    drawn from `seed`: the same seed, the same file."""
+    spec = mujoco.MjSpec.from_file(str(_asset(arm(robot))))
+    rng = np.random.default_rng(seed)
+    for body in spec.bodies[1:]:  # the world body has no inertial
+        if body.mass <= 0:
+            continue
+        mass, inertia = rng.uniform(*error.scale, size=2)
+        direction = rng.normal(size=3)
+        shift = error.com_m * rng.uniform() ** (1 / 3) * direction / np.linalg.norm(direction)
+        body.mass = body.mass * mass
+        if np.isfinite(body.fullinertia).all() and np.abs(body.fullinertia).sum() > 0:
+            body.fullinertia = np.asarray(body.fullinertia) * inertia
+        else:
+            body.inertia = np.asarray(body.inertia) * inertia
+        body.ipos = np.asarray(body.ipos) + shift
+    return spec
 
 
 def coulomb_friction(robot: str, friction: str | bool, law: Friction = FRICTION) -> np.ndarray:
