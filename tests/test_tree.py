@@ -255,3 +255,27 @@ def test_learned_springs_start_at_the_mjcfs_and_fit_the_exoskeletons() -> None:
     learned = tree.spring_stiffness().detach()
     np.testing.assert_allclose(learned[hinges], truth[hinges], rtol=1e-4)
     np.testing.assert_allclose(tree.spring_ref.detach()[hinges], rest[hinges], atol=1e-4)
+
+
+def test_the_residuals_spring_potential_adds_to_the_trees_springs_on_the_hinges() -> None:
+    """model=tree_delan model.spring_potential=true on the humanoid: at its start the model is
+    the tree (K and b at zero); a K set on the hinges shows in `joint_stiffness` as the tree's
+    springs plus K's diagonal, and the free root gets none."""
+    parts = make_env_parts("humanoid_stand_exo")
+    cfg = compose_train_config(["env=humanoid_stand_exo", "model=tree_delan",
+                                "model.spring_potential=true"]).model  # fmt: skip
+    torch.manual_seed(0)
+    model = build_model(cfg, parts.system).double()
+    field = model.dynamics.residual.field
+    hinges = field.spring_v.tolist()
+    assert hinges == list(range(6, parts.system.mj_model().nv))  # not the free root's six
+    q, _ = random_states(parts.system.mj_model(), 8, seed=2)
+    q_t = torch.from_numpy(q)
+    before = model.dynamics.joint_stiffness(q_t)
+    torch.testing.assert_close(before, model.dynamics.tree.spring_stiffness().double())
+    diagonal = torch.linspace(1.0, 2.0, len(hinges), dtype=torch.float64)
+    with torch.no_grad():
+        field.spring_stiffness.copy_(torch.diag(diagonal))
+    added = model.dynamics.joint_stiffness(q_t) - before
+    torch.testing.assert_close(added[hinges], diagonal * field.energy_scale, rtol=1e-5, atol=1e-6)
+    assert added[:6].abs().max() < 1e-9

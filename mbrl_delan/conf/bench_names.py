@@ -47,7 +47,8 @@ ILQR_TASKS = ("cmu_track",)  # suite humanoid: tasks of its tracking iLQR oracle
 # suite realtime: its tasks and the dynamics each is planned on
 REALTIME_TASKS = ("humanoid_stand", "humanoid_walk", "pendulum")
 REALTIME_DYNAMICS = ("mujoco", "delan", "tree", "tree_delan", "ensemble")
-FIDELITY_ENVS = ("humanoid_stand", "humanoid_stand_exo")  # suite fidelity's envs
+# suite fidelity's envs
+FIDELITY_ENVS = ("humanoid_stand", "humanoid_stand_exo", "humanoid_stand_tendon")
 # suite fidelity's cases: MuJoCo at the oracle's physics, perturbed copies of it, the white-box
 # model's documented wrong start, MuJoCo's rigid body with the contact model, and the learned
 # models fitted on the loop's data (`benchmarks/fidelity.py`)

@@ -103,7 +103,7 @@ def planning_task(cfg: DictConfig, system: System, task: Task) -> Task:
     if not isinstance(task, HumanoidTask):
         raise ConfigError(
             f"env.plan_cost={cfg.env.plan_cost} needs a humanoid env (humanoid_stand, "
-            f"humanoid_walk, humanoid_stand_exo), got env={cfg.env.name}"
+            f"humanoid_walk, humanoid_stand_exo, humanoid_stand_tendon), got env={cfg.env.name}"
         )
     try:
         return BalanceCost(system.mj_model(), task, speed=cfg.env.plan_speed)

@@ -113,6 +113,7 @@ class _LagrangianConfig(ModelConfig):
     still_first_order: bool = MISSING
     armature: bool = MISSING
     known_root: bool = MISSING  # a free root's inertia units and weight from the MJCF
+    spring_potential: bool = False  # V also holds 1/2 q^T K q + b^T q of the hinges and slides
 
 
 @dataclass

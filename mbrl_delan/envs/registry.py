@@ -13,7 +13,12 @@ from typing import Any, TypeVar
 import torch
 
 from mbrl_delan.registry import ENVS, EnvSpec, TaskFactory, register_env
-from mbrl_delan.systems.external import humanoid_cmu_xml, humanoid_v5_exo_xml, humanoid_v5_xml
+from mbrl_delan.systems.external import (
+    humanoid_cmu_xml,
+    humanoid_v5_exo_xml,
+    humanoid_v5_tendon_xml,
+    humanoid_v5_xml,
+)
 from mbrl_delan.systems.system import System, load_system
 from mbrl_delan.tasks import AcrobotSwingup, ArmReach, CartpoleSwingup, PendulumSwingup
 from mbrl_delan.tasks.base import Task
@@ -149,6 +154,11 @@ register_env("humanoid_walk", humanoid_v5_xml, 5)(_humanoid_v5_task(1.0, "humano
 # the env simulates it, the world models are given Humanoid-v5's own MJCF
 register_env("humanoid_stand_exo", humanoid_v5_xml, 5, physics=humanoid_v5_exo_xml)(
     _humanoid_v5_task(None, "humanoid_stand_exo")
+)
+# Humanoid-v5 with elastic bands over two joints each (hip and knee, abdomen and hip: BANDS):
+# the env simulates them, the world models are given Humanoid-v5's own MJCF
+register_env("humanoid_stand_tendon", humanoid_v5_xml, 5, physics=humanoid_v5_tendon_xml)(
+    _humanoid_v5_task(None, "humanoid_stand_tendon")
 )
 # dm_control's CMU humanoid (contacts on): 15 x 0.002 s = 0.03 s per control step
 register_env("cmu_track", humanoid_cmu_xml, 15, CMU_TRACK_OPTIONS)(_cmu_track_task)

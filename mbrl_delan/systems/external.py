@@ -1,5 +1,6 @@
 """MJCF models shipped by other packages: gymnasium's Humanoid-v5 and dm_control's CMU humanoid;
-and Humanoid-v5 in an exoskeleton (`humanoid_v5_exo_xml`), written from it.
+and Humanoid-v5 in an exoskeleton (`humanoid_v5_exo_xml`) and with elastic bands over two
+joints each (`humanoid_v5_tendon_xml`), written from it.
 
 Both are loaded with plain mujoco; the packages are located, not imported (dm_control's
 simulator does not work with mujoco 4, and importing gymnasium's envs is not needed).
@@ -92,9 +93,59 @@ def humanoid_v5_exo_xml(exo: Exoskeleton = EXOSKELETON) -> Path:
     inertial parameter can express the difference."""
     spec = mujoco.MjSpec.from_file(str(humanoid_v5_xml()))
     add_exoskeleton(spec, exo)
+    return _written(spec, "humanoid_exo")
+
+
+@dataclass(frozen=True)
+class Band:
+    """An elastic band over two or more joints: MuJoCo's fixed tendon of length
+    L = sum_j c_j q_j (rad) with a spring, force -k (L - rest) along it, so each joint's
+    torque depends on all of its joints' angles. `joints`: (name, c_j) pairs."""
+
+    joints: tuple[tuple[str, float], ...]
+    stiffness: float  # N m/rad
+    rest: float  # rad
+
+
+def _leg_bands(side: str) -> tuple[Band, ...]:
+    """A hamstring-like band over the hip's flexion and the knee, and one over the abdomen's
+    flexion and that hip's: both stretched in the standing pose (q = 0)."""
+    return (
+        Band(((f"{side}_hip_y", 1.0), (f"{side}_knee", -1.0)), 60.0, -0.6),
+        Band((("abdomen_y", 1.0), (f"{side}_hip_y", 1.0)), 40.0, -0.4),
+    )
+
+
+BANDS = (*_leg_bands("right"), *_leg_bands("left"))
+
+
+def add_bands(spec: mujoco.MjSpec, bands: tuple[Band, ...] = BANDS) -> None:
+    """`bands` added to a Humanoid-v5 spec in place, as fixed tendons with springs."""
+    for band in bands:
+        tendon = spec.add_tendon()
+        tendon.name = "band_" + "_".join(name for name, _ in band.joints)
+        for name, coefficient in band.joints:
+            tendon.wrap_joint(name, coefficient)
+        stiffness = np.zeros_like(np.array(tendon.stiffness, dtype=float))
+        stiffness[0] = band.stiffness
+        tendon.stiffness = stiffness
+        tendon.springlength = [band.rest, band.rest]
+
+
+def humanoid_v5_tendon_xml(bands: tuple[Band, ...] = BANDS) -> Path:
+    """Humanoid-v5 with elastic bands over two joints each (`BANDS`), written as
+    `humanoid_v5_exo_xml` is, for the env's physics; models of it get the plain MJCF, in
+    which no joint's own spring can express a coupling."""
+    spec = mujoco.MjSpec.from_file(str(humanoid_v5_xml()))
+    add_bands(spec, bands)
+    return _written(spec, "humanoid_tendon")
+
+
+def _written(spec: mujoco.MjSpec, stem: str) -> Path:
+    """`spec`'s MJCF written once per content to the system's temporary folder."""
     text = spec.to_xml()
     digest = hashlib.sha256(text.encode()).hexdigest()[:12]
-    path = Path(tempfile.gettempdir()) / "mbrl_delan" / f"humanoid_exo_{digest}.xml"
+    path = Path(tempfile.gettempdir()) / "mbrl_delan" / f"{stem}_{digest}.xml"
     if not path.is_file():
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp")

@@ -29,7 +29,12 @@ the white box) with MuJoCo's at the reference's states (medians over the states)
 - ``gravity_identity_residual``: |g_root - |gravity| M[root, z]| / |g_root| over the free
   root's six rows (where no spring acts): 0 for any rigid body under uniform gravity;
 - ``actuation_response_error``: |M^-1 B - M*^-1 B|_F / |M*^-1 B|_F, the acceleration per unit
-  of action the planner feels.
+  of action the planner feels;
+- ``spring_stiffness_error`` (where the physics' joint springs differ from the given MJCF's):
+  the median over those DoFs of |k - k*| / k*;
+- ``coupled_stiffness_error`` (where the physics has tendon springs, which couple joints):
+  |K - K*|_F / |K*|_F on the legs' hinges (`LEG_JOINTS`), K = dg/dq the Hessian of the
+  model's potential and K* MuJoCo's (central differences of `STIFFNESS_STEP`).
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import mujoco
 import numpy as np
 import torch
 from scipy.stats import spearmanr
@@ -53,6 +59,8 @@ from mbrl_delan.objectives.mujoco import ENV_PHYSICS, MujocoObjectiveFactory
 from mbrl_delan.systems.system import FREE, System
 from mbrl_delan.tasks.humanoid import HumanoidTask
 
+LEG_JOINTS = ("abdomen_y", "hip", "knee")  # the coupled stiffness's joints: names holding these
+STIFFNESS_STEP = 1e-3  # rad: the central differences of the stiffness matrices
 HORIZONS = (10, 30)  # head-height error horizons, control steps
 EVERY = 10  # a start every this many control steps of the oracle's episode
 VELOCITY_NOISE = 0.1  # perturbed starts: qd + this x the episode's per-DoF std x N(0, 1)
@@ -241,6 +249,8 @@ class RigidBodyTruth:
     gravity: float  # |g|, m/s^2
     stiffness: Tensor  # (nv,) each DoF's spring in the physics
     given_stiffness: Tensor  # (nv,) ... in the MJCF the models are given
+    legs: Tensor | None = None  # (m, 2) the legs' (qpos, DoF) indices, where the physics
+    coupled_stiffness: Tensor | None = None  # (S, m, m) K* there  ... has tendon springs
 
     @classmethod
     def of(cls, physics: System, q: Tensor, given: System | None = None) -> RigidBodyTruth:
@@ -252,10 +262,44 @@ class RigidBodyTruth:
         given_stiffness = (
             stiffness if given is None else torch.from_numpy(dof_stiffness(given.mj_model()))
         )
+        legs, coupled = None, None
+        if bool((np.asarray(model.tendon_stiffness).reshape(model.ntendon, -1)[:, 0] > 0).any()):
+            legs = torch.as_tensor(leg_joints(model))
+            coupled = torch.from_numpy(mujoco_stiffness(model, q.to(torch.float64).numpy(),
+                                                        legs.tolist()))  # fmt: skip
         return cls(q.to(torch.float64), torch.from_numpy(mass), torch.from_numpy(force),
                    physics.actuation.to(torch.float64), float(model.body_mass.sum()),
                    float(np.linalg.norm(model.opt.gravity)), stiffness,
-                   given_stiffness)  # fmt: skip
+                   given_stiffness, legs, coupled)  # fmt: skip
+
+
+def leg_joints(model: mujoco.MjModel) -> list[tuple[int, int]]:
+    """(qpos index, DoF) of each hinge whose name holds one of `LEG_JOINTS`."""
+    hinge = int(mujoco.mjtJoint.mjJNT_HINGE)
+    return [(int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j])) for j in range(model.njnt)
+            if model.jnt_type[j] == hinge
+            and any(part in (model.joint(j).name or "") for part in LEG_JOINTS)]  # fmt: skip
+
+
+def _shifted(q: np.ndarray, index: int) -> tuple[np.ndarray, np.ndarray]:
+    """q (S, nq) moved by +-`STIFFNESS_STEP` along one hinge's coordinate."""
+    up, down = q.copy(), q.copy()
+    up[:, index] += STIFFNESS_STEP
+    down[:, index] -= STIFFNESS_STEP
+    return up, down
+
+
+def mujoco_stiffness(model: mujoco.MjModel, q: np.ndarray, joints: list[list[int]]
+                     ) -> np.ndarray:  # fmt: skip
+    """K* = d(qfrc_bias - qfrc_passive at rest)/dq among hinges `joints` ((qpos, DoF)
+    pairs) at q (S, nq). (S, m, m)"""
+    dofs = [dof for _, dof in joints]
+    columns = []
+    for index, _ in joints:
+        up, down = _shifted(q, index)
+        slope = rigid_body_at(model, up)[1] - rigid_body_at(model, down)[1]
+        columns.append(slope[:, dofs] / (2 * STIFFNESS_STEP))
+    return np.stack(columns, -1)
 
 
 @torch.no_grad()
@@ -284,7 +328,9 @@ def rigid_body_metrics(model: WorldModel, truth: RigidBodyTruth) -> dict[str, fl
         residual = root - truth.gravity * mass[:, :6, 2]
         out["gravity_identity_residual"] = float((residual.norm(dim=-1) / root.norm(dim=-1))
                                                  .median())  # fmt: skip
-    return out | _stiffness_figures(model, truth, place)
+    return out | _stiffness_figures(model, truth, place) | _coupled_stiffness_figures(
+        model, truth, place
+    )
 
 
 def _stiffness_figures(model: WorldModel, truth: RigidBodyTruth, place: Any) -> dict[str, float]:
@@ -300,6 +346,21 @@ def _stiffness_figures(model: WorldModel, truth: RigidBodyTruth, place: Any) -> 
     learned = learned.to("cpu", torch.float64)
     error = (learned - truth.stiffness).abs() / truth.stiffness
     return {"spring_stiffness_error": float(error[changed].median())}
+
+
+def _coupled_stiffness_figures(model: WorldModel, truth: RigidBodyTruth, place: Any
+                               ) -> dict[str, float]:  # fmt: skip
+    """``coupled_stiffness_error`` (module docstring) where the physics has tendon springs."""
+    if truth.legs is None or truth.coupled_stiffness is None:
+        return {}
+    q, dofs = truth.q.numpy(), truth.legs[:, 1]
+    columns = []
+    for index in truth.legs[:, 0].tolist():
+        up, down = (torch.from_numpy(x).to(place.device, place.dtype) for x in _shifted(q, index))
+        slope = model.rigid_body(up).potential_force - model.rigid_body(down).potential_force
+        columns.append(slope.to("cpu", torch.float64)[:, dofs] / (2 * STIFFNESS_STEP))
+    learned = torch.stack(columns, -1)
+    return {"coupled_stiffness_error": _median_relative(learned, truth.coupled_stiffness)}
 
 
 def _median_relative(x: Tensor, truth: Tensor) -> float:
