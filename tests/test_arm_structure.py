@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from mbrl_delan.bench import run
-from mbrl_delan.benchmarks.own_arm import spring_stiffness_matrix
+from mbrl_delan.benchmarks.own_arm import main, spring_stiffness_matrix
 from mbrl_delan.benchmarks.records import read_records
 from mbrl_delan.conf.checks import ConfigError, compose_config
 from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, _run, load_fit_model
@@ -29,6 +29,7 @@ from mbrl_delan.systems.arms import (
     torque_limits,
     wrist_pair,
 )
+from tests.test_excitation import TWO_LINK
 from tests.test_own_arm import _bench
 
 QUIET = ExcitationSettings(samples=400, q_noise=0.0, tau_noise=0.0, cutoff_hz=None)
@@ -137,7 +138,7 @@ def test_a_model_mjcf_of_other_joints_or_no_file_is_a_config_error(tmp_path: Pat
 
 
 def test_the_suite_records_structure_and_model_mjcf_and_the_white_box_misses_springs(
-    tmp_path: Path,
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "own_arm.jsonl"
     run(_bench(["quick=true", "models=[white_box]", "friction=[coulomb_viscous]",
@@ -156,6 +157,11 @@ def test_the_suite_records_structure_and_model_mjcf_and_the_white_box_misses_spr
     assert 0.05 < r2[("coupling", "spring_torque_share")] < 2  # small about the middles
     stiffness = {r["arm_spring_stiffness"] for r in records if r["structure"] == "coupling"}
     assert len(stiffness) == 1 and stiffness.pop() > 0
+    assert main([str(out), "--table"]) == 0
+    table = capsys.readouterr().out.splitlines()
+    assert table[0].startswith("| MJCF lacks | arm | white_box R²") and len(table) == 4
+    coupled = r2[("coupling", "test_torque_r2")]
+    assert table[3].startswith(f"| coupling | panda | {coupled:.4f} | - |")  # one model: "-"
 
 
 def test_tree_delan_reports_its_residuals_stiffness(tmp_path: Path) -> None:
@@ -220,3 +226,16 @@ def _mujoco_rigid_body(model: mujoco.MjModel, q: np.ndarray) -> tuple[np.ndarray
         mujoco.mj_fullM(model, data, mass[i])
         gravity[i] = data.qfrc_bias - data.qfrc_passive
     return mass, gravity
+
+
+def test_friction_none_sets_a_files_own_damping_and_frictionloss_to_zero(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "rough.xml"
+    path.write_text(TWO_LINK.replace('range="-2 2"/>', 'range="-2 2" damping="3" '
+                                     'frictionloss="1" armature="0.1"/>'))  # fmt: skip
+    with caplog.at_level("INFO"):
+        plain = arm_model(str(path), "none")
+    assert not plain.dof_damping.any() and not plain.dof_frictionloss.any()
+    assert not plain.dof_armature.any()
+    assert "sets the file's damping, frictionloss, armature to zero" in caplog.text

@@ -2,7 +2,9 @@
 
 Its figure: ``python -m mbrl_delan.benchmarks.own_arm FILE [FILE ...] --out PNG [--robot panda]
 [--friction KIND]``: held-out torque MSE against training samples, one line per model (the
-mean over seeds, a band from the smallest to the largest), the points in the log.
+mean over seeds, a band from the smallest to the largest), the points in the log. Its table
+of what the MJCF lacks: ``python -m mbrl_delan.benchmarks.own_arm FILE [FILE ...] --table``
+(markdown on standard output, `structure_table`).
 
 For every robot (`mbrl_delan.systems.arms`: panda, iiwa14, ur5e, slim7, light6), friction
 kind (none, frictionloss, coulomb_viscous), structure the MJCF lacks (none, counterbalance,
@@ -312,10 +314,68 @@ def sample_curves(
     return {m: sorted(by_n.items()) for m, by_n in sorted(curves.items())}
 
 
+TABLE_MODELS = ("white_box", "tree_delan", "mlp")  # the table's models, in its order
+TABLE_ROWS = ("none", "counterbalance", "coupling")  # ... and structures
+
+
+def _by_seed(records: list[dict[str, Any]], metric: str) -> dict[tuple, dict[int, float]]:
+    """(structure, robot, model) -> seed -> the metric's value."""
+    out: dict[tuple, dict[int, float]] = {}
+    for r in records:
+        if r.get("suite") == SUITE and r.get("metric") == metric and r.get("value") is not None:
+            key = (r.get("structure", "none"), r["robot"], r["model"])
+            out.setdefault(key, {})[int(r["seed"])] = float(r["value"])
+    return out
+
+
+def _any_model(values: dict[tuple, dict[int, float]], row: tuple) -> dict[int, float]:
+    """A figure of the data, not the model: any model's record of the row's (structure,
+    robot)."""
+    return next((v for k, v in values.items() if k[:2] == row), {})
+
+
+def structure_table(records: list[dict[str, Any]]) -> list[str]:
+    """The markdown table of what an MJCF lacks (docs/own_robot.md): per structure and arm,
+    each model's test R^2 per seed ('a / b / c'), the arm's own R^2, tree_delan's M error,
+    the springs' torque share and the residual's learned stiffness against the arm's."""
+    seeds = sorted({int(r["seed"]) for r in records if r.get("suite") == SUITE})
+
+    def cell(values: dict[int, float], fmt: str, scale: float = 1.0) -> str:
+        return " / ".join(format(scale * values[s], fmt) if s in values else "-" for s in seeds)
+
+    figures = {m: _by_seed(records, m) for m in (
+        "test_torque_r2", "truth_torque_r2", "mass_matrix_error", "spring_torque_share",
+        "spring_stiffness")}  # fmt: skip
+    arm = {(r.get("structure"), r["robot"]): r["arm_spring_stiffness"] for r in records
+           if r.get("suite") == SUITE and "arm_spring_stiffness" in r}  # fmt: skip
+    rows = sorted({k[:2] for k in figures["test_torque_r2"]},
+                  key=lambda k: (TABLE_ROWS.index(k[0]), k[1]))  # fmt: skip
+    head = ["MJCF lacks", "arm", *(f"{m} R²" for m in TABLE_MODELS), "arm's own R²",
+            "tree_delan M error (%)", "springs' torque share", "learned / arm's stiffness"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for row in rows:
+        r2 = [cell(figures["test_torque_r2"].get((*row, m), {}), ".4f") for m in TABLE_MODELS]
+        stiffness = "-"
+        if row in arm:
+            learned = figures["spring_stiffness"].get((*row, "tree_delan"), {})
+            stiffness = f"{cell(learned, '.3g')} / {arm[row]:.3g}"
+        lines.append("| " + " | ".join([
+            *row, *r2, cell(_any_model(figures["truth_torque_r2"], row), ".4f"),
+            cell(figures["mass_matrix_error"].get((*row, "tree_delan"), {}), ".2f", 100),
+            cell(_any_model(figures["spring_torque_share"], row), ".2f"), stiffness,
+        ]) + " |")  # fmt: skip
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="suite own_arm's sample-efficiency figure")
+    parser = argparse.ArgumentParser(
+        description="suite own_arm's sample-efficiency figure, or (--table) its table of what "
+        "the MJCF lacks"
+    )
     parser.add_argument("files", nargs="+", type=Path, help="records of suite own_arm (JSONL)")
-    parser.add_argument("--out", type=Path, required=True, help="the figure to write (PNG)")
+    parser.add_argument("--out", type=Path, help="the figure to write (PNG)")
+    parser.add_argument("--table", action="store_true",
+                        help="print the markdown table of structure records instead")  # fmt: skip
     parser.add_argument("--robot", default="panda", choices=OWN_ARM_ROBOTS)
     parser.add_argument("--friction", default="none", choices=FRICTION_KINDS,
                         help="the arm's joint friction")  # fmt: skip
@@ -324,6 +384,11 @@ def main(argv: list[str] | None = None) -> int:
     records = read_record_files(args.files)
     if records is None:
         return 2
+    if args.table:
+        print("\n".join(structure_table(records)))
+        return 0
+    if args.out is None:
+        parser.error("give --out PNG for the figure, or --table")
     curves = sample_curves(records, args.robot, args.friction)
     if not curves:
         log.error("no %s test_torque_mse records of %s in %s", SUITE, args.robot,

@@ -123,30 +123,6 @@ def _override_under_null(err: AssertionError) -> str | None:
     return None
 
 
-def check_whole(path: str, value: Any, low: int, optional: bool = False) -> None:
-    """A whole number >= low (or null when `optional`), else a `ConfigError` naming it."""
-    if optional and value is None:
-        return
-    if not isinstance(value, int) or isinstance(value, bool) or value < low:
-        null = " or null" if optional else ""
-        raise ConfigError(
-            f"{path}={value!r} is not valid; it must be a whole number >= {low}{null}"
-        )
-
-
-def check_number(
-    path: str, value: Any, low: float, high: float = math.inf, open_low: bool = False
-) -> None:
-    """A finite number in [low, high] ((low, high] with `open_low`), else a `ConfigError`."""
-    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-    if ok:
-        ok = (value > low if open_low else value >= low) and value <= high
-    if not ok:
-        bound = f"> {low}" if open_low else f">= {low}"
-        limit = "" if high == math.inf else f" and <= {high}"
-        raise ConfigError(f"{path}={value!r} is not valid; it must be a number {bound}{limit}")
-
-
 def build_fit_config(cfg: DictConfig) -> FitConfig:
     """`FitConfig` from ``cfg.fit``; a bad or unknown key is a `ConfigError` naming it."""
     values = OmegaConf.to_container(cfg.fit)

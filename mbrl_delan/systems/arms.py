@@ -13,7 +13,8 @@ torque motors at the joints' limits) with each joint's velocity limit:
 and rotor inertia of the kind `friction` names (`FRICTION_KINDS`), each a share of the
 joint's torque limit (`FRICTION`):
 
-- ``none``: no friction, no armature;
+- ``none``: no friction, no armature (a file's own damping, frictionloss and armature are
+  set to zero);
 - ``frictionloss``: viscous damping (MuJoCo's ``damping``), Coulomb friction as MuJoCo's
   soft ``frictionloss`` constraint, and armature;
 - ``coulomb_viscous``: viscous damping and armature in the model; the Coulomb force
@@ -188,9 +189,9 @@ def arm_model(
     spec = mujoco.MjSpec.from_file(str(_asset(arm(robot))))
     model = spec.compile()
     check_arm(model, robot)
-    if kind == "none" and structure == "none":
-        return model
-    if kind != "none":
+    if kind == "none":
+        _without_friction(spec, model, robot)
+    else:
         limits = _finite_limits(model, robot, kind)
         for joint, limit in zip(spec.joints, limits, strict=True):
             damping = np.array(joint.damping)  # linear, then MuJoCo's polynomial terms
@@ -201,6 +202,20 @@ def arm_model(
     if structure != "none":
         _add_springs(spec, model, robot, structure)
     return spec.compile()
+
+
+def _without_friction(spec: mujoco.MjSpec, model: mujoco.MjModel, robot: str) -> None:
+    """Friction ``none``: a file's own damping, frictionloss and armature set to zero (said
+    in the log where it had any)."""
+    had = [name for name, values in (("damping", model.dof_damping),
+                                     ("frictionloss", model.dof_frictionloss),
+                                     ("armature", model.dof_armature)) if values.any()]  # fmt: skip
+    if had:
+        log.info("%s: friction=none sets the file's %s to zero", robot, ", ".join(had))
+    for joint in spec.joints:
+        joint.damping = np.zeros_like(np.array(joint.damping, dtype=float))
+        joint.frictionloss = 0.0
+        joint.armature = 0.0
 
 
 def _middle_and_half(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
