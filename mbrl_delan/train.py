@@ -68,9 +68,9 @@ from mbrl_delan.training.recorder import (
     WEIGHTS_FILE,
     Recorder,
     WandbOptions,
-    read_metrics,
     resume_metrics,
 )
+from mbrl_delan.training.summary import last_evaluation, run_summary, with_zero_baseline
 
 log = logging.getLogger("mbrl_delan.train")
 LOG_FILE = "train.log"  # Hydra's log of the run, in its run dir (hydra.job.name)
@@ -196,7 +196,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     with recorder:
         _run(cfg, run_dir, loop, oracle, recorder)
         _save_weights(run_dir, loop)
-        summary = _summary(cfg, run_dir, loop)
+        summary = run_summary(cfg, run_dir, loop)
         recorder.write_summary(summary)
         for path in plot_run(run_dir):
             recorder.log_image(path.stem, path)
@@ -214,9 +214,9 @@ def _complete_summary(
     if "gap_closed" not in summary:
         loop.evaluate_zero(cfg.budget.final_eval_episodes)
         _save(run_dir, loop)
-        summary = _with_zero_baseline(loop, summary)
+        summary = with_zero_baseline(loop, summary)
     if "eval_steps_median" not in summary:
-        summary["eval_steps_median"] = _last_evaluation(run_dir).get("eval_steps_median")
+        summary["eval_steps_median"] = last_evaluation(run_dir).get("eval_steps_median")
     text = json.dumps(summary, indent=2, sort_keys=True) + "\n"
     atomic_write(run_dir / SUMMARY_FILE, lambda f: f.write(text.encode("utf-8")), keep_prev=False)
     log.info("completed %s with the fields it was saved without", run_dir / SUMMARY_FILE)
@@ -270,56 +270,6 @@ def _run(
     finally:
         oracle_bar.close()
         bar.close()
-
-
-def _summary(cfg: DictConfig, run_dir: Path, loop: MBRLLoop) -> dict[str, Any]:
-    last = _last_evaluation(run_dir)
-    oracle = loop.oracle_returns or []
-    oracle_mean = loop.oracle_mean
-    eval_mean = last.get("eval_return_mean", float("nan"))
-    return _with_zero_baseline(
-        loop,
-        {
-            "env": cfg.env.name,
-            "model": cfg.model.name,
-            "planner": cfg.planner.name,
-            "seed": cfg.seed,
-            "device": cfg.device,
-            "env_steps": loop.counters.env_steps,
-            "episodes": loop.counters.episodes,
-            "iterations": loop.counters.iteration,
-            "wall_time_s": loop.counters.wall_time_s,
-            "eval_return_mean": eval_mean,
-            "eval_return_std": last.get("eval_return_std"),
-            "oracle_return_mean": oracle_mean,
-            "oracle_return_std": float(torch.tensor(oracle).std(unbiased=False))
-            if oracle
-            else None,
-            "fraction_of_oracle": eval_mean / oracle_mean if oracle_mean else None,
-            "eval_steps_median": last.get("eval_steps_median"),
-        }
-        | {key: last[key] for key in PAIRED_KEYS if key in last},
-    )
-
-
-# a paired final evaluation's figures (`MBRLLoop.paired_figures`), in the summary too
-PAIRED_KEYS = ("paired_episodes", "falls", "oracle_falls", "both_stood", "standing_return_ratio")
-
-
-def _last_evaluation(run_dir: Path) -> dict[str, Any]:
-    """The run's last record with evaluation figures ({} before its first)."""
-    records = [r for r in read_metrics(run_dir / METRICS_FILE) if "eval_return_mean" in r]
-    return records[-1] if records else {}
-
-
-def _with_zero_baseline(loop: MBRLLoop, summary: dict[str, Any]) -> dict[str, Any]:
-    """The summary with the zero-control baseline: `zero_torque_return_mean` R0 and
-    `gap_closed` = (R - R0) / (R_oracle - R0) (None where undefined)."""
-    zero = loop.zero_returns
-    r0 = sum(zero) / len(zero) if zero else None
-    gap = summary["oracle_return_mean"] - r0 if r0 is not None else None
-    closed = (summary["eval_return_mean"] - r0) / gap if gap else None
-    return summary | {"zero_torque_return_mean": r0, "gap_closed": closed}
 
 
 def _print_summary(run_dir: Path, s: dict[str, Any]) -> None:

@@ -33,7 +33,7 @@ from mbrl_delan.models.tree import (
     documented_start,
     geometric_start,
 )
-from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus
+from mbrl_delan.objectives.mujoco import PlanPhysics, mujoco_threads
 from mbrl_delan.planners.base import Planner, SamplingPlanner
 from mbrl_delan.planners.cem import CEMPlanner
 from mbrl_delan.planners.icem import ICEMPlanner
@@ -236,7 +236,7 @@ def _white_box(cfg: DictConfig, system: System) -> WhiteBoxModel:
         system,
         physics=PlanPhysics(cfg.substeps, cfg.integrator),
         identify=IdentifyConfig(cfg.window, cfg.windows, cfg.iterations, cfg.fd_step),
-        nthread=min(available_cpus(), 8),
+        nthread=mujoco_threads(),
     )
     if cfg.start == "documented":
         model.set_multipliers(model.white.documented_start())

@@ -737,8 +737,8 @@ def _write_identified(model: InverseDynamicsModel, system: FitSystem, run_dir: P
     """``identified.xml`` (`mbrl_delan.training.identified`) for a model with an MJCF's
     numbers: the white box and DeLaN on the tree."""
     numbers = identified_numbers(model)
-    spec = system.mjcf_spec()
-    if numbers is not None and spec is not None:
+    spec = None if numbers is None else system.mjcf_spec()
+    if spec is not None:
         (run_dir / IDENTIFIED_FILE).write_text(identified_xml(spec, numbers))
 
 

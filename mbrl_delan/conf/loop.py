@@ -43,7 +43,7 @@ from mbrl_delan.envs.registry import EnvParts, make_env_parts
 from mbrl_delan.models.base import WorldModel, model_placement
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.objectives.model import model_objective_factory
-from mbrl_delan.objectives.mujoco import PlanPhysics, available_cpus, mujoco_objective_factory
+from mbrl_delan.objectives.mujoco import PlanPhysics, mujoco_objective_factory, mujoco_threads
 from mbrl_delan.planners.base import Planner
 from mbrl_delan.planners.humanoid_residual import HUMANOID_ILQR, humanoid_ilqr_policy
 from mbrl_delan.planners.policy import PlannerPolicy
@@ -132,7 +132,7 @@ def build_oracle(cfg: DictConfig, system: System, task: Task) -> PlannerPolicy:
 def _ilqr_oracle(
     cfg: DictConfig, system: System, task: Task, physics: PlanPhysics
 ) -> PlannerPolicy:
-    nthread = min(available_cpus(), 8)
+    nthread = mujoco_threads()
     horizon = cfg.env.oracle_horizon or cfg.planner.horizon
     if isinstance(task, MotionTracking):
         settings = replace(TRACKING_ILQR, horizon=horizon)

@@ -47,6 +47,7 @@ from mbrl_delan.systems.arms import (
     arm_model,
     coulomb_friction,
     friction_kind,
+    range_middle_and_half,
     torque_limits,
     velocity_limits,
 )
@@ -100,9 +101,7 @@ class _Limits:
 
     @classmethod
     def of(cls, model: mujoco.MjModel, max_velocity: np.ndarray, use: float) -> _Limits:
-        low, high = model.jnt_range[:, 0], model.jnt_range[:, 1]
-        centre = np.where(model.jnt_limited > 0, (low + high) / 2, 0.0)
-        half = np.minimum(np.where(model.jnt_limited > 0, (high - low) / 2, math.pi), math.pi)
+        centre, half = range_middle_and_half(model)
         return cls(centre, use * half, use * max_velocity)
 
 

@@ -13,7 +13,6 @@ state after them.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -38,11 +37,10 @@ QPOS = int(mujoco.mjtState.mjSTATE_QPOS)
 QVEL = int(mujoco.mjtState.mjSTATE_QVEL)
 
 
-def available_cpus() -> int:
-    """CPUs this process may run on."""
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0))
-    return os.cpu_count() or 1
+def mujoco_threads() -> int:
+    """MuJoCo's rollout threads: as many as torch's intra-op threads, which every entry
+    point's ``threads`` sets (null: torch's default, one per core); one meaning for both."""
+    return torch.get_num_threads()
 
 
 @dataclass(frozen=True)
@@ -205,7 +203,7 @@ class MujocoObjectiveFactory(ObjectiveFactory):
         model: tuple[mujoco.MjModel, int] | None = None,
     ) -> None:
         if nthread is None:
-            nthread = min(available_cpus(), 8)
+            nthread = mujoco_threads()
         if nthread < 1:
             raise ValueError(f"nthread must be >= 1, got {nthread}")
         if not 0 < discount <= 1:
@@ -310,6 +308,6 @@ def mujoco_objective_factory(
     """The oracle: (q0 (nq,), qd0 (nv,)) -> objective over (N, H, nu) actions, true dynamics
     (or MuJoCo's with a coarser step or cheaper integrator: `physics`).
 
-    nthread: MuJoCo rollout threads (None: up to 8, bounded by the CPU count).
+    nthread: MuJoCo rollout threads (None: `mujoco_threads`, as many as torch's).
     """
     return MujocoObjectiveFactory(system, task, nthread, discount, physics)

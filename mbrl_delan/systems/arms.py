@@ -30,7 +30,7 @@ torque limit, `SPRINGS`):
 - ``coupling``: a tendon spring over two wrist joints (`wrist_pair`), MuJoCo's fixed tendon
   q_a + q_b with a stiffness, so that each joint's spring torque depends on both.
 
-`cad_model(robot, seed)` is the arm's MJCF as a CAD export gives it (`CAD_ERROR`): every
+`cad_spec(robot, seed)` is the arm's MJCF as a CAD export gives it (`CAD_ERROR`): every
 moving body's mass and rotational inertia scaled by factors drawn in U(0.6, 1.4), its centre
 of mass moved by up to 2 cm; the kinematics are the arm's.
 """
@@ -218,7 +218,7 @@ def _without_friction(spec: mujoco.MjSpec, model: mujoco.MjModel, robot: str) ->
         joint.armature = 0.0
 
 
-def _middle_and_half(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+def range_middle_and_half(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
     """Each joint's range middle and half-width (at most pi; 0 and pi where unlimited)."""
     low, high = model.jnt_range[:, 0], model.jnt_range[:, 1]
     limited = model.jnt_limited > 0
@@ -229,7 +229,7 @@ def _middle_and_half(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
 def shoulder_joint(model: mujoco.MjModel) -> int:
     """The joint gravity loads most: the largest RMS of its gravity torque over `POSES`
     poses drawn uniformly within the ranges (seeded)."""
-    middle, half = _middle_and_half(model)
+    middle, half = range_middle_and_half(model)
     poses = middle + half * np.random.default_rng(0).uniform(-1, 1, (POSES, model.nq))
     data = mujoco.MjData(model)
     gravity = np.zeros((POSES, model.nv))
@@ -250,7 +250,7 @@ def wrist_pair(model: mujoco.MjModel) -> tuple[int, int]:
 def _add_springs(spec: mujoco.MjSpec, model: mujoco.MjModel, robot: str, kind: str) -> None:
     """`kind`'s springs (module docstring) added to `spec` of the arm `model`."""
     limits = _finite_limits(model, robot, f"structure={kind} (sized by the torque limits)")
-    middle, half = _middle_and_half(model)
+    middle, half = range_middle_and_half(model)
     if kind == "counterbalance":
         j = shoulder_joint(model)
         joint = spec.joints[j]
