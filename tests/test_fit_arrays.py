@@ -487,3 +487,28 @@ def test_a_test_error_far_above_the_validation_error_is_warned_about(caplog) -> 
         assert generalisation_gap({"val": {"r2": 0.999}, "test": {"r2": 0.995}}, "val") < 0.01
         assert generalisation_gap(final, None) is None  # nothing stops the training
     assert not caplog.text
+
+
+@pytest.mark.parametrize("damage", ["truncated", "text"])
+def test_a_damaged_or_foreign_npz_exits_2_in_one_line(
+    arm2_data, tmp_path, run_main, damage
+) -> None:
+    """A truncated archive and a text file named .npz: one line naming the file, exit 2,
+    no run folder (not zipfile's traceback, not a reason about pickled data)."""
+    from mbrl_delan.fit import main
+
+    good = tmp_path / "good.npz"
+    np.savez(good, **_fields(arm2_data))
+    path = tmp_path / "bad.npz"
+    if damage == "truncated":
+        path.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    else:
+        path.write_text("t,q0,q1\n0,1,2\n")
+    with pytest.raises(ArrayFormatError, match="is not a readable .npz archive"):
+        array_inverse_data(path, FitSystem.of("arm2"))
+    run_dir = tmp_path / "new"
+    args = [f"data.path={path}", "data=arrays", "data.joints=[hinge,hinge]", "logger=none"]
+    code, text = run_main(main, *args, f"hydra.run.dir={run_dir}")
+    assert code == 2 and "Traceback" not in text and "pickled" not in text, text
+    assert f"bad data file: {path}: field '<file>': is not a readable .npz archive" in text
+    assert not run_dir.exists()

@@ -30,6 +30,7 @@ import logging
 import math
 import pickle
 import re
+import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -74,6 +75,8 @@ class DerivativeSettings:
 
 
 def _read_npz(path: Path) -> dict[str, Any]:
+    if not zipfile.is_zipfile(path):  # np.load would take it for pickled data
+        raise ArrayFormatError(path, "<file>", "is not a readable .npz archive (a truncated file, or not a zip archive)")
     with np.load(path, allow_pickle=False) as data:
         return {name: data[name] for name in data.files}
 
@@ -127,7 +130,8 @@ def read_arrays(path: str | Path) -> dict[str, np.ndarray]:
     readers = {".npz": _read_npz, ".pt": _read_pt, ".csv": _read_csv}
     try:
         raw = readers[path.suffix](path)
-    except (OSError, ValueError, RuntimeError, EOFError, pickle.UnpicklingError) as err:
+    except (OSError, ValueError, RuntimeError, EOFError, pickle.UnpicklingError,
+            zipfile.BadZipFile) as err:  # fmt: skip
         if isinstance(err, ArrayFormatError):
             raise
         raise ArrayFormatError(path, "<file>", f"cannot be read ({err})") from None
