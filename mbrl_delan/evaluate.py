@@ -274,9 +274,16 @@ def key_value_option(options: Sequence[str]) -> Callable[[str], tuple[str, str]]
 _option = key_value_option(OPTIONS)
 
 
+def program_name(module: str) -> str:
+    """How the user called a command-line tool: its console script's name
+    (``mbrl-delan-evaluate``), else ``python -m <module>``."""
+    called = Path(sys.argv[0]).name
+    return called if called.startswith("mbrl-delan-") else f"python -m {module}"
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python -m mbrl_delan.evaluate",
+        prog=program_name("mbrl_delan.evaluate"),
         description="A saved fit's (or train run's DeLaN's) inverse-dynamics errors on data.",
     )
     p.add_argument("run_dir", type=Path, help="a run dir of mbrl_delan.fit or mbrl_delan.train")

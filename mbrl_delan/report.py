@@ -40,6 +40,7 @@ import yaml
 from omegaconf import OmegaConf
 from scipy import stats
 
+from mbrl_delan.evaluate import program_name
 from mbrl_delan.figure_style import legend_below, page_figure, save_figure
 from mbrl_delan.sweep import CRASH_FILE, last_iteration, read_crash
 from mbrl_delan.training.recorder import METRICS_FILE, RUN_CONFIG, flat_config, read_metrics
@@ -628,7 +629,9 @@ def figure_path(figure: Path, out: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog=program_name("mbrl_delan.report"), description=__doc__.splitlines()[0]
+    )
     parser.add_argument("roots", nargs="+", type=Path, help="folders holding run dirs")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: DIR)")
     parser.add_argument(

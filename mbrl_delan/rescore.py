@@ -32,7 +32,7 @@ from omegaconf import DictConfig
 
 from mbrl_delan.conf.checks import DTYPES, ConfigError
 from mbrl_delan.conf.loop import build_loop, build_world_model, env_parts
-from mbrl_delan.evaluate import key_value_option
+from mbrl_delan.evaluate import key_value_option, program_name
 from mbrl_delan.runs import load_run
 from mbrl_delan.training.checkpoint import CheckpointError, RunWriteError, atomic_write
 from mbrl_delan.training.loop import MBRLLoop
@@ -101,7 +101,7 @@ def _paired(loop: MBRLLoop, record: dict[str, Any], n: int) -> dict[str, Any]:
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="python -m mbrl_delan.rescore",
+        prog=program_name("mbrl_delan.rescore"),
         description="A finished train run's paired final evaluation, again, from its record.",
     )
     p.add_argument("run_dir", type=Path, help="a finished train run's folder or record folder")

@@ -21,8 +21,8 @@ from tqdm import tqdm
 
 from mbrl_delan.conf.checks import (
     ConfigError,
+    command_line_overrides,
     exit_on_config_errors,
-    task_overrides,
     validate_train_config,
 )
 from mbrl_delan.conf.loop import (
@@ -363,7 +363,7 @@ def run(cfg: DictConfig) -> float | None:
 
 def main() -> None:
     """``python -m mbrl_delan.train``: a config error exits 2 with one line naming it."""
-    sys.argv[1:] = task_overrides(sys.argv[1:])
+    sys.argv[1:] = command_line_overrides(sys.argv[1:])
     exit_on_config_errors(run)
 
 

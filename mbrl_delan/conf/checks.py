@@ -161,20 +161,32 @@ CONFIG_DIR = CONFIGS / "train"  # python -m mbrl_delan.train's
 TASK_OVERRIDES = ("env.task.", "env.task=")
 
 
-def task_overrides(overrides: Sequence[str]) -> list[str]:
-    """`overrides` with each plain ``env.task.<option>=`` (or ``env.task=``) one add-or-set."""
-    return [f"++{o}" if o.startswith(TASK_OVERRIDES) else o for o in overrides]
+def command_line_overrides(overrides: Sequence[str]) -> list[str]:
+    """`overrides` with each plain ``env.task.<option>=`` (or ``env.task=``) one add-or-set,
+    and each former name of `RENAMED` (``model=whitebox``) its current one, with a one-line
+    notice (the former names have no config of their own: ``--help`` lists only the
+    current ones)."""
+    return [_current_name(f"++{o}" if o.startswith(TASK_OVERRIDES) else o) for o in overrides]
+
+
+def _current_name(override: str) -> str:
+    family, _, name = override.partition("=")
+    current = RENAMED.get(family, {}).get(name)
+    if current is None:
+        return override
+    log.warning("%s=%s is now %s=%s: read as that", family, name, family, current)
+    return f"{family}={current}"
 
 
 def compose_config(config_dir: Path, overrides: Sequence[str] = ()) -> DictConfig:
     """The config Hydra composes from ``config_dir/config.yaml`` with `overrides` (as on the
-    command line, `task_overrides` applied), also inside a running Hydra app (its own Hydra
+    command line, `command_line_overrides` applied), also inside a running Hydra app (its own Hydra
     is put back after)."""
     running = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
-            return compose("config", overrides=task_overrides(overrides))
+            return compose("config", overrides=command_line_overrides(overrides))
     finally:  # the running app's Hydra back (the context set a new GlobalHydra instance)
         GlobalHydra.instance().clear()
         if running is not None:

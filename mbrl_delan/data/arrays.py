@@ -76,7 +76,9 @@ class DerivativeSettings:
 
 def _read_npz(path: Path) -> dict[str, Any]:
     if not zipfile.is_zipfile(path):  # np.load would take it for pickled data
-        raise ArrayFormatError(path, "<file>", "is not a readable .npz archive (a truncated file, or not a zip archive)")
+        raise ArrayFormatError(
+            path, "<file>", "is not a readable .npz archive (a truncated file, or not a zip one)"
+        )
     with np.load(path, allow_pickle=False) as data:
         return {name: data[name] for name in data.files}
 
