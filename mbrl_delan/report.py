@@ -655,7 +655,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 2
     table_rows = rows(summaries)
-    log.info("%s", markdown_table(table_rows))
+    print(markdown_table(table_rows))  # the table is the output: standard output
     for run in incomplete:
         log.warning("incomplete run %s: %s", run, incomplete_reason(run))
     out = args.out or default_out(args.roots[0])

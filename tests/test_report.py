@@ -371,3 +371,12 @@ def test_figure_titles_name_an_interval_only_where_one_is_drawn() -> None:
         {group: {15: [1.0, 2.0], 45: [3.0]}}
     )
     assert spread_note({group: {15: [1.0], 30: [2.0]}}) == "one run per point, no interval"
+
+
+def test_the_table_goes_to_standard_output_and_the_notes_to_the_log(tmp_path: Path, capsys) -> None:
+    make_run(tmp_path / "runs", "a", summary(0, 40.0, 40.0))
+    make_run(tmp_path / "runs", "b", summary(1, 30.0, 40.0))
+    assert main([str(tmp_path / "runs")]) == 0
+    out, err = capsys.readouterr()
+    assert out.startswith("| ") and "| 0,1 | 2 |" in out
+    assert "| 0,1 | 2 |" not in err
