@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import sys
+from dataclasses import replace
 
 import hydra
 import torch
@@ -29,6 +30,7 @@ from mbrl_delan.conf.checks import (
     exit_on_config_errors,
     load_config_plugins,
 )
+from mbrl_delan.provenance import provenance
 
 log = logging.getLogger("mbrl_delan.bench")
 
@@ -72,8 +74,9 @@ def run(cfg: DictConfig) -> RecordWriter:
         torch.get_num_threads(),
         f", appending to {writer.path}" if writer.path else "",
     )
+    stamp = provenance("mbrl_delan.bench")  # the command, the code and the host at the start
     for record in suite(options, bench):
-        writer.write(record)
+        writer.write(replace(record, extra=record.extra | stamp))
     log.info("suite %s:\n%s", cfg.suite, format_table(writer.records))
     return writer
 

@@ -47,6 +47,7 @@ from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.integrators import integrate
 from mbrl_delan.models.inverse import DeLaNInverse, InverseDynamicsModel
 from mbrl_delan.models.lagrangian import LagrangianDynamics
+from mbrl_delan.provenance import program_name
 from mbrl_delan.runs import Run, load_run
 from mbrl_delan.systems.system import JointLayout
 from mbrl_delan.training.checkpoint import (
@@ -272,13 +273,6 @@ def key_value_option(options: Sequence[str]) -> Callable[[str], tuple[str, str]]
 
 
 _option = key_value_option(OPTIONS)
-
-
-def program_name(module: str) -> str:
-    """How the user called a command-line tool: its console script's name
-    (``mbrl-delan-evaluate``), else ``python -m <module>``."""
-    called = Path(sys.argv[0]).name
-    return called if called.startswith("mbrl-delan-") else f"python -m {module}"
 
 
 def parser() -> argparse.ArgumentParser:

@@ -40,8 +40,8 @@ import yaml
 from omegaconf import OmegaConf
 from scipy import stats
 
-from mbrl_delan.evaluate import program_name
 from mbrl_delan.figure_style import legend_below, page_figure, save_figure
+from mbrl_delan.provenance import program_name
 from mbrl_delan.sweep import CRASH_FILE, last_iteration, read_crash
 from mbrl_delan.training.recorder import METRICS_FILE, RUN_CONFIG, flat_config, read_metrics
 

@@ -32,7 +32,8 @@ from omegaconf import DictConfig
 
 from mbrl_delan.conf.checks import DTYPES, ConfigError
 from mbrl_delan.conf.loop import build_loop, build_world_model, env_parts
-from mbrl_delan.evaluate import key_value_option, program_name
+from mbrl_delan.evaluate import key_value_option
+from mbrl_delan.provenance import program_name
 from mbrl_delan.runs import load_run
 from mbrl_delan.training.checkpoint import CheckpointError, RunWriteError, atomic_write
 from mbrl_delan.training.loop import MBRLLoop

@@ -34,6 +34,7 @@ from mbrl_delan.conf.loop import (
 from mbrl_delan.conf.videos import check_video, write_videos
 from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.provenance import provenance
 from mbrl_delan.runs import OracleEpisodes, oracle_of_run
 from mbrl_delan.sweep import (
     crash_dir,
@@ -153,6 +154,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     if cfg.resume is not None:
         remove_stale_temps(run_dir)
     loop, oracle = build_loop(cfg, run_dir)
+    stamp = provenance("mbrl_delan.train")  # the command, the code, the host at the start
     if state is None and cfg.model.get("init_from") is not None:
         start_mechanics(cfg.model, loop.model, loop.system)
     # written once the run is built: an error found while building (a missing clip) leaves no
@@ -196,7 +198,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     with recorder:
         _run(cfg, run_dir, loop, oracle, recorder)
         _save_weights(run_dir, loop)
-        summary = run_summary(cfg, run_dir, loop)
+        summary = run_summary(cfg, run_dir, loop) | stamp
         recorder.write_summary(summary)
         for path in plot_run(run_dir):
             recorder.log_image(path.stem, path)

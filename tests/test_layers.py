@@ -24,7 +24,7 @@ MODULES = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
 # bottom to top: a module may import from its own floor and the ones below (a folder's
 # modules share its floor; "" is the package's __init__)
 FLOORS = (
-    ("", "keys", "rules", "registry", "figure_style", "configs"),
+    ("", "keys", "rules", "registry", "figure_style", "configs", "provenance"),
     ("systems",),
     ("tasks",),
     ("models",),

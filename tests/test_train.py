@@ -118,6 +118,10 @@ def test_tiny_training_run_writes_everything(finished_run: Path) -> None:
         "eval_return_mean",
         "eval_return_std",
         "oracle_return_mean",
+        "command",  # where it comes from (mbrl_delan.provenance)
+        "git_commit",
+        "dirty",
+        "host",
     ):
         assert key in summary, key
     assert summary["env"] == "pendulum" and summary["model"] == "delan"

@@ -9,12 +9,10 @@ checking suites imports nothing heavy).
 from __future__ import annotations
 
 import importlib
-import platform
 import statistics
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any, TypeVar
 
 import torch
@@ -38,6 +36,7 @@ from mbrl_delan.conf.bench_names import (  # noqa: F401 - the suites' names, re-
     split_plugin_case,
 )
 from mbrl_delan.conf.bench_schema import SUITE_NAMES, SUITES  # noqa: F401 - re-exported
+from mbrl_delan.provenance import cpu_name
 
 Suite = Callable[[Any, "BenchSettings"], Iterator[BenchRecord]]
 C = TypeVar("C")
@@ -157,16 +156,6 @@ def single_call_seconds(fn: Callable[[], object], sync: Callable[[], None]) -> f
     """Seconds of one call after one untimed call (for predicting whether to skip)."""
     fn()
     return _timed(fn, 1, sync)
-
-
-def cpu_name() -> str:
-    """The CPU model name (from /proc/cpuinfo on Linux, else `platform.processor()`)."""
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.is_file():
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    return platform.processor() or "unknown"
 
 
 def host_fields(device: torch.device) -> dict[str, Any]:

@@ -71,6 +71,7 @@ from mbrl_delan.models.inverse import (
     InverseDynamicsModel,
 )
 from mbrl_delan.models.rigid_body import WhiteBoxInverse
+from mbrl_delan.provenance import provenance
 from mbrl_delan.registry import (
     INVERSE_MODELS,
 )
@@ -464,6 +465,7 @@ def fit_splits(
     torch.manual_seed(cfg.seed)
     device, dtype = check_device(cfg.device), DTYPES[cfg.dtype]
     start = time.perf_counter()
+    stamp = provenance("mbrl_delan.fit")  # the command, the code, the host at the start
     data = make_inverse_data(cfg.data)
     if cfg.stop_on is not None and data.splits[cfg.stop_on].shape[0] == 0:
         raise ConfigError(f"stop_on={cfg.stop_on!r}: that split of the data is empty")
@@ -489,6 +491,7 @@ def fit_splits(
         summary = fit_summary(cfg, data, model, splits, results)
         summary["train_s"] = train_s  # training (identification) with its evaluations
         summary["wall_time_s"] = time.perf_counter() - start
+        summary |= stamp
         recorder.write_summary(summary)
         _write_identified(model, data.system, run_dir)
         recorder.log_image("loss_curves", _save_model_and_curves(cfg, model, run_dir))
