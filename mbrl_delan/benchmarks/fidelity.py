@@ -28,7 +28,11 @@ Besides the fidelity figures, every case with a rigid body gets the rigid-body f
 ``actuation_response_error``).
 
 Every record carries `model` (the case), `data` (what the model was fitted on), `metric`,
-the episode's `seed` and `oracle_steps`, the suite's `overrides`, and the host fields.
+`env`, `learn_springs` and `spring_potential` (the model config's), the episode's `seed` and
+`oracle_steps`, the suite's `overrides`, and the host fields. On an env whose springs the
+given MJCF lacks, also ``spring_stiffness_error`` (joint springs, `humanoid_stand_exo`) and
+``coupled_stiffness_error`` (tendon springs, `humanoid_stand_tendon`;
+`training.fidelity.rigid_body_metrics`).
 """
 
 from __future__ import annotations
@@ -75,7 +79,7 @@ from mbrl_delan.training.whitebox import WhiteBoxModel
 log = logging.getLogger(__name__)
 
 SUITE = "fidelity"
-TASK = "humanoid_stand"  # the default env (`env`: also humanoid_stand_exo)
+TASK = "humanoid_stand"  # the default env (`env`: also humanoid_stand_exo, _tendon)
 STEPS = 300  # control steps of the oracle's episode and of each case's episode
 QUICK_STEPS = 35  # under `quick`: just past the 30-step horizon
 UNITS = {
@@ -84,6 +88,7 @@ UNITS = {
     "mass_matrix_error": "", "total_mass_error": "", "gravity_error": "",
     "gravity_identity_residual": "", "actuation_response_error": "", "fit_seconds": "s",
     "spring_stiffness_error": "",
+    "coupled_stiffness_error": "",
 }  # fmt: skip
 DEFAULT_TRANSITIONS = 5000  # the learned cases' training set
 # the learned cases: the train config each is built from (`python -m mbrl_delan.train
@@ -418,6 +423,7 @@ def _case(
     )
     metrics["steps_survived"] = steps_survived(cfg, parts, model, steps, seed)
     log.info("fidelity: %s %s", name, {k: round(v, 4) for k, v in metrics.items()})
+    springs = {k: bool(cfg.model.get(k, False)) for k in ("learn_springs", "spring_potential")}
     for metric, value in metrics.items():
         yield BenchRecord(SUITE, name, metric, value, UNITS[metric], "cpu",
-                          {"model": name, "data": data, **fields})  # fmt: skip
+                          {"model": name, "data": data, **springs, **fields})  # fmt: skip
