@@ -45,9 +45,14 @@ def _records(run_dir: Path) -> list[dict]:
     return [{k: v for k, v in json.loads(line).items() if k != "wall_time_s"} for line in lines]
 
 
+# what differs between two processes of the same run: the time, the command (a resume's) and
+# the host's load when it started
+PER_PROCESS = ("wall_time_s", "command", "host")
+
+
 def _summary(run_dir: Path) -> dict:
     summary = json.loads((run_dir / "summary.json").read_text())
-    return {k: v for k, v in summary.items() if k != "wall_time_s"}
+    return {k: v for k, v in summary.items() if k not in PER_PROCESS}
 
 
 def _weights(run_dir: Path) -> dict[str, torch.Tensor]:
