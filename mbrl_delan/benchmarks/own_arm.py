@@ -84,6 +84,7 @@ from mbrl_delan.systems.arms import (
     spring_torque,
     wrist_pair,
 )
+from mbrl_delan.systems.jacobian import central_jacobian
 from mbrl_delan.training.inverse_fit import evaluate_torques
 
 log = logging.getLogger(__name__)
@@ -179,13 +180,7 @@ def spring_stiffness_matrix(robot: str, structure: str, q: np.ndarray, step: flo
     """K = d tau_spring / dq of the arm's springs in configurations q (N, nq), by central
     differences of `step` (exact for linear springs). (N, nv, nv)"""
     model = arm_model(robot, structure=structure)
-    columns = []
-    for j in range(model.nv):
-        up, down = q.copy(), q.copy()
-        up[:, j] += step
-        down[:, j] -= step
-        columns.append((spring_torque(model, up) - spring_torque(model, down)) / (2 * step))
-    return np.stack(columns, -1)
+    return central_jacobian(lambda x: spring_torque(model, x), q, range(model.nv), step)
 
 
 @torch.no_grad()
@@ -193,16 +188,9 @@ def residual_stiffness_matrix(model: DeLaNInverse, q: torch.Tensor, step: float 
                               ) -> torch.Tensor:  # fmt: skip
     """K_res = d g_res / dq of the tree's DeLaN residual's potential force at q (N, nq), by
     central differences of `step` (hinges and slides: nq = nv). (N, nv, nv)"""
-    residual = model.dynamics.residual
-    zero = torch.zeros_like(q)
-    columns = []
-    for j in range(q.shape[-1]):
-        up, down = q.clone(), q.clone()
-        up[:, j] += step
-        down[:, j] -= step
-        slope = residual.terms(up, zero).gravity - residual.terms(down, zero).gravity
-        columns.append(slope / (2 * step))
-    return torch.stack(columns, -1)
+    residual, zero = model.dynamics.residual, torch.zeros_like(q)
+    return central_jacobian(lambda x: residual.terms(x, zero).gravity, q, range(q.shape[-1]),
+                            step)  # fmt: skip
 
 
 STIFFNESS_STATES = 256  # test states the springs' stiffness is compared in

@@ -56,6 +56,7 @@ from mbrl_delan.models.base import WorldModel, eval_mode, model_placement
 from mbrl_delan.models.inertial import dof_stiffness, rigid_body_at
 from mbrl_delan.objectives.base import ObjectiveFactory, as_objective_factory
 from mbrl_delan.objectives.mujoco import ENV_PHYSICS, MujocoObjectiveFactory
+from mbrl_delan.systems.jacobian import central_jacobian
 from mbrl_delan.systems.system import FREE, System
 from mbrl_delan.tasks.humanoid import HumanoidTask
 
@@ -281,25 +282,13 @@ def leg_joints(model: mujoco.MjModel) -> list[tuple[int, int]]:
             and any(part in (model.joint(j).name or "") for part in LEG_JOINTS)]  # fmt: skip
 
 
-def _shifted(q: np.ndarray, index: int) -> tuple[np.ndarray, np.ndarray]:
-    """q (S, nq) moved by +-`STIFFNESS_STEP` along one hinge's coordinate."""
-    up, down = q.copy(), q.copy()
-    up[:, index] += STIFFNESS_STEP
-    down[:, index] -= STIFFNESS_STEP
-    return up, down
-
-
 def mujoco_stiffness(model: mujoco.MjModel, q: np.ndarray, joints: list[list[int]]
                      ) -> np.ndarray:  # fmt: skip
     """K* = d(qfrc_bias - qfrc_passive at rest)/dq among hinges `joints` ((qpos, DoF)
     pairs) at q (S, nq). (S, m, m)"""
     dofs = [dof for _, dof in joints]
-    columns = []
-    for index, _ in joints:
-        up, down = _shifted(q, index)
-        slope = rigid_body_at(model, up)[1] - rigid_body_at(model, down)[1]
-        columns.append(slope[:, dofs] / (2 * STIFFNESS_STEP))
-    return np.stack(columns, -1)
+    force = lambda x: rigid_body_at(model, x)[1][:, dofs]  # noqa: E731
+    return central_jacobian(force, q, [index for index, _ in joints], STIFFNESS_STEP)
 
 
 @torch.no_grad()
@@ -353,13 +342,10 @@ def _coupled_stiffness_figures(model: WorldModel, truth: RigidBodyTruth, place: 
     """``coupled_stiffness_error`` (module docstring) where the physics has tendon springs."""
     if truth.legs is None or truth.coupled_stiffness is None:
         return {}
-    q, dofs = truth.q.numpy(), truth.legs[:, 1]
-    columns = []
-    for index in truth.legs[:, 0].tolist():
-        up, down = (torch.from_numpy(x).to(place.device, place.dtype) for x in _shifted(q, index))
-        slope = model.rigid_body(up).potential_force - model.rigid_body(down).potential_force
-        columns.append(slope.to("cpu", torch.float64)[:, dofs] / (2 * STIFFNESS_STEP))
-    learned = torch.stack(columns, -1)
+    q, dofs = truth.q.to(place.device, place.dtype), truth.legs[:, 1].tolist()
+    force = lambda x: model.rigid_body(x).potential_force[:, dofs]  # noqa: E731
+    learned = central_jacobian(force, q, truth.legs[:, 0].tolist(), STIFFNESS_STEP)
+    learned = learned.to("cpu", torch.float64)
     return {"coupled_stiffness_error": _median_relative(learned, truth.coupled_stiffness)}
 
 
