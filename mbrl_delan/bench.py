@@ -1,8 +1,8 @@
 """`python -m mbrl_delan.bench suite=NAME out=FILE`: speed benchmarks as JSON Lines.
 
 A dispatcher: ``suite=NAME`` chooses the config group ``configs/bench/suite/NAME.yaml``,
-typed by the schema registered with the suite (`mbrl_delan.conf.bench_schema.SUITES`), and
-runs the suite's function on those options and the shared `BenchSettings`.
+typed by the suite's schema (`mbrl_delan.conf.bench_schema.SUITE_SCHEMAS`), and runs the
+suite's function (`mbrl_delan.benchmarks.SUITES`) on those options and the shared `BenchSettings`.
 
 Each figure is one record `{"suite", "case", "metric", "value", "unit", "device", ...}`
 appended to `out` as soon as it is measured (see `benchmarks/records.py`); the readable

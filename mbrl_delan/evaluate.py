@@ -8,7 +8,7 @@ samples form one split, ``data``.
 
 Per split (JSON on stdout, or in ``out=FILE``):
 
-- the errors of ``summary.json`` (`mbrl_delan.fit.split_summary`): normalised MSE (per-DoF
+- the errors of ``summary.json`` (`training.inverse_fit.split_summary`): normalised MSE (per-DoF
   torque std of the model's training data; of this data for a train run's DeLaN), MSE in SI
   units, R^2, per DoF group, and per trajectory or clip;
 - ``components`` where the data carry the parts of tau (``tau_inertial``, ``tau_coriolis``,
@@ -101,7 +101,7 @@ def _dynamics(model: nn.Module) -> LagrangianDynamics | None:
 def run_system(run: Run) -> FitSystem:
     """The joints the run's model was built on."""
     if run.kind == "fit":
-        from mbrl_delan.conf.fitting import read_provenance
+        from mbrl_delan.runs import read_provenance
 
         return system_of(read_provenance(run.run_dir))
     from mbrl_delan.conf.loop import env_parts
@@ -193,7 +193,7 @@ def evaluate_data(
     threshold: float = THRESHOLD,
 ) -> dict[str, Any]:
     """Every non-empty split's errors (module docstring)."""
-    from mbrl_delan.conf.fitting import group_errors, split_summary
+    from mbrl_delan.training.inverse_fit import group_errors, split_summary
 
     model.eval()
     dtype = next(model.parameters()).dtype

@@ -38,7 +38,6 @@ from mbrl_delan.conf.fitting import (  # the fit's engine; its Python API re-exp
     RUN_FILES,
     FitResult,
     fit_inverse_dynamics,
-    load_fit_model,
     run,
 )
 from mbrl_delan.data.arrays import ArrayFormatError
@@ -49,6 +48,7 @@ from mbrl_delan.data.mocap import (
     MocapFormatError,
     TrackingUnstableError,
 )
+from mbrl_delan.runs import load_fit_model
 from mbrl_delan.sweep import discard_unstarted_run_dir
 from mbrl_delan.systems.external import MissingPackageError
 from mbrl_delan.training.fit import TrainingDivergedError

@@ -9,9 +9,10 @@ entry, filled by a decorator where the part is defined::
     def build_linear(cfg, system):  # cfg: the model group, system: the env's System
         return LinearModel(system.nq, system.nv, system.nu, cfg.hidden)
 
-The package's own parts are registered by the modules named as each registry's `builtins`,
-imported on the first look-up; a user's module is imported by naming it in the config's
-``plugins`` list (`load_plugins`) or by a Python entry point in the group ``mbrl_delan.plugins``.
+The package's own parts register the same way, beside their classes, when their modules are
+imported (importing `mbrl_delan.conf` imports them all); a user's module is imported by
+naming it in the config's ``plugins`` list (`load_plugins`) or by a Python entry point in the
+group ``mbrl_delan.plugins`` (loaded on a registry's first look-up).
 See docs/architecture.md, "How to add an env / a task / a model / a planner".
 """
 
@@ -55,9 +56,8 @@ class Entry(Generic[T]):
 class Registry(Generic[T]):
     """Name -> `Entry` of one family (``env``, ``model``, ``planner``)."""
 
-    def __init__(self, family: str, builtins: Sequence[str]) -> None:
+    def __init__(self, family: str) -> None:
         self.family = family
-        self._builtins = tuple(builtins)  # modules that register the package's own entries
         self._entries: dict[str, Entry[T]] = {}
         self._loaded = False
 
@@ -77,8 +77,6 @@ class Registry(Generic[T]):
     def _load(self) -> None:
         if not self._loaded:
             self._loaded = True
-            for module in self._builtins:
-                importlib.import_module(module)
             load_entry_points()
 
     def __getitem__(self, name: str) -> Entry[T]:
@@ -98,9 +96,8 @@ class Registry(Generic[T]):
         return iter(self.names())
 
     def names(self) -> tuple[str, ...]:
-        """The registered names in registration order: a plugin imported before the first
-        lookup comes before the package's own, which are imported then (and the
-        entry points' plugins after them)."""
+        """The registered names in registration order (the package's own are registered
+        once `mbrl_delan.conf` is imported, the entry points' plugins at the first look-up)."""
         self._load()
         return tuple(self._entries)
 
@@ -164,12 +161,13 @@ def register_env(
     return add
 
 
-# the package's own builders register themselves in these modules (read on first use)
-ENVS: Registry[Any] = Registry("env", ["mbrl_delan.envs.registry"])
-MODELS: Registry[Any] = Registry("model", ["mbrl_delan.conf.builders"])
-PLANNERS: Registry[Any] = Registry("planner", ["mbrl_delan.conf.builders"])
+# the package's own parts register themselves beside their classes, in the modules
+# `mbrl_delan.conf` imports; the registry names none of them
+ENVS: Registry[Any] = Registry("env")
+MODELS: Registry[Any] = Registry("model")
+PLANNERS: Registry[Any] = Registry("planner")
 # fit's inverse-dynamics models (python -m mbrl_delan.fit model=NAME)
-INVERSE_MODELS: Registry[Any] = Registry("model", ["mbrl_delan.conf.inverse"])
+INVERSE_MODELS: Registry[Any] = Registry("model")
 register_model = MODELS.register  # builder: (model config group, System) -> WorldModel
 # what the planning policy calls on a planner (`planners.base.Planner`), beside its `horizon`
 PLANNER_METHODS = ("initial_mean", "shift", "carry", "warm_start", "plan")
@@ -185,7 +183,7 @@ def register_planner(
 ) -> Callable[[Any], Any]:
     """Decorator: register the decorated builder ``(planner group, System, dtype) -> planner``
     as planner `name`. Given the class it builds (`planner`, or the builder's own ``planner``
-    attribute, as `conf.builders.sampling_builder`'s has), a class without a method the
+    attribute, as `planners.base.sampling_builder`'s has), a class without a method the
     planning policy calls is refused here, a `PluginError` naming it."""
 
     def add(build: Any) -> Any:

@@ -1,6 +1,7 @@
 """Settings with their valid ranges: a dataclass field made by `rule` carries its range in
 its metadata (`FieldRule`), which the config checks read (`mbrl_delan.conf.checks`). The
-bottom floor: the planners' settings and the config schemas both use it."""
+bottom floor: the planners' settings, the models' and the config schemas use it, and a
+builder refuses a bad value with `ConfigError`."""
 
 from __future__ import annotations
 
@@ -9,6 +10,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from omegaconf import MISSING, ListConfig
+
+
+class ConfigError(ValueError):
+    """A config value is invalid; the message names it and the valid choices."""
 
 
 def rule(

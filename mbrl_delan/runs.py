@@ -16,7 +16,10 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
-from mbrl_delan.conf.checks import migrate
+from mbrl_delan.conf.checks import DTYPES, load_config_plugins, migrate
+from mbrl_delan.conf.fitting import PROVENANCE_FILE, build_system_model, read_fit_run
+from mbrl_delan.data.inverse_data import system_of
+from mbrl_delan.models.inverse import InverseDynamicsModel
 from mbrl_delan.training.checkpoint import CHECKPOINT_FILE, load_checkpoint
 from mbrl_delan.training.recorder import RUN_CONFIG, SUMMARY_FILE, WEIGHTS_FILE
 
@@ -47,8 +50,6 @@ def load_run(run_dir: str | Path) -> Run:
     summary_path = run_dir / SUMMARY_FILE
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else None
     if (run_dir / FIT_MODEL_FILE).is_file():
-        from mbrl_delan.conf.fitting import load_fit_model
-
         cfg, model = load_fit_model(run_dir)
         return Run("fit", run_dir, cfg, model.eval(), summary)
     weights = [run_dir / f for f in (CHECKPOINT_FILE, WEIGHTS_FILE) if (run_dir / f).is_file()]
@@ -107,29 +108,104 @@ class OracleEpisodes:
     fidelity_reference: dict[str, Any] | None
 
 
-def oracle_of_run(run_dir: str | Path, cfg: DictConfig) -> OracleEpisodes:
-    """The oracle and zero-torque episodes of the train run in `run_dir`, for a run of config
-    `cfg` that would evaluate the same ones (`ORACLE_KEYS` equal).
+ORACLE_FILE = "oracle.json"  # a train run's oracle and zero-torque episodes, on their own
+ORACLE_REFERENCE_FILE = "oracle_reference.pt"  # ... and its fidelity reference, where it has one
 
-    Raises FileNotFoundError without the run's config or checkpoint, ValueError naming the
-    first key whose value differs or when the run has not evaluated both yet."""
+
+def oracle_config(cfg: DictConfig) -> dict[str, Any]:
+    """What of `cfg` a run's oracle episodes depend on (`ORACLE_KEYS`), as plain values."""
+    values = {}
+    for key in ORACLE_KEYS:
+        value = OmegaConf.select(cfg, key)
+        values[key] = _oracle_part(key, value) if isinstance(value, DictConfig) else value
+    return values
+
+
+def write_oracle(run_dir: Path, cfg: DictConfig, episodes: OracleEpisodes,
+                 stamp: dict[str, Any]) -> None:  # fmt: skip
+    """`ORACLE_FILE` (and `ORACLE_REFERENCE_FILE`) in `run_dir`: the episodes with the config
+    they were evaluated under and `stamp` (the command, commit and host), so that a folder of
+    these alone is a `budget.oracle_from` for every model's paired run of that config (kept
+    under ``docs/records/oracles/<env>/<preset>_s<seed>/``)."""
+    limit = OmegaConf.select(cfg, "env.episode_len")
+    record = {
+        "config": oracle_config(cfg),
+        "returns": list(episodes.returns),
+        "steps": None if episodes.steps is None else list(episodes.steps),
+        "falls": None
+        if episodes.steps is None or limit is None
+        else sum(s < limit for s in episodes.steps),
+        "zero_returns": list(episodes.zero_returns),
+        **{k: stamp.get(k) for k in ("command", "git_commit", "dirty", "host")},
+    }
+    text = json.dumps(record, indent=1) + "\n"
+    (run_dir / ORACLE_FILE).write_text(text, encoding="utf-8")
+    if episodes.fidelity_reference is not None:
+        torch.save(episodes.fidelity_reference, run_dir / ORACLE_REFERENCE_FILE)
+
+
+def oracle_of_run(run_dir: str | Path, cfg: DictConfig) -> OracleEpisodes:
+    """The oracle and zero-torque episodes of the train run in `run_dir` (its `ORACLE_FILE`,
+    else its checkpoint), for a run of config `cfg` that would evaluate the same ones
+    (`ORACLE_KEYS` equal).
+
+    Raises FileNotFoundError without them, ValueError naming the first key whose value
+    differs or when the run has not evaluated both yet."""
     run_dir = Path(run_dir)
+    if (run_dir / ORACLE_FILE).is_file():
+        return _oracle_of_record(run_dir, cfg)
     config_path, checkpoint_path = run_dir / RUN_CONFIG, run_dir / CHECKPOINT_FILE
     for path in (config_path, checkpoint_path):
         if not path.is_file():
-            raise FileNotFoundError(f"budget.oracle_from: {path} does not exist")
-    source = migrate(OmegaConf.load(config_path))
-    for key in ORACLE_KEYS:
-        theirs, ours = OmegaConf.select(source, key), OmegaConf.select(cfg, key)
-        if isinstance(ours, DictConfig):
-            theirs, ours = (_oracle_part(key, c) for c in (theirs, ours))
-        if theirs != ours:
-            raise ValueError(
-                f"budget.oracle_from={run_dir}: its {key} is {theirs!r}, this run's {ours!r}"
+            raise FileNotFoundError(
+                f"budget.oracle_from: {path} does not exist (nor {run_dir / ORACLE_FILE})"
             )
+    _same_oracle(run_dir, oracle_config(migrate(OmegaConf.load(config_path))), cfg)
     state = load_checkpoint(checkpoint_path, weights_only=False)
     zero = state["loop"].get("zero_returns")
     if state.get("oracle_returns") is None or zero is None:
         raise ValueError(f"budget.oracle_from={run_dir}: its oracle has not been evaluated yet")
     return OracleEpisodes(state["oracle_returns"], state.get("oracle_steps"), zero,
                           state["loop"].get("fidelity_reference"))  # fmt: skip
+
+
+def _oracle_of_record(run_dir: Path, cfg: DictConfig) -> OracleEpisodes:
+    try:
+        record = json.loads((run_dir / ORACLE_FILE).read_text(encoding="utf-8"))
+        theirs, returns, zero = record["config"], record["returns"], record["zero_returns"]
+    except (json.JSONDecodeError, KeyError, TypeError) as err:
+        raise ValueError(
+            f"budget.oracle_from: {run_dir / ORACLE_FILE} is malformed ({err})"
+        ) from err
+    _same_oracle(run_dir, theirs, cfg)
+    reference = run_dir / ORACLE_REFERENCE_FILE
+    state = torch.load(reference, weights_only=False) if reference.is_file() else None
+    return OracleEpisodes(returns, record.get("steps"), zero, state)
+
+
+def _same_oracle(run_dir: Path, theirs: dict[str, Any], cfg: DictConfig) -> None:
+    ours = oracle_config(cfg)
+    for key in ORACLE_KEYS:
+        if theirs.get(key) != ours[key]:
+            raise ValueError(
+                f"budget.oracle_from={run_dir}: its {key} is {theirs.get(key)!r}, this run's "
+                f"{ours[key]!r}"
+            )
+
+
+def load_fit_model(run_dir: str | Path) -> tuple[DictConfig, InverseDynamicsModel]:
+    """A finished fit's config and its trained model (on the CPU, in the fit's dtype), built
+    on the system its data name (the MJCF's tree and armature, or the joint list), once the
+    run's ``plugins`` are loaded (a plugin's model)."""
+    cfg, state = read_fit_run(run_dir)
+    load_config_plugins(cfg)
+    model = build_system_model(cfg, system_of(read_provenance(run_dir)))
+    model = model.to(DTYPES[cfg.get("dtype", "float32")])
+    model.load_state_dict(state)
+    return cfg, model
+
+
+def read_provenance(run_dir: str | Path) -> dict[str, Any]:
+    """A fit's ``dataset_provenance.json`` ({} when it has none)."""
+    path = Path(run_dir) / PROVENANCE_FILE
+    return json.loads(path.read_text()) if path.is_file() else {}

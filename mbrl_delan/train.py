@@ -35,7 +35,7 @@ from mbrl_delan.conf.videos import check_video, write_videos
 from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.provenance import provenance
-from mbrl_delan.runs import OracleEpisodes, oracle_of_run
+from mbrl_delan.runs import OracleEpisodes, oracle_of_run, write_oracle
 from mbrl_delan.sweep import (
     crash_dir,
     discard_unstarted_run_dir,
@@ -110,6 +110,17 @@ def _take_oracle(loop: MBRLLoop, episodes: OracleEpisodes) -> None:
     loop.zero_returns = episodes.zero_returns
     if episodes.fidelity_reference is not None:
         loop.fidelity_reference = FidelityReference.from_state_dict(episodes.fidelity_reference)
+
+
+def _keep_oracle(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, stamp: dict[str, Any]) -> None:
+    """The oracle's and zero-torque episodes this run evaluated itself, on their own
+    (`write_oracle`): another run's `budget.oracle_from` for the same config."""
+    if cfg.budget.oracle_from is not None or loop.oracle_returns is None or not loop.zero_returns:
+        return
+    reference = loop.fidelity_reference
+    episodes = OracleEpisodes(loop.oracle_returns, loop.oracle_steps, loop.zero_returns,
+                              None if reference is None else reference.state_dict())  # fmt: skip
+    write_oracle(run_dir, cfg, episodes, stamp)
 
 
 def _save_weights(run_dir: Path, loop: MBRLLoop) -> None:
@@ -198,6 +209,7 @@ def train(cfg: DictConfig) -> dict[str, Any]:
     with recorder:
         _run(cfg, run_dir, loop, oracle, recorder)
         _save_weights(run_dir, loop)
+        _keep_oracle(cfg, run_dir, loop, stamp)
         summary = run_summary(cfg, run_dir, loop) | stamp
         recorder.write_summary(summary)
         for path in plot_run(run_dir):

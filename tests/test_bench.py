@@ -154,6 +154,15 @@ def test_flop_count_is_positive_and_grows_with_nv() -> None:
     assert model_flops(chain_model(2)) == forward_dynamics_flops(2, 4, 64, 2)
 
 
+def test_every_suite_has_a_function_and_a_schema() -> None:
+    """The suites' functions (benchmarks) and their options' schemas (conf) name the same
+    suites, and each function imports."""
+    from mbrl_delan.benchmarks import SUITES
+
+    assert tuple(SUITES) == SUITE_NAMES
+    assert all(callable(get_suite(name)) for name in SUITE_NAMES)
+
+
 def test_unknown_suite_names_the_valid_ones(tmp_path: Path) -> None:
     with pytest.raises(UnknownSuiteError, match="delan"):
         get_suite("nope")

@@ -18,7 +18,7 @@ import torch
 from tensordict import TensorDict
 
 from mbrl_delan import keys
-from mbrl_delan.conf.fitting import fit_inverse_dynamics, generalisation_gap
+from mbrl_delan.conf.fitting import fit_inverse_dynamics
 from mbrl_delan.data.arrays import (
     ArrayFormatError,
     DerivativeSettings,
@@ -33,7 +33,11 @@ from mbrl_delan.evaluate import main as evaluate_main
 from mbrl_delan.models.inverse import MLPInverse
 from mbrl_delan.runs import load_run
 from mbrl_delan.systems.system import layout_from_names, load_system
-from mbrl_delan.training.inverse_fit import InverseFitSettings, fit_inverse_model
+from mbrl_delan.training.inverse_fit import (
+    InverseFitSettings,
+    fit_inverse_model,
+    generalisation_gap,
+)
 
 ROOT = Path(__file__).parents[1]
 SMALL = ("epochs=4", "threads=1", "model.hidden=16", "batch_size=64")

@@ -28,7 +28,7 @@ from torch import nn
 from mbrl_delan import keys
 from mbrl_delan.conf.builders import build_model
 from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError
-from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, load_fit_model, run, validate_fit_config
+from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, run, validate_fit_config
 from mbrl_delan.conf.loop import start_mechanics, with_fit_structure
 from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.data.mocap import (
@@ -50,6 +50,7 @@ from mbrl_delan.models.inverse import (
     MLPEnsembleInverse,
     MLPInverse,
 )
+from mbrl_delan.runs import load_fit_model
 from mbrl_delan.systems.system import FREE, HINGE, JointLayout
 from mbrl_delan.training.fit import TrainingDivergedError
 from mbrl_delan.training.inverse_fit import evaluate_torques

@@ -1,13 +1,16 @@
-"""The package's floors: every folder (and top-level module) sits on a floor of `FLOORS`
-and imports nothing from a higher one; the entry points (`train`, `fit`, `bench`,
-`rescore`) sit on top, nothing below imports them; the config floor (`schema`) does not
-reach up into the benchmarks; the modules' top-level imports form no cycle. Read from the
-source (AST), so a lazy (function-level) import counts too for the floors, and only
-top-level ones for cycles (those run at import time)."""
+"""The package's places and what each builds on: every folder (and top-level module) is a
+place of `DEPENDS` (or of the bottom floor, `BOTTOM`) and imports only from the places it
+builds on, directly or through them, never from a sibling; the entry points (`train`, `fit`,
+`bench`, `rescore`) sit on top, nothing below imports them; the config floor (`schema`) does
+not reach up into the benchmarks; the modules' top-level imports form no cycle. Read from the
+source (AST), so a lazy (function-level) import and an import by name (a string naming a
+package module) count too for the places, and only top-level ones for cycles (those run at
+import time). docs/architecture.md draws the same table."""
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mbrl_delan"
@@ -21,25 +24,46 @@ def _module_name(path: Path) -> str:
 
 MODULES = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
 
-# bottom to top: a module may import from its own floor and the ones below (a folder's
-# modules share its floor; "" is the package's __init__)
-FLOORS = (
-    ("", "keys", "rules", "registry", "figure_style", "configs", "provenance"),
-    ("systems",),
-    ("tasks",),
-    ("models",),
-    ("accelerate",),
-    ("objectives",),
-    ("planners",),
-    ("data",),
-    ("training",),
-    ("envs",),
-    ("conf",),
-    ("runs", "sweep", "report", "fit_report", "evaluate", "rescore"),
-    ("benchmarks",),
-    ("train", "fit", "bench"),
-)
-FLOOR = {name: level for level, names in enumerate(FLOORS) for name in names}
+# the bottom floor: every place may import it, it imports nothing above it
+BOTTOM = ("", "keys", "rules", "registry", "figure_style", "configs", "provenance")
+# each other place (a folder, or a top-level module) and the places it builds on directly; it
+# may import those and what they build on, never a sibling it does not name (data and models
+# are siblings: neither imports the other). docs/architecture.md's table is this one.
+DEPENDS: dict[str, tuple[str, ...]] = {
+    "systems": (),
+    "tasks": ("systems",),
+    "models": ("systems",),
+    "data": ("systems",),
+    "accelerate": ("models",),
+    "objectives": ("tasks", "accelerate"),
+    "planners": ("objectives",),
+    "training": ("objectives", "data"),
+    "envs": ("training",),
+    "conf": ("planners", "envs"),
+    "runs": ("conf",),
+    "sweep": ("conf",),
+    "report": ("sweep",),
+    "fit_report": ("report",),
+    "evaluate": ("runs",),
+    "rescore": ("evaluate",),
+    "benchmarks": ("runs",),
+    "train": ("runs", "sweep"),
+    "fit": ("runs", "sweep"),
+    "bench": ("benchmarks",),
+}
+PLACES = (*BOTTOM, *DEPENDS)
+# a string naming a package module's attribute, as an import by name does ("module:attr")
+MODULE_STRING = re.compile(r"^(mbrl_delan(?:\.\w+)*):\w+$")
+
+
+def foundations(place: str) -> set[str]:
+    """What `place` may import: itself, the bottom floor and, transitively, what it builds on."""
+    if place in BOTTOM:
+        return set(BOTTOM)
+    found = {place, *BOTTOM}
+    for below in DEPENDS[place]:
+        found |= foundations(below)
+    return found
 
 
 def _place(module: str) -> str:
@@ -49,7 +73,8 @@ def _place(module: str) -> str:
 
 
 def _imports(path: Path, top_level_only: bool) -> set[str]:
-    """The package modules `path` imports (`from mbrl_delan import x` counts as module x)."""
+    """The package modules `path` imports (`from mbrl_delan import x` counts as module x);
+    beyond the top level, a string that names a module counts too (an import by name)."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
     nodes = tree.body if top_level_only else ast.walk(tree)
     found: set[str] = set()
@@ -59,21 +84,49 @@ def _imports(path: Path, top_level_only: bool) -> set[str]:
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             found.add(node.module)
             found |= {f"{node.module}.{alias.name}" for alias in node.names}
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            if match := MODULE_STRING.match(node.value):
+                found.add(match.group(1))
+        elif isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "import_module":
+            if node.args and isinstance(node.args[0], ast.Constant):
+                found.add(str(node.args[0].value))
     return {name for name in found if name in MODULES}
 
 
-def test_every_folder_is_on_a_floor() -> None:
-    assert sorted({_place(name) for name in MODULES} - set(FLOOR)) == []
+def test_every_folder_is_a_place() -> None:
+    assert sorted({_place(name) for name in MODULES} - set(PLACES)) == []
 
 
-def test_no_module_imports_from_a_higher_floor() -> None:
-    upward = sorted(
+def test_every_import_is_of_what_its_place_builds_on() -> None:
+    """No module imports from a place its own does not build on: not from above, not from
+    a sibling (function-level imports and imports by name included: ``"module:attr"``
+    strings and ``import_module("module")``)."""
+    stray = sorted(
         (name, imported)
         for name, path in MODULES.items()
         for imported in _imports(path, top_level_only=False)
-        if FLOOR[_place(imported)] > FLOOR[_place(name)]
+        if _place(imported) not in foundations(_place(name))
     )
-    assert upward == []
+    assert stray == []
+
+
+def test_each_named_foundation_is_used() -> None:
+    """The table is the code's graph, not a looser one: each place imports from every place
+    it names as a direct foundation."""
+    used = {place: set() for place in DEPENDS}
+    for name, path in MODULES.items():
+        if _place(name) in used:
+            used[_place(name)] |= {_place(i) for i in _imports(path, top_level_only=False)}
+    unused = {p: sorted(set(below) - used[p]) for p, below in DEPENDS.items()}
+    assert {p: u for p, u in unused.items() if u} == {}
+
+
+def test_the_architecture_page_draws_the_same_graph() -> None:
+    """docs/architecture.md's table of places (``| `place` | `a`, `b` |``) is `DEPENDS`."""
+    text = (PACKAGE.parent / "docs" / "architecture.md").read_text(encoding="utf-8")
+    rows = re.findall(r"^\| `(\w+)` \|(.*)\|$", text.split("## Floors", 1)[1], re.M)
+    drawn = {place: tuple(re.findall(r"`(\w+)`", below)) for place, below in rows}
+    assert drawn == DEPENDS
 
 
 def test_the_registries_import_nothing_of_the_package() -> None:

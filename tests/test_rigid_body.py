@@ -14,7 +14,7 @@ import torch
 from tensordict import TensorDict
 
 from mbrl_delan.conf.checks import ConfigError, compose_config
-from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, _run, load_fit_model
+from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, _run
 from mbrl_delan.data.excitation import (
     ExcitationSettings,
     excitation_arrays,
@@ -31,6 +31,7 @@ from mbrl_delan.models.inertial import (
     set_inertial_parameters,
 )
 from mbrl_delan.models.rigid_body import WhiteBoxInverse, regressor
+from mbrl_delan.runs import load_fit_model
 from mbrl_delan.systems.arms import arm_model, coulomb_friction
 
 # noise-free; 3 harmonics: the unfiltered differences' O(dt^2) error (qd, qdd) stays below the

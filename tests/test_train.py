@@ -502,11 +502,26 @@ def test_tiny_tree_run_pairs_its_final_evaluation_and_keeps_its_weights(tmp_path
     for key in ("oracle_return_mean", "oracle_falls", "zero_torque_return_mean"):
         assert theirs[key] == summary[key], key
     assert records(other)[-1]["oracle_episode_steps"] == last["oracle_episode_steps"]
-    # a run saved before a key was added (here without env.plan_speed) is read migrated
+    assert summary["oracle_source"] == "this run" and theirs["oracle_source"] == str(run_dir)
+    # the oracle's episodes on their own (oracle.json, oracle_reference.pt) serve as well,
+    # from a folder that holds nothing else (a record under docs/records/oracles)
     from omegaconf import OmegaConf
 
-    from mbrl_delan.runs import oracle_of_run
+    from mbrl_delan.runs import ORACLE_FILE, ORACLE_REFERENCE_FILE, oracle_of_run
 
+    kept = json.loads((run_dir / ORACLE_FILE).read_text())
+    assert kept["steps"] == last["oracle_episode_steps"] and kept["config"]["seed"] == 0
+    assert kept["falls"] == summary["oracle_falls"] and kept["git_commit"] == summary["git_commit"]
+    oracles = tmp_path / "oracles"
+    oracles.mkdir()
+    for name in (ORACLE_FILE, ORACLE_REFERENCE_FILE):
+        if (run_dir / name).is_file():
+            shutil.copy(run_dir / name, oracles / name)
+    alone = oracle_of_run(oracles, OmegaConf.load(other / "config.yaml"))
+    assert alone.returns == kept["returns"] and alone.zero_returns == kept["zero_returns"]
+    # a run saved before a key was added (here without env.plan_speed) and before its oracle
+    # was kept on its own is read migrated, from its checkpoint
+    (run_dir / ORACLE_FILE).unlink()
     older = OmegaConf.load(run_dir / "config.yaml")
     del older.env["plan_speed"]
     older.env.mppi_samples, older.env.model_substeps = 999, 7  # other groups' defaults only
@@ -515,7 +530,7 @@ def test_tiny_tree_run_pairs_its_final_evaluation_and_keeps_its_weights(tmp_path
     assert taken.steps == last["oracle_episode_steps"]
     refused = train(tmp_path / "seed1", "env=humanoid_stand", "model=tree", "seed=1",
                     "budget.iterations=1", "budget.final_eval_episodes=2",
-                    "budget.paired=true", f"budget.oracle_from={run_dir}")  # fmt: skip
+                    "budget.paired=true", f"budget.oracle_from={oracles}")  # fmt: skip
     assert refused.returncode == 2, refused.stdout + refused.stderr
     assert "its seed is 0, this run's 1" in refused.stdout + refused.stderr
 

@@ -18,12 +18,12 @@ from mbrl_delan.conf.fitting import (
     FIT_CONFIG_DIR,
     _run,
     build_system_model,
-    load_fit_model,
     make_inverse_data,
     validate_fit_config,
 )
 from mbrl_delan.models.inverse import DeLaNInverse
 from mbrl_delan.models.tree import TreeDynamics
+from mbrl_delan.runs import load_fit_model
 from mbrl_delan.systems.arms import arm_model
 
 SMALL = ["data=excitation", "data.robot=ur5e", "data.samples=1000", "model=tree_delan",

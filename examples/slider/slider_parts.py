@@ -20,17 +20,22 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from mbrl_delan.conf.builders import sampling_builder
-from mbrl_delan.conf.schema import ModelConfig, PlannerConfig, rule
-from mbrl_delan.models.base import LossOutput, WorldModel
+from mbrl_delan.models.base import LossOutput, ModelConfig, WorldModel
 from mbrl_delan.models.inverse import InverseDynamicsModel
-from mbrl_delan.planners.base import SamplingDistribution, SamplingPlanner, SamplingSettings
+from mbrl_delan.planners.base import (
+    PlannerConfig,
+    SamplingDistribution,
+    SamplingPlanner,
+    SamplingSettings,
+    sampling_builder,
+)
 from mbrl_delan.registry import (
     register_env,
     register_inverse_model,
     register_model,
     register_planner,
 )
+from mbrl_delan.rules import rule
 from mbrl_delan.systems.system import State
 from mbrl_delan.tasks.base import Task
 

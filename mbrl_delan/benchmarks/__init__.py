@@ -1,7 +1,7 @@
 """Benchmark suites, what they share (`BenchSettings`, timing) and the suites by name.
 
 A suite is a function ``(options, bench) -> Iterator[BenchRecord]``: `options` an instance of
-the schema registered with it in `mbrl_delan.conf.bench_schema.SUITES` (its own settings),
+the schema of its name in `mbrl_delan.conf.bench_schema.SUITE_SCHEMAS` (its own settings),
 `bench` the `BenchSettings` every suite gets. `get_suite` imports it lazily (so listing and
 checking suites imports nothing heavy).
 """
@@ -35,10 +35,26 @@ from mbrl_delan.conf.bench_names import (  # noqa: F401 - the suites' names, re-
     plugin_case,
     split_plugin_case,
 )
-from mbrl_delan.conf.bench_schema import SUITE_NAMES, SUITES  # noqa: F401 - re-exported
+from mbrl_delan.conf.bench_schema import SUITE_NAMES, SUITE_SCHEMAS  # noqa: F401 - re-exported
 from mbrl_delan.provenance import cpu_name
 
 Suite = Callable[[Any, "BenchSettings"], Iterator[BenchRecord]]
+# each suite's function, ``module:function``, imported only to run it (its options'
+# schema: `mbrl_delan.conf.bench_schema.SUITE_SCHEMAS`, under the same name)
+SUITES: dict[str, str] = {
+    "delan": "mbrl_delan.benchmarks.delan:run_delan_suite",
+    "identify": "mbrl_delan.benchmarks.identify:run_identify_suite",
+    "mocap": "mbrl_delan.benchmarks.mocap:run_mocap_suite",
+    "identify_humanoid": "mbrl_delan.benchmarks.humanoid_identify:run_identify_humanoid_suite",
+    "planner": "mbrl_delan.benchmarks.planner:run_planner_suite",
+    "humanoid": "mbrl_delan.benchmarks.humanoid:run_humanoid_suite",
+    "realtime": "mbrl_delan.benchmarks.realtime:run_realtime_suite",
+    "robust": "mbrl_delan.benchmarks.robust:run_robust_suite",
+    "fit_arrays": "mbrl_delan.benchmarks.fit_arrays:run_fit_arrays_suite",
+    "soak": "mbrl_delan.benchmarks.soak:run_soak_suite",
+    "fidelity": "mbrl_delan.benchmarks.fidelity:run_fidelity_suite",
+    "own_arm": "mbrl_delan.benchmarks.own_arm:run_own_arm_suite",
+}
 C = TypeVar("C")
 
 
@@ -54,7 +70,7 @@ def get_suite(name: str) -> Suite:
         raise UnknownSuiteError(
             f"unknown benchmark suite {name!r}; valid suites: {', '.join(SUITE_NAMES)}"
         )
-    module, function = SUITES[name].target.split(":")
+    module, function = SUITES[name].split(":")
     return getattr(importlib.import_module(module), function)
 
 

@@ -338,8 +338,15 @@ def structure_table(records: list[dict[str, Any]]) -> list[str]:
            if r.get("suite") == SUITE and "arm_spring_stiffness" in r}  # fmt: skip
     rows = sorted({k[:2] for k in figures["test_torque_r2"]},
                   key=lambda k: (TABLE_ROWS.index(k[0]), k[1]))  # fmt: skip
-    head = ["MJCF lacks", "arm", *(f"{m} R²" for m in TABLE_MODELS), "arm's own R²",
-            "tree_delan M error (%)", "springs' torque share", "learned / arm's stiffness"]
+    head = [
+        "MJCF lacks",
+        "arm",
+        *(f"{m} R²" for m in TABLE_MODELS),
+        "arm's own R²",
+        "tree_delan M error (%)",
+        "springs' torque share",
+        "learned / arm's stiffness",
+    ]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for row in rows:
         r2 = [cell(figures["test_torque_r2"].get((*row, m), {}), ".4f") for m in TABLE_MODELS]

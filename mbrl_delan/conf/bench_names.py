@@ -1,4 +1,4 @@
-"""The names `python -m mbrl_delan.bench` accepts (its suites are `conf.bench_schema.SUITES`): the
+"""The names `python -m mbrl_delan.bench` accepts (its suites: `conf.bench_schema.SUITE_SCHEMAS`):
 cases, tasks and robots of the suites, so that the bench config's schema checks them without
 importing a suite (`mbrl_delan.benchmarks` re-exports them)."""
 

@@ -1,6 +1,6 @@
 """Typed schemas of ``python -m mbrl_delan.bench``: the options every suite shares
 (`BenchConfig`, ``configs/bench/config.yaml``) and each suite's own (``suite=NAME`` chooses
-``configs/bench/suite/NAME.yaml``, typed by the schema registered with the suite in `SUITES`).
+``configs/bench/suite/NAME.yaml``, typed by the suite's schema in `SUITE_SCHEMAS`).
 
 A suite's YAML is in the global package, so its options stay top-level keys
 (``suite=planner planners=[mppi]``), and a key of another suite is refused when Hydra composes
@@ -34,7 +34,6 @@ from mbrl_delan.conf.bench_names import (
     plugin_case,
 )
 from mbrl_delan.conf.checks import ConfigError, check_ranges, schema_error_message
-from mbrl_delan.conf.schema import MODEL_SCHEMAS
 from mbrl_delan.registry import ENVS, MODELS, PLANNERS, Registry
 from mbrl_delan.rules import rule
 
@@ -188,39 +187,23 @@ class OwnArmSuiteConfig(SuiteConfig):
             raise ConfigError(f"model_mjcf={self.model_mjcf!r} is not valid; choose exact or cad")
 
 
-@dataclass(frozen=True)
-class SuiteEntry:
-    """A suite: where its function lives (``module:function``, imported only to run it) and
-    the schema of its options."""
-
-    target: str
-    schema: type[SuiteConfig]
-
-
-SUITES: dict[str, SuiteEntry] = {
-    "delan": SuiteEntry("mbrl_delan.benchmarks.delan:run_delan_suite", DelanSuiteConfig),
-    "identify": SuiteEntry("mbrl_delan.benchmarks.identify:run_identify_suite",
-                           IdentifySuiteConfig),
-    "mocap": SuiteEntry("mbrl_delan.benchmarks.mocap:run_mocap_suite", OverridesSuiteConfig),
-    "identify_humanoid": SuiteEntry(
-        "mbrl_delan.benchmarks.humanoid_identify:run_identify_humanoid_suite",
-        IdentifySuiteConfig),
-    "planner": SuiteEntry("mbrl_delan.benchmarks.planner:run_planner_suite",
-                          PlannerSuiteConfig),
-    "humanoid": SuiteEntry("mbrl_delan.benchmarks.humanoid:run_humanoid_suite",
-                           HumanoidSuiteConfig),
-    "realtime": SuiteEntry("mbrl_delan.benchmarks.realtime:run_realtime_suite",
-                           RealtimeSuiteConfig),
-    "robust": SuiteEntry("mbrl_delan.benchmarks.robust:run_robust_suite", RobustSuiteConfig),
-    "fit_arrays": SuiteEntry("mbrl_delan.benchmarks.fit_arrays:run_fit_arrays_suite",
-                             FitArraysSuiteConfig),
-    "soak": SuiteEntry("mbrl_delan.benchmarks.soak:run_soak_suite", SuiteConfig),
-    "fidelity": SuiteEntry("mbrl_delan.benchmarks.fidelity:run_fidelity_suite",
-                           FidelitySuiteConfig),
-    "own_arm": SuiteEntry("mbrl_delan.benchmarks.own_arm:run_own_arm_suite",
-                          OwnArmSuiteConfig),
-}  # fmt: skip
-SUITE_NAMES = tuple(SUITES)
+# each suite's options (``configs/bench/suite/NAME.yaml``); the suites' functions are
+# `mbrl_delan.benchmarks.SUITES`, which names the same suites (a test checks it)
+SUITE_SCHEMAS: dict[str, type[SuiteConfig]] = {
+    "delan": DelanSuiteConfig,
+    "identify": IdentifySuiteConfig,
+    "mocap": OverridesSuiteConfig,
+    "identify_humanoid": IdentifySuiteConfig,
+    "planner": PlannerSuiteConfig,
+    "humanoid": HumanoidSuiteConfig,
+    "realtime": RealtimeSuiteConfig,
+    "robust": RobustSuiteConfig,
+    "fit_arrays": FitArraysSuiteConfig,
+    "soak": SuiteConfig,
+    "fidelity": FidelitySuiteConfig,
+    "own_arm": OwnArmSuiteConfig,
+}
+SUITE_NAMES = tuple(SUITE_SCHEMAS)
 
 
 @dataclass
@@ -248,7 +231,7 @@ def typed_bench_config(cfg: DictConfig) -> tuple[DictConfig, DictConfig]:
     within its ranges; a `ConfigError` names the first bad key."""
     shared = _typed(BenchConfig, OmegaConf.masked_copy(cfg, [k for k in SHARED_KEYS if k in cfg]))
     own = OmegaConf.masked_copy(cfg, [str(k) for k in cfg if k not in SHARED_KEYS])
-    return shared, _typed(SUITES[shared.suite].schema, own)
+    return shared, _typed(SUITE_SCHEMAS[shared.suite], own)
 
 
 def check_suite_keys(overrides: list[str], suite: str) -> None:
@@ -258,13 +241,13 @@ def check_suite_keys(overrides: list[str], suite: str) -> None:
     not in the config)."""
     pairs = [o.split("=", 1) for o in overrides if "=" in o and o[0].isalpha()]
     chosen = next((v for k, v in reversed(pairs) if k == "suite"), suite)
-    if chosen not in SUITES:
+    if chosen not in SUITE_SCHEMAS:
         return  # Hydra names the valid suites
-    own = {f.name for f in fields(SUITES[chosen].schema)}
+    own = {f.name for f in fields(SUITE_SCHEMAS[chosen])}
     for key, _ in pairs:
         if "." in key or "/" in key or key in SHARED_KEYS or key in own:
             continue
-        takers = [n for n, e in SUITES.items() if key in {f.name for f in fields(e.schema)}]
+        takers = [n for n, e in SUITE_SCHEMAS.items() if key in {f.name for f in fields(e)}]
         where = f"; it is an option of suite {', '.join(takers)}" if takers else ""
         raise ConfigError(f"{key} is not an option of suite {chosen}{where}")
 
@@ -279,8 +262,12 @@ def _typed(schema: type, cfg: DictConfig) -> DictConfig:
 
 
 def plugin_models() -> tuple[str, ...]:
-    """The plugins' registered world models (the package's have a schema here)."""
-    return tuple(m for m in MODELS.names() if m not in MODEL_SCHEMAS)
+    """The plugins' registered world models: those built outside the package."""
+    return tuple(m for m in MODELS.names() if not _ours(MODELS[m].build))
+
+
+def _ours(build: Any) -> bool:
+    return getattr(build, "__module__", "").startswith("mbrl_delan.")
 
 
 def registered(option: str, names: list[str] | None, registry: Registry[Any]) -> None:

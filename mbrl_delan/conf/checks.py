@@ -26,17 +26,13 @@ from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBase
 from mbrl_delan.conf.schema import ACCEL_KEYS, TrainConfig
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.registry import ENVS, MODELS, PLANNERS, PluginError, load_plugins
-from mbrl_delan.rules import field_rule
+from mbrl_delan.rules import ConfigError, field_rule
 from mbrl_delan.training.checkpoint import RunWriteError
 from mbrl_delan.training.fit import FitConfig
 
 log = logging.getLogger(__name__)
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
-
-
-class ConfigError(ValueError):
-    """A config value is invalid; the message names it and the valid choices."""
 
 
 def refuse_used_run_dir(run_dir: Path, run_files: Sequence[str], instead: str) -> None:

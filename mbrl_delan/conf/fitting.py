@@ -19,7 +19,6 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 from tensordict import TensorDict, TensorDictBase
-from torch import Tensor
 
 from mbrl_delan import keys
 from mbrl_delan.accelerate.compile import compile_fit
@@ -56,7 +55,6 @@ from mbrl_delan.data.inverse_data import (
     array_inverse_data,
     fields_inverse_data,
     mocap_inverse_data,
-    system_of,
 )
 from mbrl_delan.data.mocap import (
     FilterSettings,
@@ -86,10 +84,13 @@ from mbrl_delan.training.identified import (
 from mbrl_delan.training.inverse_fit import (
     EpochResult,
     InverseFitSettings,
-    TorqueErrors,
     check_mass_matrix,
     evaluate_torques,
     fit_inverse_model,
+    generalisation_gap,
+    group_errors,
+    split_descriptions,
+    split_summary,
 )
 from mbrl_delan.training.recorder import (
     METRICS_FILE,
@@ -585,42 +586,6 @@ def _save_model_and_curves(cfg: DictConfig, model: InverseDynamicsModel, run_dir
     return run_dir / LOSS_CURVES_PNG
 
 
-def split_summary(errors: TorqueErrors, groups: dict[str, tuple[int, ...]]) -> dict[str, Any]:
-    """A split's errors: overall, of the joints (every group but the root) and per group."""
-    joints = [i for name, dofs in groups.items() if name != "root" for i in dofs]
-    return {
-        "n": errors.n,
-        "mse": errors.mse,
-        "mse_si": errors.mse_si,
-        "r2": errors.r2,
-        "joint_mse_si": errors.group(joints).mse_si,
-        "groups": {name: errors.group(dofs).as_dict() for name, dofs in groups.items()},
-    }
-
-
-def group_errors(
-    model: InverseDynamicsModel,
-    data: TensorDict,
-    group_ids: Tensor,
-    group_names: list[str],
-    batch_size: int,
-) -> dict[str, dict[str, float]]:
-    """The errors on each clip's or trajectory's samples of one split: n, mse, mse_si, r2
-    (R^2 against the group's own torque variance). data (N,), group_ids (N,) indices into
-    `group_names`."""
-    out = {}
-    for group in group_ids.unique().tolist():
-        mask = (group_ids == group).to(data.device)
-        errors = evaluate_torques(model, data[mask], batch_size)
-        out[group_names[group]] = {
-            "n": errors.n,
-            "mse": errors.mse,
-            "mse_si": errors.mse_si,
-            "r2": errors.r2,
-        }
-    return out
-
-
 def fit_summary(
     cfg: DictConfig,
     data: InverseData,
@@ -701,41 +666,6 @@ def fit_summary(
     return summary
 
 
-GAP_WARNING = 0.01  # a test R^2 this far below the validation split's is warned about
-
-
-def split_descriptions(provenance: dict[str, Any]) -> dict[str, str]:
-    """What each split of an arrays or excitation fit holds, in words (summary.json)."""
-    split = provenance.get("split", {})
-    whole = split.get("val_by", "trajectories") == "trajectories"
-    val = ("whole training trajectories" if whole
-           else "one contiguous segment of each training trajectory")  # fmt: skip
-    if "test" in provenance:
-        test = f"the trajectories of {provenance['test']['path']}"
-    elif provenance.get("test_seed") is not None:
-        test = (f"trajectories of their own (design {provenance.get('test_design', 'fourier')}, "
-                f"seed {provenance['test_seed']})")  # fmt: skip
-    else:
-        test = "whole trajectories of the data (with fewer than 3: the end of each one)"
-    return {"train": "the rest of the data's trajectories", "val": val, "test": test}
-
-
-def generalisation_gap(final: dict[str, Any], stop_on: str | None) -> float | None:
-    """R^2 of the split that stops training less the test split's (None without both); a
-    gap above `GAP_WARNING` is warned about: the validation error does not tell the
-    held-out one."""
-    if stop_on is None or stop_on not in final or "test" not in final:
-        return None
-    gap = final[stop_on]["r2"] - final["test"]["r2"]
-    if gap > GAP_WARNING:
-        log.warning(
-            "test R2 %.4f is %.4f below %s R2 %.4f: the model does not generalise to the held-"
-            "out data as %s says (more varied training data, or %s of whole trajectories)",
-            final["test"]["r2"], gap, stop_on, final[stop_on]["r2"], stop_on, stop_on,
-        )  # fmt: skip
-    return gap
-
-
 def _write_identified(model: InverseDynamicsModel, system: FitSystem, run_dir: Path) -> None:
     """``identified.xml`` (`mbrl_delan.training.identified`) for a model with an MJCF's
     numbers: the white box and DeLaN on the tree."""
@@ -804,24 +734,6 @@ def read_fit_run(run_dir: str | Path) -> tuple[DictConfig, dict[str, torch.Tenso
     if not isinstance(cfg, DictConfig) or not isinstance(saved, dict) or "state_dict" not in saved:
         raise ValueError(f"{run_dir} does not hold a fit's config.yaml and model.pt")
     return cfg, saved["state_dict"]
-
-
-def load_fit_model(run_dir: str | Path) -> tuple[DictConfig, InverseDynamicsModel]:
-    """A finished fit's config and its trained model (on the CPU, in the fit's dtype), built
-    on the system its data name (the MJCF's tree and armature, or the joint list), once the
-    run's ``plugins`` are loaded (a plugin's model)."""
-    cfg, state = read_fit_run(run_dir)
-    load_config_plugins(cfg)
-    model = build_system_model(cfg, system_of(read_provenance(run_dir)))
-    model = model.to(DTYPES[cfg.get("dtype", "float32")])
-    model.load_state_dict(state)
-    return cfg, model
-
-
-def read_provenance(run_dir: str | Path) -> dict[str, Any]:
-    """A fit's ``dataset_provenance.json`` ({} when it has none)."""
-    path = Path(run_dir) / PROVENANCE_FILE
-    return json.loads(path.read_text()) if path.is_file() else {}
 
 
 @dataclass

@@ -18,12 +18,7 @@ from torchrl.data import TensorDictReplayBuffer
 from torchrl.envs import EnvBase, SerialEnv
 
 from mbrl_delan.accelerate.compile import compile_fit
-from mbrl_delan.conf.builders import (
-    build_model,
-    build_planner,
-    delan_structure,
-    structure_overrides,
-)
+from mbrl_delan.conf.builders import build_model, build_planner
 from mbrl_delan.conf.checks import (
     DTYPES,
     ConfigError,
@@ -42,6 +37,7 @@ from mbrl_delan.envs.real import make_real_env
 from mbrl_delan.envs.registry import EnvParts, make_env_parts
 from mbrl_delan.models.base import WorldModel, model_placement
 from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.delan_config import delan_structure, structure_overrides
 from mbrl_delan.objectives.model import model_objective_factory
 from mbrl_delan.objectives.mujoco import PlanPhysics, mujoco_objective_factory, mujoco_threads
 from mbrl_delan.planners.base import Planner

@@ -22,24 +22,18 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
+from mbrl_delan.models.base import ModelConfig as ModelConfig  # a user's schema extends these
+from mbrl_delan.models.integrators import INTEGRATORS
 from mbrl_delan.objectives.model import RolloutSettings
-from mbrl_delan.planners import (
-    CEMSettings,
-    ICEMSettings,
-    MPPISettings,
-    PredictiveSettings,
-    SamplingSettings,
-)
+from mbrl_delan.objectives.mujoco import INTEGRATORS as ORACLE_INTEGRATORS
+from mbrl_delan.planners import MPPISettings
+from mbrl_delan.planners.base import PlannerConfig as PlannerConfig
 from mbrl_delan.planners.spline import INTERPOLATIONS
+from mbrl_delan.registry import MODELS, PLANNERS
 from mbrl_delan.rules import rule
 from mbrl_delan.tasks.balance import PLAN_COSTS
 from mbrl_delan.training.fit import FitConfig
 from mbrl_delan.training.recorder import LOGGERS, WANDB_MODES
-
-INTEGRATORS = ("euler", "rk4")
-# MuJoCo's integrators the oracle may plan with (`objectives.mujoco.INTEGRATORS`)
-ORACLE_INTEGRATORS = ("euler", "implicitfast", "implicit", "rk4")
-PROPAGATIONS = ("tsinf", "ts1", "mean")
 
 
 @dataclass
@@ -75,142 +69,9 @@ class EnvConfig:
     plan_speed: float | None = rule(None, low=0)  # balance: target speed, m/s (null: the task's)
     oracle_planner: str = rule("same", choices=("same", "ilqr"))
     oracle_substeps: int | None = rule(None, low=1)  # null: frame_skip
-    oracle_integrator: str | None = rule(None, choices=ORACLE_INTEGRATORS)  # null: the MJCF's
+    oracle_integrator: str | None = rule(None, choices=tuple(ORACLE_INTEGRATORS))  # null: MJCF's
     oracle_horizon: int | None = rule(None, low=1)  # the iLQR oracle's (null: the planner's)
     task: dict[str, Any] = field(default_factory=dict)  # task options (cmu_track: the clip)
-
-
-@dataclass
-class ModelConfig:
-    """What every model group has (the optimiser and the planning objective read it); a
-    user's model schema extends it."""
-
-    name: str = MISSING
-    lr: float = rule(low=0, above=True)
-    weight_decay: float = rule(0.0, low=0)
-    particles: int = rule(1, low=1)  # rollouts per action sequence (deterministic model: 1)
-
-
-@dataclass
-class _LagrangianConfig(ModelConfig):
-    """The settings a DeLaN and the members of a DeLaN ensemble share."""
-
-    hidden: int = rule(low=1)
-    layers: int = rule(low=1)
-    activation: str = rule(choices=("softplus", "tanh"))
-    diag_shift: float = rule(low=0)
-    integrator: str = rule(choices=INTEGRATORS)
-    substeps: int = rule(low=1)
-    loss: str = rule(choices=("forward", "inverse", "both"))
-    dissipation: bool = MISSING
-    coulomb: bool = MISSING
-    velocity_margin: float = rule(low=1)
-    residual: bool = MISSING
-    inertia_scaling: bool = MISSING
-    translation_invariant: bool = MISSING
-    yaw_invariant: bool = MISSING
-    tree_sparse: bool = MISSING
-    still_first_order: bool = MISSING
-    armature: bool = MISSING
-    known_root: bool = MISSING  # a free root's inertia units and weight from the MJCF
-    spring_potential: bool = False  # V also holds 1/2 q^T K q + b^T q of the hinges and slides
-
-
-@dataclass
-class DeLaNConfig(_LagrangianConfig):
-    """``model=delan``."""
-
-    contacts: bool = False  # the structured contact model (`models/contact.py`)
-    contact_solve: str = rule("implicit", choices=("implicit", "explicit"))
-    joint_limits: bool = False  # the MJCF's joint ranges as implicit one-sided springs
-    init_from: str | None = None
-
-
-TREE_STARTS = ("documented", "geometric", "mjcf")
-
-
-@dataclass
-class TreeConfig(DeLaNConfig):
-    """``model=tree`` and ``model=tree_delan``: the MJCF's kinematic tree with learned
-    inertias, damping and armature (`models/tree.py`), with DeLaN's networks as a residual
-    Lagrangian beside it where `lagrangian_residual` (tree_delan)."""
-
-    start: str = rule("documented", choices=TREE_STARTS)
-    total_mass: float | None = rule(None, low=0, above=True)  # kg; None: geometry at 1,000 kg/m^3
-    learn_springs: bool = False  # each joint's stiffness and rest learned, from the MJCF's
-    lagrangian_residual: bool = False
-    start_level: float = rule(2e-3, low=0, above=True)  # the residual's L diagonal, of its unit
-    residual_penalty: float = rule(0.0, low=0)  # x the residual's torque share in the loss
-
-
-@dataclass
-class DeLaNEnsembleConfig(_LagrangianConfig):
-    """``model=delan_ensemble``."""
-
-    ensemble_size: int = rule(low=1)
-    propagation: str = rule(choices=PROPAGATIONS)
-    bootstrap: bool = MISSING
-
-
-@dataclass
-class EnsembleConfig(ModelConfig):
-    """``model=ensemble``: the PETS-style ensemble of MLPs."""
-
-    ensemble_size: int = rule(low=1)
-    hidden: int = rule(low=1)
-    layers: int = rule(low=1)
-    activation: str = MISSING
-    propagation: str = rule(choices=PROPAGATIONS)
-
-
-@dataclass
-class WhiteBoxConfig(ModelConfig):
-    """``model=white_box``: the env's MJCF with parameters identified from the replay buffer
-    (`training/whitebox.py`)."""
-
-    lr: float | None = None  # no gradient fit
-    start: str = rule("documented", choices=("documented", "mjcf"))
-    substeps: int | None = rule(None, low=1)  # planning physics steps per control step
-    integrator: str | None = rule(None, choices=ORACLE_INTEGRATORS)
-    window: int = rule(4, low=1)
-    windows: int = rule(256, low=1)
-    iterations: int = rule(10, low=1)
-    fd_step: float = rule(1e-4, low=0, above=True)
-
-
-@dataclass
-class PlannerConfig(SamplingSettings):
-    """What every planner group has (the receding-horizon policy and the objective read it):
-    the sampling settings (`planners.base.SamplingSettings`, typed and defaulted there) and
-    the loop's; a user's planner schema extends it."""
-
-    name: str = MISSING
-    horizon: int = rule(low=1)
-    replan_every: int = rule(1, low=1)
-    discount: float = rule(1.0, low=0, above=True, high=1)
-    risk: float = rule(0.0)  # ensembles: mean - risk * std of the particles' returns
-
-
-# a built-in planner's group: its settings (the planner's own dataclass, first, so that its
-# defaults stand) and the loop's
-@dataclass
-class CEMConfig(CEMSettings, PlannerConfig):
-    """``planner=cem``."""
-
-
-@dataclass
-class ICEMConfig(ICEMSettings, PlannerConfig):
-    """``planner=icem``."""
-
-
-@dataclass
-class MPPIConfig(MPPISettings, PlannerConfig):
-    """``planner=mppi``."""
-
-
-@dataclass
-class PredictiveConfig(PredictiveSettings, PlannerConfig):
-    """``planner=predictive``: predictive sampling."""
 
 
 @dataclass
@@ -291,28 +152,15 @@ class TrainConfig:
     video_backend: str | None = rule(None, choices=("egl", "osmesa", "glfw"))
 
 
-MODEL_SCHEMAS = {
-    "delan": DeLaNConfig,
-    "tree": TreeConfig,
-    "tree_delan": TreeConfig,
-    "delan_ensemble": DeLaNEnsembleConfig,
-    "ensemble": EnsembleConfig,
-    "white_box": WhiteBoxConfig,
-}
-PLANNER_SCHEMAS = {
-    "cem": CEMConfig,
-    "icem": ICEMConfig,
-    "mppi": MPPIConfig,
-    "predictive": PredictiveConfig,
-}
-
-
 def store_schemas(store: ConfigStore) -> None:
-    """Put the schemas in Hydra's ConfigStore, where the YAML files' defaults lists find them."""
+    """Put the schemas in Hydra's ConfigStore, where the YAML files' defaults lists find them:
+    the run's groups and each registered model's and planner's (``base_<name>``)."""
     store.store(name="base_train", node=TrainConfig)
     store.store(name="base_env", node=EnvConfig)
-    for name, schema in [*MODEL_SCHEMAS.items(), *PLANNER_SCHEMAS.items()]:
-        store.store(name=f"base_{name}", node=schema)
+    for registry in (MODELS, PLANNERS):
+        for name in registry.names():
+            if (schema := registry[name].schema) is not None:
+                store.store(name=f"base_{name}", node=schema)
 
 
 store_schemas(ConfigStore.instance())

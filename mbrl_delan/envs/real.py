@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torchrl.envs import GymEnv
 
-from mbrl_delan import gym_id, keys, register_gym_id
+from mbrl_delan import keys
 from mbrl_delan.envs.registry import EnvParts, TaskOptions, make_env_parts
 from mbrl_delan.registry import ENVS
 from mbrl_delan.systems.system import State
@@ -159,6 +159,17 @@ class MujocoTaskEnv(gym.Env):
         if self._video is not None:
             self._video.close()
             self._video = None
+
+
+def gym_id(name: str) -> str:
+    """The gymnasium id of a registered env: ``mbrl_delan/<Name>-v0`` (arm_reach: ArmReach)."""
+    return "mbrl_delan/" + "".join(part.capitalize() for part in name.split("_")) + "-v0"
+
+
+def register_gym_id(name: str) -> None:
+    """Register env `name`'s gymnasium id, made by `MujocoTaskEnv` (idempotent)."""
+    if gym_id(name) not in gym.registry:
+        gym.register(id=gym_id(name), entry_point=MujocoTaskEnv, kwargs={"env_name": name})
 
 
 def register_envs() -> None:

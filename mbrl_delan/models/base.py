@@ -9,10 +9,24 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
+from omegaconf import MISSING
 from tensordict import TensorDictBase
 from torch import Tensor, nn
 
+from mbrl_delan.rules import rule
 from mbrl_delan.systems.system import JointLayout, State
+
+
+@dataclass
+class ModelConfig:
+    """What every world model's config group has (the optimiser and the planning objective
+    read it); each model's schema extends it, a user's too. particles: rollouts per action
+    sequence (a deterministic model: 1)."""
+
+    name: str = MISSING
+    lr: float = rule(low=0, above=True)
+    weight_decay: float = rule(0.0, low=0)
+    particles: int = rule(1, low=1)
 
 
 @dataclass

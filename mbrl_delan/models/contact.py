@@ -28,8 +28,9 @@ at any stiffness, and is differentiable for the fit.
 
 from __future__ import annotations
 
+import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import mujoco
 import numpy as np
@@ -38,6 +39,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from mbrl_delan.systems.forward_kinematics import ForwardKinematics, Frames
+
+log = logging.getLogger(__name__)
 
 PENETRATION_UNIT = 0.01  # delta, m: k is the force per point, in body weights, at 1 cm
 SLIP_SPEED = 0.01  # eps, m/s: below this slip the friction force fades linearly to zero
@@ -456,3 +459,22 @@ def _subtree_mask(parent: list[int], body: int) -> list[bool]:
         ancestors.add(body)
         body = parent[body]
     return [b in ancestors for b in range(len(parent))]
+
+
+def floor_parts(
+    model: mujoco.MjModel, weight: float, contacts: bool, implicit: bool, joint_limits: bool
+) -> tuple[ContactModel | None, JointLimits | None]:
+    """The contact model (its weight unit `weight`, solved implicitly or not) where `contacts`
+    and the MJCF has a floor its geoms can touch (else none, logged), and the joint limits
+    where `joint_limits`."""
+    contact = None
+    if contacts:
+        try:
+            points = ContactPoints.from_mujoco(model)
+        except ValueError as err:
+            log.info("contacts: none in this MJCF (%s)", err)
+        else:
+            contact = ContactModel(ForwardKinematics.from_mujoco(model),
+                                   replace(points, weight=weight), implicit=implicit)  # fmt: skip
+    limits = JointLimits.from_mujoco(model) if joint_limits else None
+    return contact, limits

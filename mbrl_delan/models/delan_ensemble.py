@@ -26,10 +26,11 @@ from __future__ import annotations
 import copy
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import fields
+from dataclasses import dataclass, fields
 from typing import Any
 
 import torch
+from omegaconf import MISSING, DictConfig
 from tensordict import TensorDictBase
 from torch import Tensor, nn
 from torch.func import functional_call, stack_module_state
@@ -37,8 +38,12 @@ from torch.func import functional_call, stack_module_state
 from mbrl_delan import keys
 from mbrl_delan.models.base import LossOutput, WorldModel
 from mbrl_delan.models.delan import DeLaN, LagrangianTerms
+from mbrl_delan.models.delan_config import delan_arguments
+from mbrl_delan.models.structure import LagrangianConfig
+from mbrl_delan.registry import register_model
+from mbrl_delan.rules import rule
 from mbrl_delan.systems.posarith import differentiate_pos, integrate_pos
-from mbrl_delan.systems.system import JointLayout, State
+from mbrl_delan.systems.system import JointLayout, State, System
 
 log = logging.getLogger(__name__)
 
@@ -379,3 +384,22 @@ def _step_tuple(model: DeLaN, q: Tensor, qd: Tensor, action: Tensor) -> tuple[Te
     """One member's step as a tuple (vmap returns tensors and tuples, not `State`)."""
     nxt = model.step(q, qd, action)
     return nxt.q, nxt.qd
+
+
+@dataclass
+class DeLaNEnsembleConfig(LagrangianConfig):
+    """``model=delan_ensemble``: the members' DeLaN settings and the ensemble's."""
+
+    ensemble_size: int = rule(low=1)
+    propagation: str = rule(choices=PROPAGATIONS)
+    bootstrap: bool = MISSING
+
+
+@register_model("delan_ensemble", schema=DeLaNEnsembleConfig)
+def build_delan_ensemble(cfg: DictConfig, system: System) -> DeLaNEnsemble:
+    return DeLaNEnsemble(
+        **delan_arguments(cfg, system),
+        ensemble_size=cfg.ensemble_size,
+        propagation=cfg.propagation,
+        bootstrap=cfg.bootstrap,
+    )

@@ -26,14 +26,17 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
+from omegaconf import MISSING, DictConfig
 from tensordict import TensorDictBase
 from torch import Tensor, nn
 
 from mbrl_delan import keys
-from mbrl_delan.models.base import LossOutput, WorldModel
+from mbrl_delan.models.base import LossOutput, ModelConfig, WorldModel
 from mbrl_delan.models.features import QFeatures
+from mbrl_delan.registry import register_model
+from mbrl_delan.rules import rule
 from mbrl_delan.systems.posarith import differentiate_pos, integrate_pos
-from mbrl_delan.systems.system import JointLayout, State
+from mbrl_delan.systems.system import JointLayout, State, System
 
 log = logging.getLogger(__name__)
 
@@ -410,3 +413,28 @@ class GaussianEnsemble(WorldModel):
         q_b = q.expand(*lead, -1)
         q_next = integrate_pos(self.layout, q_b, v_avg, self.control_dt)
         return State(q=q_next, qd=qd.expand(*lead, -1) + d_qd.to(qd.dtype))
+
+
+@dataclass
+class EnsembleConfig(ModelConfig):
+    """``model=ensemble``: the PETS-style ensemble of MLPs."""
+
+    ensemble_size: int = rule(low=1)
+    hidden: int = rule(low=1)
+    layers: int = rule(low=1)
+    activation: str = MISSING
+    propagation: str = rule(choices=PROPAGATIONS)
+
+
+@register_model("ensemble", schema=EnsembleConfig)
+def build_ensemble(cfg: DictConfig, system: System) -> GaussianEnsemble:
+    return GaussianEnsemble(
+        layout=system.layout,
+        nu=system.nu,
+        control_dt=system.control_dt,
+        ensemble_size=cfg.ensemble_size,
+        hidden=cfg.hidden,
+        layers=cfg.layers,
+        activation=cfg.activation,
+        propagation=cfg.propagation,
+    )

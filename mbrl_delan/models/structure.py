@@ -3,6 +3,9 @@
 `Structure.build(layout, actuation)` turns it into the mechanics (`LagrangianDynamics` over a
 `LagrangianNetwork`) and the optional residual force. Two DeLaNs can share M, V and the
 friction (`DeLaN.load_mechanics`) when their `Structure`s agree on `Structure.MECHANICS`.
+`LagrangianConfig` is the config group's part every DeLaN model shares, `read_structure` the
+one reader of such a group (train's ``model=delan`` and its kin, fit's ``model=delan`` and
+``tree_delan``) into its `Structure`.
 """
 
 from __future__ import annotations
@@ -10,14 +13,18 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import torch
+from omegaconf import MISSING, DictConfig
 from torch import Tensor
 
+from mbrl_delan.models.base import ModelConfig
 from mbrl_delan.models.features import QFeatures
 from mbrl_delan.models.field import LagrangianNetwork, ResidualForce
+from mbrl_delan.models.integrators import INTEGRATORS
 from mbrl_delan.models.lagrangian import Dissipation, LagrangianDynamics
+from mbrl_delan.rules import rule
 from mbrl_delan.systems.system import BALL, FREE, HINGE, SLIDE, JointLayout
 
 
@@ -210,3 +217,57 @@ def _armature(armature: Sequence[float] | Tensor | None, n: int) -> Tensor | Non
     if value.shape != (n,) or not bool(torch.isfinite(value).all()) or bool((value < 0).any()):
         raise ValueError(f"armature must be {n} finite values >= 0, got {armature!r}")
     return value
+
+
+@dataclass
+class LagrangianConfig(ModelConfig):
+    """The config group's settings a DeLaN and the members of a DeLaN ensemble share: the
+    `Structure` fields of the same name (`STRUCTURE_KEYS`), how the model steps and learns,
+    and where its units come from."""
+
+    hidden: int = rule(low=1)
+    layers: int = rule(low=1)
+    activation: str = rule(choices=("softplus", "tanh"))
+    diag_shift: float = rule(low=0)
+    integrator: str = rule(choices=INTEGRATORS)
+    substeps: int = rule(low=1)
+    loss: str = rule(choices=("forward", "inverse", "both"))
+    dissipation: bool = MISSING
+    coulomb: bool = MISSING
+    velocity_margin: float = rule(low=1)
+    residual: bool = MISSING
+    inertia_scaling: bool = MISSING
+    translation_invariant: bool = MISSING
+    yaw_invariant: bool = MISSING
+    tree_sparse: bool = MISSING
+    still_first_order: bool = MISSING
+    armature: bool = MISSING
+    known_root: bool = MISSING  # a free root's inertia units and weight from the MJCF
+    spring_potential: bool = False  # V also holds 1/2 q^T K q + b^T q of the hinges and slides
+
+
+# the model-group keys that are `Structure` fields of the same name (where a group has them)
+STRUCTURE_KEYS = (
+    "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb", "coulomb_velocity",
+    "still_first_order", "translation_invariant", "yaw_invariant", "inertia_scaling", "residual",
+    "spring_potential",
+)  # fmt: skip
+
+
+def read_structure(
+    cfg: DictConfig,
+    dof_parents: Sequence[int] | None,
+    armature: Sequence[float] | None,
+    **fixed: Any,
+) -> Structure:
+    """The `Structure` of the model group `cfg`: its `STRUCTURE_KEYS`, ``inertia_scaling``'s
+    diagonal start, the tree `dof_parents` where ``tree_sparse`` and the robot's `armature`
+    where ``armature`` (each None: none to give); `fixed`: fields set by the caller, over the
+    group's (the fit's friction and invariance, a known root)."""
+    values: dict[str, Any] = {key: cfg[key] for key in STRUCTURE_KEYS if key in cfg}
+    values["diagonal_init"] = values.get("inertia_scaling", False)
+    if cfg.get("tree_sparse", False) and dof_parents is not None:
+        values["dof_parents"] = list(dof_parents)
+    if cfg.get("armature", False) and armature is not None:
+        values["armature"] = list(armature)
+    return Structure(**(values | fixed))

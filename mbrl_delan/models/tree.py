@@ -59,6 +59,7 @@ from mbrl_delan.systems.forward_kinematics import (
     ForwardKinematics,
     Frames,
 )
+from mbrl_delan.systems.system import System
 
 _UPPER = torch.triu_indices(4, 4, 1)  # V's entries above the diagonal, row by row
 FLOOR = 1e-12  # a start's zero damping or armature starts at this share of the largest (log scale)
@@ -578,3 +579,23 @@ class TreeDynamics(nn.Module):
             gravity=gravity + spring, dissipation=dissipation, kinetic_energy=kinetic,
             potential_energy=potential,
         )  # fmt: skip
+
+
+def tree_start(start: str, system: System, total_mass: float | None = None) -> TreeStart:
+    """The tree's start a model config names: ``mjcf`` the file's own numbers, ``geometric``
+    its geometry (at 1,000 kg/m^3, or scaled to `total_mass` kg), ``documented`` the
+    documented wrong start (`documented_start`)."""
+    if start == "mjcf":
+        return TreeStart.of_model(system.mj_model())
+    spec = mujoco.MjSpec.from_file(str(system.xml_path))
+    make = geometric_start if start == "geometric" else documented_start
+    return make(spec, total_mass)
+
+
+def tree_root_inertia(tree: RigidBodyTree, system: System) -> tuple[float, ...]:
+    """A free root's six diagonal inertias at qpos0 by the tree's own numbers (the system
+    has a free root)."""
+    q0 = torch.as_tensor(system.mj_model().qpos0, dtype=torch.float64)
+    with torch.no_grad():
+        diagonal = tree.mass_matrix(q0).diagonal()[:6]
+    return tuple(float(v) for v in diagonal)

@@ -12,16 +12,19 @@ from __future__ import annotations
 
 import abc
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, fields, replace
 from typing import Any, ClassVar, Protocol
 
 import torch
+from omegaconf import MISSING, DictConfig
 from torch import Tensor
 
 from mbrl_delan.objectives.base import Objective
 from mbrl_delan.planners.spline import INTERPOLATIONS, KnotSpline
+from mbrl_delan.registry import register_planner
 from mbrl_delan.rules import rule
+from mbrl_delan.systems.system import System
 
 SHIFT_FILLS = ("repeat", "zero")
 
@@ -30,8 +33,8 @@ SHIFT_FILLS = ("repeat", "zero")
 class SamplingSettings:
     """What every sampling planner takes beside its horizon and action bounds, each typed,
     ranged and defaulted here once: the planner's constructor takes them (a settings object
-    and/or keyword changes) and the planner groups' schemas (`conf.schema.PlannerConfig`'s
-    kin) extend them.
+    and/or keyword changes) and the planner groups' schemas (`PlannerConfig`'s kin) extend
+    them.
 
     num_samples: sequences N evaluated per iteration. iterations: refinement iterations per
     `plan` call. knots: the planner searches K knots (K, nu) of a spline over the horizon
@@ -375,3 +378,47 @@ class SamplingPlanner(abc.ABC):
         self, dist: SamplingDistribution, samples: Tensor, returns: Tensor
     ) -> SamplingDistribution:
         """New distribution from knot samples (N, K, nu) and their cleaned returns (N,)."""
+
+
+@dataclass
+class PlannerConfig(SamplingSettings):
+    """What every planner group has (the receding-horizon policy and the objective read it):
+    the sampling settings and the loop's; each planner's group schema extends it with its
+    own settings first (``class MPPIConfig(MPPISettings, PlannerConfig)``), so that their
+    defaults stand. A user's planner schema extends it too.
+
+    horizon: control steps planned. replan_every: control steps between plans. discount:
+    the objective's per-step discount in (0, 1]. risk: ensembles score mean - risk * std of
+    their particles' returns."""
+
+    name: str = MISSING
+    horizon: int = rule(low=1)
+    replan_every: int = rule(1, low=1)
+    discount: float = rule(1.0, low=0, above=True, high=1)
+    risk: float = rule(0.0)
+
+
+PlannerBuilder = Callable[[DictConfig, System, torch.dtype], Planner]
+
+
+def sampling_builder(planner: type[SamplingPlanner]) -> PlannerBuilder:
+    """The builder of a `SamplingPlanner` subclass (the package's and a user's): its
+    `Settings` read from the planner group (typed by a schema that extends them)."""
+
+    def build(cfg: DictConfig, system: System, dtype: torch.dtype) -> SamplingPlanner:
+        settings = planner.Settings(**{f.name: cfg[f.name] for f in fields(planner.Settings)})
+        return planner(cfg.horizon, system.ctrl_low, system.ctrl_high, settings, dtype)
+
+    build.planner = planner  # type: ignore[attr-defined]  # checked when registered
+    return build
+
+
+def register_sampling_planner(name: str, schema: type[PlannerConfig]) -> Callable[[type], type]:
+    """Class decorator: register a `SamplingPlanner` subclass as planner `name`, its group
+    typed by `schema`, built by `sampling_builder` (checked as a user's planner is)."""
+
+    def add(planner: type[SamplingPlanner]) -> type[SamplingPlanner]:
+        register_planner(name, schema)(sampling_builder(planner))
+        return planner
+
+    return add

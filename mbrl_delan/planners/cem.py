@@ -8,9 +8,11 @@ import torch
 from torch import Tensor
 
 from mbrl_delan.planners.base import (
+    PlannerConfig,
     SamplingDistribution,
     SamplingPlanner,
     SamplingSettings,
+    register_sampling_planner,
     require,
 )
 from mbrl_delan.rules import rule
@@ -40,6 +42,12 @@ def check_cem(settings: CEMSettings) -> None:
     require(0 <= s.momentum < 1, f"momentum must be in [0, 1), got {s.momentum}")
 
 
+@dataclass
+class CEMConfig(CEMSettings, PlannerConfig):
+    """``planner=cem``: CEM's settings and the loop's."""
+
+
+@register_sampling_planner("cem", CEMConfig)
 class CEMPlanner(SamplingPlanner):
     """CEM: sample around a Gaussian, refit it to the top `num_elites`, repeat
     (`CEMSettings`; constructed as `SamplingPlanner`)."""

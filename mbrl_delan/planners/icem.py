@@ -24,10 +24,12 @@ import torch
 from torch import Tensor
 
 from mbrl_delan.planners.base import (
+    PlannerConfig,
     PlanResult,
     PlanTrace,
     SamplingDistribution,
     SamplingPlanner,
+    register_sampling_planner,
     require,
 )
 from mbrl_delan.planners.cem import CEMSettings, check_cem
@@ -131,6 +133,12 @@ class ICEMSettings(CEMSettings):
     return_best: bool = False
 
 
+@dataclass
+class ICEMConfig(ICEMSettings, PlannerConfig):
+    """``planner=icem``: iCEM's settings and the loop's."""
+
+
+@register_sampling_planner("icem", ICEMConfig)
 class ICEMPlanner(SamplingPlanner):
     """iCEM: CEM with colored noise, kept elites, population decay and best-sample return.
 

@@ -9,9 +9,11 @@ import torch
 from torch import Tensor
 
 from mbrl_delan.planners.base import (
+    PlannerConfig,
     SamplingDistribution,
     SamplingPlanner,
     SamplingSettings,
+    register_sampling_planner,
     require,
 )
 from mbrl_delan.rules import rule
@@ -62,6 +64,12 @@ class MPPISettings(SamplingSettings):
     smoothing: float = rule(0.8, low=0, high=1, below=True)
 
 
+@dataclass
+class MPPIConfig(MPPISettings, PlannerConfig):
+    """``planner=mppi``: MPPI's settings and the loop's."""
+
+
+@register_sampling_planner("mppi", MPPIConfig)
 class MPPIPlanner(SamplingPlanner):
     """MPPI: perturb the mean with fixed Gaussian noise, average samples by exp(R / lambda)
     (`MPPISettings`; constructed as `SamplingPlanner`)."""

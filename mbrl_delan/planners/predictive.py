@@ -7,7 +7,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from mbrl_delan.planners.base import SamplingDistribution, SamplingPlanner, SamplingSettings
+from mbrl_delan.planners.base import (
+    PlannerConfig,
+    SamplingDistribution,
+    SamplingPlanner,
+    SamplingSettings,
+    register_sampling_planner,
+)
 from mbrl_delan.planners.spline import INTERPOLATIONS
 from mbrl_delan.rules import rule
 
@@ -24,6 +30,12 @@ class PredictiveSettings(SamplingSettings):
     noise_std: float | None = rule(0.5, low=0, above=True)
 
 
+@dataclass
+class PredictiveConfig(PredictiveSettings, PlannerConfig):
+    """``planner=predictive``: predictive sampling's settings and the loop's."""
+
+
+@register_sampling_planner("predictive", PredictiveConfig)
 class PredictiveSampling(SamplingPlanner):
     """Predictive sampling: each iteration evaluates the nominal knots and N - 1 copies
     perturbed by Gaussian noise of a fixed std, and the best of them becomes the nominal.

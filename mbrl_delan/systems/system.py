@@ -128,6 +128,23 @@ class System:
         """A fresh MjModel of this system (one per thread or env)."""
         return mujoco.MjModel.from_xml_path(str(self.xml_path))
 
+    @property
+    def has_free_root(self) -> bool:
+        return bool(self.layout.types) and self.layout.types[0] == FREE
+
+    def free_root(self) -> tuple[tuple[float, ...], float]:
+        """A free root's six diagonal inertias at qpos0 (MuJoCo's M) and the body's weight
+        m |g| from the MJCF; a ValueError without a free root."""
+        if not self.has_free_root:
+            raise ValueError(f"{self.name} has no free root")
+        model = self.mj_model()
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        full = np.zeros((model.nv, model.nv))
+        mujoco.mj_fullM(model, data, full)
+        weight = float(model.body_mass.sum() * np.linalg.norm(model.opt.gravity))
+        return tuple(float(v) for v in np.diag(full)[:6]), weight
+
 
 def mjcf_path(name: str | Path) -> Path:
     """An MJCF file (``.xml``) or the stem of a model shipped with the package (``arm2``) as

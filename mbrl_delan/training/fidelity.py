@@ -317,8 +317,10 @@ def rigid_body_metrics(model: WorldModel, truth: RigidBodyTruth) -> dict[str, fl
         residual = root - truth.gravity * mass[:, :6, 2]
         out["gravity_identity_residual"] = float((residual.norm(dim=-1) / root.norm(dim=-1))
                                                  .median())  # fmt: skip
-    return out | _stiffness_figures(model, truth, place) | _coupled_stiffness_figures(
-        model, truth, place
+    return (
+        out
+        | _stiffness_figures(model, truth, place)
+        | _coupled_stiffness_figures(model, truth, place)
     )
 
 

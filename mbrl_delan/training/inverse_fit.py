@@ -16,6 +16,7 @@ import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -317,3 +318,74 @@ def fit_inverse_model(
 
 def _weights(model: InverseDynamicsModel) -> dict[str, Tensor]:
     return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def split_summary(errors: TorqueErrors, groups: dict[str, tuple[int, ...]]) -> dict[str, Any]:
+    """A split's errors: overall, of the joints (every group but the root) and per group."""
+    joints = [i for name, dofs in groups.items() if name != "root" for i in dofs]
+    return {
+        "n": errors.n,
+        "mse": errors.mse,
+        "mse_si": errors.mse_si,
+        "r2": errors.r2,
+        "joint_mse_si": errors.group(joints).mse_si,
+        "groups": {name: errors.group(dofs).as_dict() for name, dofs in groups.items()},
+    }
+
+
+def group_errors(
+    model: InverseDynamicsModel,
+    data: TensorDictBase,
+    group_ids: Tensor,
+    group_names: list[str],
+    batch_size: int,
+) -> dict[str, dict[str, float]]:
+    """The errors on each clip's or trajectory's samples of one split: n, mse, mse_si, r2
+    (R^2 against the group's own torque variance). data (N,), group_ids (N,) indices into
+    `group_names`."""
+    out = {}
+    for group in group_ids.unique().tolist():
+        mask = (group_ids == group).to(data.device)
+        errors = evaluate_torques(model, data[mask], batch_size)
+        out[group_names[group]] = {
+            "n": errors.n,
+            "mse": errors.mse,
+            "mse_si": errors.mse_si,
+            "r2": errors.r2,
+        }
+    return out
+
+
+GAP_WARNING = 0.01  # a test R^2 this far below the validation split's is warned about
+
+
+def split_descriptions(provenance: dict[str, Any]) -> dict[str, str]:
+    """What each split of an arrays or excitation fit holds, in words (summary.json)."""
+    split = provenance.get("split", {})
+    whole = split.get("val_by", "trajectories") == "trajectories"
+    val = ("whole training trajectories" if whole
+           else "one contiguous segment of each training trajectory")  # fmt: skip
+    if "test" in provenance:
+        test = f"the trajectories of {provenance['test']['path']}"
+    elif provenance.get("test_seed") is not None:
+        test = (f"trajectories of their own (design {provenance.get('test_design', 'fourier')}, "
+                f"seed {provenance['test_seed']})")  # fmt: skip
+    else:
+        test = "whole trajectories of the data (with fewer than 3: the end of each one)"
+    return {"train": "the rest of the data's trajectories", "val": val, "test": test}
+
+
+def generalisation_gap(final: dict[str, Any], stop_on: str | None) -> float | None:
+    """R^2 of the split that stops training less the test split's (None without both); a
+    gap above `GAP_WARNING` is warned about: the validation error does not tell the
+    held-out one."""
+    if stop_on is None or stop_on not in final or "test" not in final:
+        return None
+    gap = final[stop_on]["r2"] - final["test"]["r2"]
+    if gap > GAP_WARNING:
+        log.warning(
+            "test R2 %.4f is %.4f below %s R2 %.4f: the model does not generalise to the held-"
+            "out data as %s says (more varied training data, or %s of whole trajectories)",
+            final["test"]["r2"], gap, stop_on, final[stop_on]["r2"], stop_on, stop_on,
+        )  # fmt: skip
+    return gap

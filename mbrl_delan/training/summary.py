@@ -38,6 +38,8 @@ def run_summary(cfg: DictConfig, run_dir: Path, loop: MBRLLoop) -> dict[str, Any
         "oracle_return_std": float(torch.tensor(oracle).std(unbiased=False)) if oracle else None,
         "fraction_of_oracle": eval_mean / oracle_mean if oracle_mean else None,
         "eval_steps_median": last.get("eval_steps_median"),
+        # where the oracle's episodes come from: this run, or the run (or record) named
+        "oracle_source": cfg.budget.get("oracle_from") or "this run",
     }
     return with_zero_baseline(loop, summary | {k: last[k] for k in PAIRED_KEYS if k in last})
 

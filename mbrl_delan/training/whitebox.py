@@ -35,11 +35,12 @@ import numpy as np
 import torch
 from mujoco import rollout as mj_rollout
 from mujoco import sysid
+from omegaconf import DictConfig
 from tensordict import TensorDictBase
 from torch import Tensor
 
 from mbrl_delan import keys
-from mbrl_delan.models.base import LossOutput, RigidBody, WorldModel
+from mbrl_delan.models.base import LossOutput, ModelConfig, RigidBody, WorldModel
 from mbrl_delan.models.inertial import dof_stiffness, rigid_body_at
 from mbrl_delan.objectives.base import ObjectiveFactory
 from mbrl_delan.objectives.mujoco import (
@@ -48,8 +49,12 @@ from mbrl_delan.objectives.mujoco import (
     QVEL,
     MujocoObjectiveFactory,
     PlanPhysics,
+    mujoco_threads,
     state_offset,
 )
+from mbrl_delan.objectives.mujoco import INTEGRATORS as MJ_INTEGRATORS
+from mbrl_delan.registry import register_model
+from mbrl_delan.rules import rule
 from mbrl_delan.systems.posarith import differentiate_pos
 from mbrl_delan.systems.system import State, System
 from mbrl_delan.tasks.base import Task
@@ -618,3 +623,32 @@ class WhiteBoxObjectiveFactory(ObjectiveFactory):
         if self._factory is not None:
             self._factory.close()
             self._factory = None
+
+
+@dataclass
+class WhiteBoxConfig(ModelConfig):
+    """``model=white_box``: the env's MJCF with parameters identified from the replay buffer
+    (`IdentifyConfig`: window, windows, iterations, fd_step), planned on with MuJoCo's
+    physics (substeps, integrator: null, the env's)."""
+
+    lr: float | None = None  # no gradient fit
+    start: str = rule("documented", choices=("documented", "mjcf"))
+    substeps: int | None = rule(None, low=1)  # planning physics steps per control step
+    integrator: str | None = rule(None, choices=tuple(MJ_INTEGRATORS))
+    window: int = rule(4, low=1)
+    windows: int = rule(256, low=1)
+    iterations: int = rule(10, low=1)
+    fd_step: float = rule(1e-4, low=0, above=True)
+
+
+@register_model("white_box", schema=WhiteBoxConfig)
+def build_white_box(cfg: DictConfig, system: System) -> WhiteBoxModel:
+    model = WhiteBoxModel(
+        system,
+        physics=PlanPhysics(cfg.substeps, cfg.integrator),
+        identify=IdentifyConfig(cfg.window, cfg.windows, cfg.iterations, cfg.fd_step),
+        nthread=mujoco_threads(),
+    )
+    if cfg.start == "documented":
+        model.set_multipliers(model.white.documented_start())
+    return model
