@@ -55,7 +55,7 @@ GROUP_KEYS = ("env", "model", "planner", "start", "config")
 RAN_WITH = (
     "seed", "device", "threads", "resume", "logger.", "video", "video_width", "video_height",
     "video_episodes", "video_every_eval", "video_backend", "buffer.memmap", "buffer.device",
-    "buffer.device_fraction",
+    "buffer.device_fraction", "budget.oracle_from",
 )  # fmt: skip
 REQUIRED_KEYS = ("env", "model", "planner", "seed")
 ORACLE_FRACTION = 0.9
@@ -68,6 +68,12 @@ REPORT_CSV = "report.csv"
 RETURNS_PNG = "returns.png"
 MODEL_ERROR_PNG = "model_error.png"
 
+# a paired final evaluation's falls, pooled over the seeds' episodes (`paired_falls`)
+FALL_COLUMNS = (
+    "paired_episodes", "falls", "falls_ci95_low", "falls_ci95_high", "oracle_falls",
+    "oracle_falls_ci95_low", "oracle_falls_ci95_high", "model_fell_only", "oracle_fell_only",
+    "mcnemar_p",
+)  # fmt: skip
 COLUMNS = (
     *GROUP_KEYS,
     "seeds",
@@ -81,6 +87,7 @@ COLUMNS = (
     *(f"steps_to_{100 * f:.0f}_{part}" for f in REACH_FRACTIONS for part in ("mean", "reached")),
     "env_steps_mean",
     "wall_time_s_mean",
+    *FALL_COLUMNS,
 )
 
 Group = tuple[str, str, str, str, str]
@@ -233,6 +240,54 @@ def mean_ci(values: list[float], level: float = CONFIDENCE) -> tuple[float | Non
     return mean, t * statistics.stdev(values) / math.sqrt(len(values))
 
 
+def wilson_interval(k: int, n: int, level: float = CONFIDENCE) -> tuple[float, float]:
+    """The Wilson score interval of a rate k / n (n >= 1): the falls' 95% interval."""
+    ci = stats.binomtest(k, n).proportion_ci(confidence_level=level, method="wilson")
+    return float(ci.low), float(ci.high)
+
+
+def mcnemar_exact(b: int, c: int) -> float:
+    """The exact McNemar test's two-sided p-value on the discordant pairs: b episodes where
+    only the model fell, c where only the oracle fell (binomial, 1/2 each); 1 without any."""
+    return 1.0 if b + c == 0 else float(stats.binomtest(min(b, c), b + c, 0.5).pvalue)
+
+
+def paired_falls(run: dict[str, Any]) -> tuple[list[bool], list[bool]] | None:
+    """Per episode of a run's paired final evaluation: whether the model fell and whether
+    the oracle fell from the same start (an episode shorter than ``env.episode_len``); None
+    without one."""
+    records = read_metrics(Path(run["run_dir"]) / METRICS_FILE, warn=False)
+    last = next((r for r in reversed(records) if "oracle_episode_steps" in r), None)
+    if last is None or "eval_episode_steps" not in last:
+        return None
+    ours, theirs = last["eval_episode_steps"], last["oracle_episode_steps"]
+    n = min(len(ours), len(theirs))
+    full = run["config"].get("env.episode_len") or max(ours[:n] + theirs[:n], default=0)
+    return [s < full for s in ours[:n]], [s < full for s in theirs[:n]]
+
+
+def fall_figures(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """`FALL_COLUMNS` over the paired episodes of `runs` (every seed's, pooled): the falls
+    of the model and of the oracle with their Wilson intervals, the discordant episodes and
+    the exact McNemar p-value; None each without paired episodes."""
+    pairs = [p for r in runs if (p := paired_falls(r)) is not None]
+    model = [f for ours, _ in pairs for f in ours]
+    oracle = [f for _, theirs in pairs for f in theirs]
+    if not model:
+        return dict.fromkeys(FALL_COLUMNS)
+    b = sum(m and not o for m, o in zip(model, oracle, strict=True))
+    c = sum(o and not m for m, o in zip(model, oracle, strict=True))
+    n, falls, oracle_falls = len(model), sum(model), sum(oracle)
+    low, high = wilson_interval(falls, n)
+    oracle_low, oracle_high = wilson_interval(oracle_falls, n)
+    return {
+        "paired_episodes": n, "falls": falls, "falls_ci95_low": low, "falls_ci95_high": high,
+        "oracle_falls": oracle_falls, "oracle_falls_ci95_low": oracle_low,
+        "oracle_falls_ci95_high": oracle_high, "model_fell_only": b, "oracle_fell_only": c,
+        "mcnemar_p": mcnemar_exact(b, c),
+    }  # fmt: skip
+
+
 def steps_to_fraction(
     records: list[dict[str, Any]], oracle: float | None, fraction: float = ORACLE_FRACTION
 ) -> int | None:
@@ -317,7 +372,7 @@ def _row(group: Group, runs: list[dict[str, Any]]) -> dict[str, Any]:
         row[f"{name}_reached"] = len(reached)
     row["env_steps_mean"] = mean_ci(_seed_means(by_seed, "env_steps"))[0]
     row["wall_time_s_mean"] = mean_ci(_seed_means(by_seed, "wall_time_s"))[0]
-    return row
+    return row | fall_figures([rs[0] for rs in by_seed.values()])
 
 
 def rows(summaries: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -350,8 +405,9 @@ def markdown_table(table_rows: list[dict[str, Any]]) -> str:
     lines = [
         "| env | model | planner | start | config | seeds | n | eval return | fraction of oracle "
         "| oracle return | env steps to 50% / 80% / 90% of oracle (seeds reaching) "
-        "| env steps | wall time (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| env steps | wall time (s) | falls / paired episodes (95% CI) | oracle's falls (95% CI) "
+        "| McNemar p (model fell only / oracle fell only) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in table_rows:
         cells = [
@@ -368,9 +424,23 @@ def markdown_table(table_rows: list[dict[str, Any]]) -> str:
             " / ".join(_reach(r, fraction) for fraction in REACH_FRACTIONS),
             _plain(r["env_steps_mean"], ".0f"),
             _plain(r["wall_time_s_mean"], ".0f"),
+            *_fall_cells(r),
         ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _fall_cells(r: dict[str, Any]) -> list[str]:
+    """The falls, the oracle's and the paired test, as the table shows them (n/a unpaired)."""
+    n = r["paired_episodes"]
+    if not n:
+        return ["n/a"] * 3
+    return [
+        f"{r['falls']}/{n} ({r['falls_ci95_low']:.0%}-{r['falls_ci95_high']:.0%})",
+        f"{r['oracle_falls']}/{n} ({r['oracle_falls_ci95_low']:.0%}-"
+        f"{r['oracle_falls_ci95_high']:.0%})",
+        f"{r['mcnemar_p']:.2g} ({r['model_fell_only']} / {r['oracle_fell_only']})",
+    ]
 
 
 def _reach(row: dict[str, Any], fraction: float) -> str:
@@ -400,7 +470,11 @@ def markdown(table_rows: list[dict[str, Any]], incomplete: list[Path], figures: 
         "return on MuJoCo's dynamics, per seed. Env steps to x of oracle: first evaluation "
         "reaching it, mean over the seeds that did. Start: scratch, or the fit the model "
         "started from (`model.init_from`). Config: the settings that differ between runs of "
-        "the same env, model, planner and start (none: they differ only in the seed).",
+        "the same env, model, planner and start (none: they differ only in the seed). Falls: "
+        "episodes of the paired final evaluation shorter than the env's, pooled over the "
+        "seeds (the first run of each), with the Wilson 95% interval; the oracle's from the "
+        "same starts and planner seeds; McNemar p: the exact two-sided test on the episodes "
+        "where only one of them fell.",
         "## Incomplete runs",
         "\n".join(f"- `{run}`: {incomplete_reason(run)}" for run in incomplete) or "None.",
     ]

@@ -13,10 +13,12 @@ from mbrl_delan.report import (
     find_runs,
     group_label,
     main,
+    mcnemar_exact,
     mean_ci,
     run_dirs,
     steps_to_fraction,
     table,
+    wilson_interval,
 )
 from mbrl_delan.sweep import write_crash
 
@@ -55,6 +57,36 @@ def test_table_gives_mean_and_ci_over_seeds(tmp_path: Path) -> None:
     assert "35 ± 64" in row
     # fractions 1.0, 0.75: s = 0.1768, half-width 12.706 * 0.1768 / sqrt(2) = 1.59
     assert "0.875 ± 1.6" in row
+
+
+def test_wilson_and_mcnemar_of_worked_cases() -> None:
+    """0 of 20: the Wilson interval's upper end z^2 / (n + z^2) = 3.8415 / 23.8415 = 0.1611;
+    10 of 20: 0.5 +- z sqrt(n / 4) / (n + z^2) = 0.5 +- 0.2005. McNemar on 20 discordant
+    episodes all one way: 2 * 0.5^20; on 3 against 1: 2 * (1 + 4) / 16 = 0.625."""
+    low, high = wilson_interval(0, 20)
+    assert low == pytest.approx(0.0, abs=1e-12) and high == pytest.approx(0.16113, abs=1e-4)
+    low, high = wilson_interval(10, 20)
+    assert (low, high) == pytest.approx((0.2995, 0.7005), abs=1e-3)
+    assert mcnemar_exact(20, 0) == pytest.approx(2 * 0.5**20)
+    assert mcnemar_exact(3, 1) == pytest.approx(0.625)
+    assert mcnemar_exact(0, 0) == 1.0
+
+
+def test_paired_runs_pool_their_falls_over_seeds(tmp_path: Path) -> None:
+    """Two seeds of 4 paired episodes (episode length 100): the model fell in 1 and 2 of
+    them, the oracle in 0 and 2 (one of them with the model); pooled 3/8 against 2/8, the
+    model alone fell in 2, the oracle alone in 1."""
+    for seed, ours, theirs in ((0, [100, 40, 100, 100], [100] * 4),
+                               (1, [10, 100, 20, 100], [100, 100, 50, 30])):  # fmt: skip
+        run = make_run(tmp_path, f"s{seed}", summary(seed, 1.0, 1.0))
+        (run / "config.yaml").write_text(f"seed: {seed}\nenv:\n  episode_len: 100\n")
+        record = {"iteration": 1, "eval_episode_steps": ours, "oracle_episode_steps": theirs}
+        (run / "metrics.jsonl").write_text(json.dumps(record) + "\n")
+    runs, _ = find_runs([tmp_path])
+    row = table(runs).splitlines()[2]
+    low, high = wilson_interval(3, 8)
+    assert f"3/8 ({low:.0%}-{high:.0%})" in row and "2/8" in row
+    assert f"{mcnemar_exact(2, 1):.2g} (2 / 1)" in row
 
 
 def test_repeated_runs_of_a_seed_count_once(tmp_path: Path, caplog) -> None:
