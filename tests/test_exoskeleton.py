@@ -61,3 +61,33 @@ def test_either_part_of_the_exoskeleton_alone(springs: bool, friction: bool) -> 
     edited = spec.compile()
     assert (edited.dof_frictionloss.max() == EXOSKELETON.frictionloss) == friction
     assert (not np.array_equal(edited.jnt_stiffness, plain.jnt_stiffness)) == springs
+
+
+def test_random_episodes_without_contacts_fall_freely_and_move_the_joints_as_without_gravity(
+) -> None:  # fmt: skip
+    """The fidelity suite's contact-free data (`random_episodes(..., contacts=False)`): each
+    episode lasts `FREE_FALL_STEPS`, the root falls about g t^2 / 2, and the hinges follow
+    the same controls exactly as in a copy of the physics without gravity (gravity acts
+    alike on every body of a falling one)."""
+    import torch
+
+    from mbrl_delan import keys
+    from mbrl_delan.benchmarks.fidelity import FREE_FALL_STEPS, random_episodes
+    from mbrl_delan.envs import make_env_parts
+
+    parts = make_env_parts("humanoid_stand_exo")
+    data = random_episodes(parts, FREE_FALL_STEPS, 0, contacts=False)
+    assert data.shape[0] == FREE_FALL_STEPS  # one whole episode: nothing ended it
+    seconds = FREE_FALL_STEPS * parts.physics.control_dt
+    fall = float(data[keys.Q][0, 2] - data[keys.NEXT_Q][-1, 2])
+    assert fall == pytest.approx(0.5 * 9.81 * seconds**2, rel=0.05)
+    model = parts.physics.mj_model()
+    model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+    model.opt.gravity[:] = 0.0
+    state = mujoco.MjData(model)
+    state.qpos[:], state.qvel[:] = data[keys.Q][0].numpy(), data[keys.QD][0].numpy()
+    for action, q_next in zip(data[keys.ACTION].numpy(), data[keys.NEXT_Q], strict=True):
+        state.ctrl[:] = action
+        mujoco.mj_step(model, state, nstep=parts.physics.frame_skip)
+        torch.testing.assert_close(torch.from_numpy(state.qpos[7:].copy()), q_next[7:],
+                                   atol=1e-6, rtol=0)  # fmt: skip

@@ -20,7 +20,8 @@ The learned models (`FIT_CASES`: ``tree``, ``tree_delan``, ``delan`` with the co
 ``white_box``, ``ensemble``), named in `models`, are each built as the loop builds them and
 fitted once, as the loop's refit does (seed `seed`), on the first `transitions` (default
 5,000) transitions of `data_run`'s replay buffer (the loop's own data), or without
-`data_run` on episodes of uniformly random actions from the task's starts.
+`data_run` on episodes of uniformly random actions from the task's starts (with
+`data_contacts=false` simulated without contacts: `random_episodes`).
 
 Besides the fidelity figures, every case with a rigid body gets the rigid-body figures of
 `training.fidelity.rigid_body_metrics` on the reference's states (``mass_matrix_error``,
@@ -82,12 +83,14 @@ SUITE = "fidelity"
 TASK = "humanoid_stand"  # the default env (`env`: also humanoid_stand_exo, _tendon)
 STEPS = 300  # control steps of the oracle's episode and of each case's episode
 QUICK_STEPS = 35  # under `quick`: just past the 30-step horizon
+FREE_FALL_STEPS = 100  # control steps per episode without contacts (1.5 s: 15 m/s of fall)
 UNITS = {
     "root_velocity_error_1step": "m/s", "head_height_error_10step": "cm",
     "head_height_error_30step": "cm", "candidate_rank_rho": "", "steps_survived": "steps",
     "mass_matrix_error": "", "total_mass_error": "", "gravity_error": "",
     "gravity_identity_residual": "", "actuation_response_error": "", "fit_seconds": "s",
     "spring_stiffness_error": "",
+    "spring_stiffness_ratio": "",
     "coupled_stiffness_error": "",
 }  # fmt: skip
 DEFAULT_TRANSITIONS = 5000  # the learned cases' training set
@@ -303,6 +306,7 @@ def run_fidelity_suite(options: FidelitySuiteConfig, bench: BenchSettings) -> It
     reference = reference_episode(cfg, parts, steps, seed, nthread)
     host = host_fields(torch.device("cpu"))
     base = dict(env=task, seed=seed, oracle_steps=steps, starts=int(reference.q.shape[0]),
+                data_contacts=options.data_contacts,
                 candidate_starts=int(reference.candidate_starts.numel()),
                 overrides=list(options.overrides))  # fmt: skip
     cases = REFERENCE_CASES if options.models is None else options.models
@@ -348,14 +352,21 @@ def training_data(
         train, _ = split_run_episodes(options.data_run, parts.task.name, 0)
         return (first_transitions(train, n, options.data_run),
                 f"the first {n} transitions of {Path(options.data_run).name}")  # fmt: skip
+    if not options.data_contacts:
+        return (random_episodes(parts, n, seed, contacts=False),
+                f"{n} transitions of random actions without contacts (seed {seed})")  # fmt: skip
     return random_episodes(parts, n, seed), f"{n} transitions of random actions (seed {seed})"
 
 
-def random_episodes(parts: EnvParts, n: int, seed: int) -> TensorDict:
+def random_episodes(parts: EnvParts, n: int, seed: int, contacts: bool = True) -> TensorDict:
     """n transitions of episodes of uniformly random controls from the task's starts, each
-    until the task ends it (float64, time-ordered)."""
+    until the task ends it (float64, time-ordered). Without `contacts` MuJoCo's contacts
+    are off: the body falls freely, and its joints move as they would without gravity (it
+    acts alike on every body), in episodes of `FREE_FALL_STEPS` the task does not end."""
     system, task = parts.physics, parts.task  # what the env simulates
     model = system.mj_model()
+    if not contacts:
+        model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
     data = mujoco.MjData(model)
     generator = torch.Generator().manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -365,12 +376,13 @@ def random_episodes(parts: EnvParts, n: int, seed: int) -> TensorDict:
         start = task.initial_state((), generator)
         mujoco.mj_resetData(model, data)
         data.qpos[:], data.qvel[:] = start.q.numpy(), start.qd.numpy()
-        for _ in range(task.episode_len):
+        for _ in range(task.episode_len if contacts else FREE_FALL_STEPS):
             q, qd = data.qpos.copy(), data.qvel.copy()
             data.ctrl[:] = rng.uniform(low, high)
             mujoco.mj_step(model, data, nstep=system.frame_skip)
             rows.append((q, qd, data.ctrl.copy(), data.qpos.copy(), data.qvel.copy()))
-            ended = task.terminated(torch.from_numpy(data.qpos), torch.from_numpy(data.qvel))
+            ended = contacts and task.terminated(torch.from_numpy(data.qpos),
+                                                 torch.from_numpy(data.qvel))  # fmt: skip
             if len(rows) == n or bool(ended):
                 break
     q, qd, action, q_next, qd_next = (

@@ -167,6 +167,7 @@ class FidelitySuiteConfig(SuiteConfig):
     runs: list[str] = field(default_factory=list)
     env: str | None = rule(None, choices=FIDELITY_ENVS)
     save_models: str | None = None
+    data_contacts: bool = True  # false: random episodes simulated without contacts (free fall)
 
 
 @dataclass

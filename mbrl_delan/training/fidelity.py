@@ -327,7 +327,7 @@ def rigid_body_metrics(model: WorldModel, truth: RigidBodyTruth) -> dict[str, fl
 def _stiffness_figures(model: WorldModel, truth: RigidBodyTruth, place: Any) -> dict[str, float]:
     """Where the physics' springs differ from the given MJCF's (the exoskeleton) and the
     model can tell its springs from gravity: ``spring_stiffness_error``, the median over
-    those DoFs of |k - k*| / k*."""
+    those DoFs of |k - k*| / k*, and ``spring_stiffness_ratio``, the median of k / k*."""
     changed = (truth.stiffness - truth.given_stiffness).abs() > 1e-9 * (1 + truth.stiffness)
     if not bool(changed.any()):
         return {}
@@ -336,7 +336,9 @@ def _stiffness_figures(model: WorldModel, truth: RigidBodyTruth, place: Any) -> 
         return {}
     learned = learned.to("cpu", torch.float64)
     error = (learned - truth.stiffness).abs() / truth.stiffness
-    return {"spring_stiffness_error": float(error[changed].median())}
+    ratio = learned / truth.stiffness
+    return {"spring_stiffness_error": float(error[changed].median()),
+            "spring_stiffness_ratio": float(ratio[changed].median())}  # fmt: skip
 
 
 def _coupled_stiffness_figures(model: WorldModel, truth: RigidBodyTruth, place: Any
