@@ -543,6 +543,8 @@ CONFIG_SECTIONS = {
     "train/planner/*.yaml": ("mbrl_delan.train", "`planner=`"),
     "train/logger/*.yaml": ("mbrl_delan.train", "`logger=`"),
     "train/plan/*.yaml": ("mbrl_delan.train", "`plan=`"),
+    "train/tuning/*.yaml": ("mbrl_delan.train", "`tuning/`"),
+    "train/plan_tuning/*.yaml": ("mbrl_delan.train", "`tuning/`"),
     "fit/config.yaml": ("mbrl_delan.fit", "Top level"),
     "fit/data/*.yaml": ("mbrl_delan.fit", "`data=`"),
     "fit/model/*.yaml": ("mbrl_delan.fit", "`model=`"),

@@ -222,7 +222,6 @@ MIGRATIONS: dict[str, Any] = {
     "env.oracle_substeps": None,  # the oracle planned on the env's own physics
     "env.oracle_integrator": None,
     "env.oracle_horizon": None,  # the iLQR oracle planned over the planner's horizon
-    "env.mppi_iterations": 2,  # MPPI's iterations were 2 on every env
     "env.plan_speed": None,  # the balance cost's target speed was the task's
     "model.residual_penalty": 0.0,  # a tree residual fitted without the penalty
     "model.learn_springs": False,  # the tree's springs were the MJCF's
@@ -230,6 +229,10 @@ MIGRATIONS: dict[str, Any] = {
 }
 
 
+# keys a run saved before their removal has: their values are where they landed (the env's
+# planner settings, now configs/train/tuning/, in the planner group)
+REMOVED = ("env.mppi_temperature", "env.mppi_noise_std", "env.mppi_smoothing", "env.mppi_samples",
+           "env.mppi_iterations", "env.plan_knots", "env.plan_interpolation")  # fmt: skip
 # keys that moved: where a run saved before the move had them -> where they are now
 MOVED = {f"model.{key}": f"accel.{key}" for key in ACCEL_KEYS}
 # names that changed: family -> {former name: name}; a config with a former one runs as the
@@ -256,9 +259,13 @@ def migrate(cfg: DictConfig) -> DictConfig:
     """A run's saved config with the keys added since it was saved (`MIGRATIONS`), where its
     model or planner has them (its schema lists them), filled with the values it ran with,
     the keys that moved (`MOVED`) in their new place and its names the current ones
-    (`RENAMED`)."""
+    (`RENAMED`), without the keys removed since (`REMOVED`)."""
     out = renamed(cfg).copy()
     with open_dict(out):
+        for key in REMOVED:
+            group, _, leaf = key.rpartition(".")
+            if isinstance(out.get(group), DictConfig):
+                out[group].pop(leaf, None)
         for old, new in MOVED.items():
             group, _, leaf = old.rpartition(".")
             if leaf in (out.get(group) or {}):

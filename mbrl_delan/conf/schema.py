@@ -26,9 +26,7 @@ from mbrl_delan.models.base import ModelConfig as ModelConfig  # a user's schema
 from mbrl_delan.models.integrators import INTEGRATORS
 from mbrl_delan.objectives.model import RolloutSettings
 from mbrl_delan.objectives.mujoco import INTEGRATORS as ORACLE_INTEGRATORS
-from mbrl_delan.planners import MPPISettings
 from mbrl_delan.planners.base import PlannerConfig as PlannerConfig
-from mbrl_delan.planners.spline import INTERPOLATIONS
 from mbrl_delan.registry import MODELS, PLANNERS
 from mbrl_delan.rules import rule
 from mbrl_delan.tasks.balance import PLAN_COSTS
@@ -57,14 +55,6 @@ class EnvConfig:
     model_contacts: bool = False
     model_inertia_scaling: bool = False
     model_known_root: bool = False
-    # planner=mppi's settings on this env (and predictive's noise_std): MPPI's own defaults
-    mppi_temperature: float = rule(MPPISettings.temperature, low=0, above=True)
-    mppi_noise_std: float = rule(MPPISettings.noise_std, low=0, above=True)
-    mppi_smoothing: float = rule(MPPISettings.smoothing, low=0, high=1, below=True)
-    mppi_samples: int = rule(MPPISettings.num_samples, low=1)
-    mppi_iterations: int = rule(MPPISettings.iterations, low=1)
-    plan_knots: int | None = rule(None, low=1)  # mppi, cem, icem: spline knots (None: every step)
-    plan_interpolation: str = rule("linear", choices=INTERPOLATIONS)
     plan_cost: str = rule("reward", choices=PLAN_COSTS)  # planners' objective (balance: humanoids)
     plan_speed: float | None = rule(None, low=0)  # balance: target speed, m/s (null: the task's)
     oracle_planner: str = rule("same", choices=("same", "ilqr"))
