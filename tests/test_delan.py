@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.delan import DeLaN, Stepping
 from mbrl_delan.models.integrators import integrate
 from mbrl_delan.models.structure import Structure
 from mbrl_delan.systems.system import HINGE, SLIDE, JointLayout
@@ -205,7 +205,7 @@ def test_runs_without_autograd() -> None:
 
 def test_bad_arguments_are_named() -> None:
     with pytest.raises(ValueError, match="integrator"):
-        DeLaN(layout(2), torch.eye(2), 0.01, integrator="leapfrog")
+        DeLaN(layout(2), torch.eye(2), 0.01, stepping=Stepping(integrator="leapfrog"))
     with pytest.raises(ValueError, match="diag_shift"):
         DeLaN(layout(2), torch.eye(2), 0.01, Structure(diag_shift=0.0))
     with pytest.raises(ValueError, match="coulomb_lead needs Coulomb friction"):

@@ -13,7 +13,7 @@ from mbrl_delan.accelerate import CompiledLoop, CompiledStep
 from mbrl_delan.accelerate.compile import FitGraph, compile_fit
 from mbrl_delan.conf.checks import CONFIG_DIR
 from mbrl_delan.envs.registry import make_env_parts
-from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.delan import DeLaN, Stepping
 from mbrl_delan.models.inverse import DeLaNInverse
 from mbrl_delan.models.kernels import SMALL_SOLVE, activate, log1p_unit, unrolled_cholesky_solve
 from mbrl_delan.models.structure import Structure
@@ -307,7 +307,7 @@ def test_compiled_fit_loss_and_gradients_equal_eager() -> None:
         system.actuation.float(),
         system.control_dt,
         Structure(hidden=16),
-        loss="inverse",
+        Stepping(loss="inverse"),
     )
     g = torch.Generator().manual_seed(3)
     batch = TensorDict(

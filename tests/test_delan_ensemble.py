@@ -20,7 +20,7 @@ from mbrl_delan.conf.builders import build_model
 from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError, validate_train_config
 from mbrl_delan.data.synthetic import dynamics_dataset
 from mbrl_delan.envs import make_env_parts
-from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.delan import DeLaN, Stepping
 from mbrl_delan.models.delan_ensemble import DeLaNEnsemble
 from mbrl_delan.models.structure import Structure
 from mbrl_delan.objectives.model import model_objective_factory
@@ -35,7 +35,7 @@ MIXED = JointLayout(
 )
 NQ, NV, NU = MIXED.nq, MIXED.nv, 2
 E = 3
-ARCH = dict(structure=Structure(hidden=16, layers=2), integrator="rk4", substeps=1)  # small: fast
+ARCH = dict(structure=Structure(hidden=16, layers=2))  # small: fast
 
 
 def arch(**options: bool) -> dict:
@@ -86,7 +86,7 @@ def reference_members(loss: str = "both", **options) -> list[DeLaN]:
     members = []
     for seed in range(E):
         torch.manual_seed(100 + seed)
-        m = DeLaN(MIXED, actuation(), control_dt=0.02, loss=loss, **arch(**options))
+        m = DeLaN(MIXED, actuation(), 0.02, stepping=Stepping(loss=loss), **arch(**options))
         with torch.no_grad():  # biases and friction off their defaults too (|qdd| < 1e3)
             for p in m.parameters():
                 p.add_(0.1 * torch.randn_like(p))
@@ -96,9 +96,9 @@ def reference_members(loss: str = "both", **options) -> list[DeLaN]:
 
 
 def ensemble(members: list[DeLaN] | None = None, **kw) -> DeLaNEnsemble:
-    kw = {"ensemble_size": E, "loss": "both", **kw}
+    kw = {"ensemble_size": E, "stepping": Stepping(loss="both"), **kw}
     ens = DeLaNEnsemble(MIXED, actuation(), control_dt=0.02, **(ARCH | kw))
-    ens.load_members(reference_members(kw["loss"]) if members is None else members)
+    ens.load_members(reference_members(kw["stepping"].loss) if members is None else members)
     return ens
 
 
@@ -142,7 +142,7 @@ def test_members_with_a_residual_and_translation_invariance_equal_a_loop() -> No
     members = reference_members(**options)
     assert members[0].residual is not None
     ens = DeLaNEnsemble(
-        MIXED, actuation(), control_dt=0.02, ensemble_size=E, loss="both", **arch(**options)
+        MIXED, actuation(), 0.02, ensemble_size=E, stepping=Stepping(loss="both"), **arch(**options)
     )
     ens.load_members(members)
     q, qd, action = states(2 * E)
@@ -306,7 +306,7 @@ def test_tiny_fit_on_pendulum_data_reduces_the_loss() -> None:
         system.actuation,
         system.control_dt,
         structure=Structure(hidden=16),
-        integrator="euler",
+        stepping=Stepping(integrator="euler"),
         ensemble_size=E,
         seed=0,
     )
@@ -333,7 +333,8 @@ def test_state_dict_round_trip() -> None:
     torch.save(state, buffer)
     buffer.seek(0)
     torch.manual_seed(9)
-    other = DeLaNEnsemble(MIXED, actuation(), control_dt=0.02, ensemble_size=E, loss="both", **ARCH)
+    both = Stepping(loss="both")
+    other = DeLaNEnsemble(MIXED, actuation(), 0.02, ensemble_size=E, stepping=both, **ARCH)
     other.load_state_dict(torch.load(buffer, weights_only=True))
     q, qd, action = states(2 * E)
     torch.testing.assert_close(
@@ -386,7 +387,7 @@ def test_bad_arguments_are_named() -> None:
     with pytest.raises(ValueError, match="ensemble_size"):
         DeLaNEnsemble(MIXED, actuation(), 0.02, ensemble_size=0, **ARCH)
     with pytest.raises(ValueError, match="integrator"):
-        DeLaNEnsemble(MIXED, actuation(), 0.02, integrator="leapfrog")
+        DeLaNEnsemble(MIXED, actuation(), 0.02, stepping=Stepping(integrator="leapfrog"))
     ens = ensemble()
     with pytest.raises(ValueError, match="propagation"):
         ens.propagation = "expectation"

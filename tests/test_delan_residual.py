@@ -4,7 +4,7 @@ import torch
 
 from mbrl_delan import keys
 from mbrl_delan.data.synthetic import inverse_dynamics_dataset
-from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.delan import DeLaN, Stepping
 from mbrl_delan.models.structure import Structure
 from mbrl_delan.systems.system import load_system
 
@@ -13,7 +13,7 @@ def make(system, residual: bool, loss: str = "forward", dissipation: bool = True
     torch.manual_seed(0)
     structure = Structure(hidden=32, residual=residual, dissipation=dissipation)
     return DeLaN(
-        system.layout, torch.eye(system.nv), system.control_dt, structure, loss=loss
+        system.layout, torch.eye(system.nv), system.control_dt, structure, Stepping(loss=loss)
     ).double()
 
 

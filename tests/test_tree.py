@@ -13,6 +13,7 @@ import torch
 from mbrl_delan.conf.builders import build_model
 from mbrl_delan.conf.checks import compose_train_config
 from mbrl_delan.envs.registry import make_env_parts
+from mbrl_delan.models.delan import Stepping, TreePrior
 from mbrl_delan.models.tree import RigidBodyTree, TreeStart, documented_start, geometric_start
 from mbrl_delan.systems.external import humanoid_v5_exo_xml, humanoid_v5_xml
 from mbrl_delan.systems.system import asset_path
@@ -163,7 +164,8 @@ def test_a_fit_from_the_geometric_start_moves_m_towards_mujocos() -> None:
     samples = TensorDict({keys.Q: q, keys.QD: qd, keys.ACTION: action, keys.QDD: qdd}, [len(q)])
     spec = mujoco.MjSpec.from_file(str(system.xml_path))
     tree = RigidBodyTree.from_mujoco(model, geometric_start(spec))
-    delan = DeLaN(system.layout, system.actuation, system.control_dt, loss="inverse", tree=tree)
+    delan = DeLaN(system.layout, system.actuation, system.control_dt,
+                  stepping=Stepping(loss="inverse"), tree=TreePrior(tree))  # fmt: skip
     test_q = q[-64:]
     truth, _ = rigid_body_at(model, test_q.numpy())
 

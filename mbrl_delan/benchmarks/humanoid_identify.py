@@ -42,7 +42,7 @@ from mbrl_delan.benchmarks.identify import (
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.conf.bench_schema import IdentifySuiteConfig
 from mbrl_delan.data.synthetic import inverse_dynamics_dataset, reference_terms
-from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.delan import DeLaN, Stepping
 from mbrl_delan.models.structure import Structure
 from mbrl_delan.systems.external import humanoid_cmu_xml, humanoid_v5_xml
 from mbrl_delan.systems.system import System, load_system
@@ -115,7 +115,7 @@ def make_model(system: System, cfg: HumanoidIdentifyConfig) -> DeLaN:
             inertia_scaling=True,
             diagonal_init=True,
         ),
-        loss="inverse",
+        stepping=Stepping(loss="inverse"),
     ).to(cfg.fit.dtype)
     if cfg.compile:
         compile_fit(model)

@@ -46,7 +46,7 @@ from mbrl_delan.benchmarks import BenchSettings, host_fields
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.conf.bench_schema import IdentifySuiteConfig
 from mbrl_delan.data.synthetic import F64, PassiveMuJoCo, dynamics_dataset, reference_terms
-from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.delan import DeLaN, Stepping
 from mbrl_delan.models.integrators import integrate
 from mbrl_delan.models.lagrangian import LagrangianDynamics
 from mbrl_delan.models.structure import Structure
@@ -166,8 +166,7 @@ def make_model(system: System, cfg: IdentifyConfig) -> DeLaN:
         system.actuation,
         control_dt=system.control_dt,
         structure=Structure(coulomb=cfg.coulomb),
-        loss="inverse",
-        unactuated_torque_scale=cfg.unactuated_scale(0),
+        stepping=Stepping(loss="inverse", unactuated_torque_scale=cfg.unactuated_scale(0)),
     )
     return model.to(cfg.dtype)
 

@@ -7,6 +7,7 @@ model: the control step, the losses and the units taken from data.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
@@ -78,6 +79,54 @@ def _needed(value: Tensor | None, key: str | tuple[str, ...]) -> Tensor:
     return value
 
 
+@dataclass(frozen=True)
+class Stepping:
+    """How a DeLaN steps and what it learns from, beside what it is made of (`Structure`).
+
+    integrator: ``euler`` (semi-implicit) or ``rk4``, `substeps` steps per control step.
+    loss: ``forward`` (the integrated next state), ``inverse`` (the torque) or ``both``.
+    unactuated_torque_scale: an unactuated DoF's torque error normalised by this times the
+    largest actuated std. velocity_margin: the velocity limit is this times the largest |qd|
+    in the data (`max_velocity` before any data)."""
+
+    integrator: str = "rk4"
+    substeps: int = 1
+    loss: str = "forward"
+    unactuated_torque_scale: float = 1.0
+    velocity_margin: float = 3.0
+    max_velocity: float = 100.0
+
+    def __post_init__(self) -> None:
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"integrator must be one of {INTEGRATORS}, got {self.integrator!r}")
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss must be one of {LOSSES}, got {self.loss!r}")
+        if self.substeps < 1:
+            raise ValueError(f"need substeps >= 1, got {self.substeps}")
+        if min(self.unactuated_torque_scale, self.velocity_margin, self.max_velocity) <= 0:
+            raise ValueError(
+                "need unactuated_torque_scale, velocity_margin, max_velocity > 0, got "
+                f"{self.unactuated_torque_scale}, {self.velocity_margin}, {self.max_velocity}"
+            )
+
+
+@dataclass(frozen=True)
+class TreePrior:
+    """The known kinematic tree's rigid body (`RigidBodyTree`) a DeLaN stands on: with
+    `residual`, the networks' mechanics a residual Lagrangian beside it (`TreeDynamics`),
+    whose share of the inverse-dynamics torque the loss adds times `penalty`."""
+
+    tree: RigidBodyTree
+    residual: bool = False
+    penalty: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.penalty < 0 or (self.penalty > 0 and not self.residual):
+            raise ValueError(
+                f"residual_penalty must be >= 0 and needs a tree residual, got {self.penalty}"
+            )
+
+
 class DeLaN(WorldModel):
     """DeLaN world model: the Lagrangian equations over networks, stepped by an integrator.
 
@@ -90,15 +139,17 @@ class DeLaN(WorldModel):
     joint ranges as stiff one-sided springs (`JointLimits`), always taken implicitly. When a
     step solves implicitly, the friction's slope is taken at the step's end as well.
 
-    `tree`: the known kinematic tree's rigid body with learned inertias (`RigidBodyTree`)
-    instead of the networks' M, V and friction; with `tree_residual` the networks' mechanics
-    are a residual Lagrangian beside it (`TreeDynamics`: M = M_tree + M_res, V = V_tree +
-    V_res, the friction added), started near zero by the structure's ``start_level``.
+    `tree` (`TreePrior`): the known kinematic tree's rigid body with learned inertias
+    (`RigidBodyTree`) instead of the networks' M, V and friction; with its `residual` the
+    networks' mechanics are a residual Lagrangian beside it (`TreeDynamics`: M = M_tree +
+    M_res, V = V_tree + V_res, the friction added), started near zero by the structure's
+    ``start_level``. ``model=tree`` is a DeLaN with a tree and no residual.
 
-    Losses (`loss=`): 'forward' compares the integrated next state with the data, per DoF
-    normalised by the std of the one-step change; 'inverse' compares the predicted torque
-    B a with DeLaN's inverse dynamics at the finite-difference acceleration (or the batch's
-    `qdd` when present), normalised by the per-DoF torque std; 'both' adds them.
+    How it steps and learns is `stepping` (`Stepping`). Losses (`stepping.loss`): 'forward'
+    compares the integrated next state with the data, per DoF normalised by the std of the
+    one-step change; 'inverse' compares the predicted torque B a with DeLaN's inverse
+    dynamics at the finite-difference acceleration (or the batch's `qdd` when present),
+    normalised by the per-DoF torque std; 'both' adds them.
 
     A DoF without actuator has tau = 0 in every sample; its torque error is normalised by
     `unactuated_torque_scale` times the largest actuated std (a std floor would give it 10^4
@@ -127,51 +178,31 @@ class DeLaN(WorldModel):
         actuation: Tensor,
         control_dt: float,
         structure: Structure | None = None,
-        integrator: str = "rk4",
-        substeps: int = 1,
-        loss: str = "forward",
-        unactuated_torque_scale: float = 1.0,
-        velocity_margin: float = 3.0,
-        max_velocity: float = 100.0,
+        stepping: Stepping | None = None,
         contact: ContactModel | None = None,
         limits: JointLimits | None = None,
-        tree: RigidBodyTree | None = None,
-        tree_residual: bool = False,
-        residual_penalty: float = 0.0,
+        tree: TreePrior | None = None,
     ) -> None:
         super().__init__()
-        if integrator not in INTEGRATORS:
-            raise ValueError(f"integrator must be one of {INTEGRATORS}, got {integrator!r}")
-        if loss not in LOSSES:
-            raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
-        if control_dt <= 0 or substeps < 1:
-            raise ValueError(f"need control_dt > 0 and substeps >= 1, got {control_dt}, {substeps}")
-        if min(unactuated_torque_scale, velocity_margin, max_velocity) <= 0:
-            raise ValueError(
-                "need unactuated_torque_scale, velocity_margin, max_velocity > 0, got "
-                f"{unactuated_torque_scale}, {velocity_margin}, {max_velocity}"
-            )
+        if control_dt <= 0:
+            raise ValueError(f"need control_dt > 0, got {control_dt}")
         self.structure = structure = structure or Structure()
-        self.unactuated_torque_scale = unactuated_torque_scale
-        self.velocity_margin = velocity_margin
+        self.stepping = stepping = stepping or Stepping()
+        self.unactuated_torque_scale = stepping.unactuated_torque_scale
+        self.velocity_margin = stepping.velocity_margin
         self.layout, self.control_dt = layout, control_dt
-        self.integrator, self.substeps, self.loss_kind = integrator, substeps, loss
+        self.integrator, self.substeps = stepping.integrator, stepping.substeps
+        self.loss_kind = stepping.loss
         self.dynamics, self.residual = structure.build(layout, actuation)
         if tree is not None:  # the known tree's rigid body, DeLaN's mechanics a residual
-            residual = self.dynamics if tree_residual else None
-            self.dynamics = TreeDynamics(tree, self.dynamics.actuation, residual)
-        elif tree_residual:
-            raise ValueError("tree_residual needs a tree")
-        if residual_penalty < 0 or (residual_penalty > 0 and not tree_residual):
-            raise ValueError(
-                f"residual_penalty must be >= 0 and needs a tree residual, got {residual_penalty}"
-            )
-        self.residual_penalty = residual_penalty
+            residual = self.dynamics if tree.residual else None
+            self.dynamics = TreeDynamics(tree.tree, self.dynamics.actuation, residual)
+        self.residual_penalty = 0.0 if tree is None else tree.penalty
         self.contact, self.limits = contact, limits
         n = layout.nv
         for name in ("q_scale", "qd_scale", "tau_scale"):
             self.register_buffer(name, torch.ones(n))
-        self.register_buffer("velocity_limit", torch.full((n,), float(max_velocity)))
+        self.register_buffer("velocity_limit", torch.full((n,), float(stepping.max_velocity)))
         # true once `load_mechanics` gave M, V and the friction (with their units and feature
         # statistics): `fit_normalization` then leaves them as they are
         self.register_buffer("mechanics_loaded", torch.zeros((), dtype=torch.bool))

@@ -13,7 +13,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from mbrl_delan.models.contact import ContactModel, JointLimits, floor_parts
-from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.delan import DeLaN, Stepping, TreePrior
 from mbrl_delan.models.structure import LagrangianConfig, Structure, read_structure
 from mbrl_delan.models.tree import RigidBodyTree, tree_root_inertia, tree_start
 from mbrl_delan.registry import register_model
@@ -87,10 +87,9 @@ def delan_arguments(cfg: DictConfig, system: System) -> dict[str, Any]:
         actuation=system.actuation.float(),
         control_dt=system.control_dt,
         structure=delan_structure(cfg, system),
-        integrator=cfg.integrator,
-        substeps=cfg.substeps,
-        loss=cfg.loss,
-        velocity_margin=cfg.velocity_margin,
+        stepping=Stepping(
+            cfg.integrator, cfg.substeps, cfg.loss, velocity_margin=cfg.velocity_margin
+        ),  # fmt: skip
     )
 
 
@@ -132,6 +131,5 @@ def build_tree(cfg: DictConfig, system: System) -> DeLaN:
         fixed |= {"root_inertia": tree_root_inertia(tree, system), "root_weight": weight}
     arguments = delan_arguments(cfg, system) | {"structure": delan_structure(cfg, system,
                                                                              **fixed)}  # fmt: skip
-    return DeLaN(**arguments, contact=contact, limits=limits, tree=tree,
-                 tree_residual=cfg.lagrangian_residual,
-                 residual_penalty=cfg.residual_penalty)  # fmt: skip
+    prior = TreePrior(tree, cfg.lagrangian_residual, cfg.residual_penalty)
+    return DeLaN(**arguments, contact=contact, limits=limits, tree=prior)

@@ -144,8 +144,8 @@ class DeLaNEnsemble(WorldModel):
             bootstrap: in training mode each member trains on its own resample (with
                 replacement) of every batch; in eval mode (validation) on the whole batch.
             seed: seeds `self.generator` (bootstrap draws); None uses torch's default RNG.
-            delan_options: any other keyword argument of `DeLaN` (``hidden``, ``integrator``,
-                ``residual``, ...), the same for every member.
+            delan_options: any other keyword argument of `DeLaN` (``structure``,
+                ``stepping``, ...), the same for every member.
         """
         super().__init__()
         if ensemble_size < 1:

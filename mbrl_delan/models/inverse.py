@@ -55,7 +55,7 @@ from torch.nn import functional as F
 
 from mbrl_delan import keys
 from mbrl_delan.models.base import LossOutput
-from mbrl_delan.models.delan import DeLaN
+from mbrl_delan.models.delan import DeLaN, Stepping, TreePrior
 from mbrl_delan.models.features import QFeatures
 from mbrl_delan.models.field import LagrangianNetwork
 from mbrl_delan.models.lagrangian import LagrangianDynamics
@@ -285,7 +285,8 @@ class DeLaNInverse(InverseDynamicsModel):
         )
         self.delan = DeLaN(
             layout, torch.eye(layout.nv), control_dt=control_dt, structure=structure,
-            loss="inverse", tree=tree, tree_residual=tree is not None,
+            stepping=Stepping(loss="inverse"),
+            tree=None if tree is None else TreePrior(tree, residual=True),
         )  # fmt: skip
 
     @property
