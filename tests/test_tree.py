@@ -281,3 +281,39 @@ def test_the_residuals_spring_potential_adds_to_the_trees_springs_on_the_hinges(
     added = model.dynamics.joint_stiffness(q_t) - before
     torch.testing.assert_close(added[hinges], diagonal * field.energy_scale, rtol=1e-5, atol=1e-6)
     assert added[:6].abs().max() < 1e-9
+
+
+def test_the_residual_penalty_leaves_out_the_quadratic_springs() -> None:
+    """model=tree_delan with the spring potential and the penalty: the penalty's
+    `residual_mse` is the same whatever the springs K and b are (they are physics no rigid
+    body holds), while the model's inverse dynamics changes by their force exactly;
+    `spring_force` is the quadratic's gradient (autograd)."""
+    parts = make_env_parts("humanoid_stand_exo")
+    cfg = compose_train_config(["env=humanoid_stand_exo", "model=tree_delan",
+                                "model.spring_potential=true", "model.residual_penalty=1.0",
+                                "model.loss=both"]).model  # fmt: skip
+    torch.manual_seed(0)
+    model = build_model(cfg, parts.system).double()
+    field = model.dynamics.residual.field
+    q, qd = (torch.from_numpy(x) for x in random_states(parts.system.mj_model(), 8, seed=3))
+    qdd = torch.randn(q.shape[0], parts.system.nv, dtype=torch.float64)
+    action = torch.zeros(q.shape[0], parts.system.nu, dtype=torch.float64)
+
+    def terms() -> dict[str, float]:
+        out = model.transition_losses(q, qd, action, qdd, None, None, forward=False)
+        return {k: float(v) for k, v in out.items()}
+
+    before, tau_before = terms(), model.dynamics.inverse_dynamics(q, qd, qdd).detach()
+    with torch.no_grad():
+        field.spring_stiffness.normal_()
+        field.spring_offset.normal_()
+    after, tau_after = terms(), model.dynamics.inverse_dynamics(q, qd, qdd).detach()
+    assert after["residual_mse"] == pytest.approx(before["residual_mse"], rel=1e-9)
+    springs = field.spring_force(q).detach()
+    assert springs.abs().max() > 1.0
+    torch.testing.assert_close(tau_after - tau_before, springs, rtol=1e-6, atol=1e-6)
+    x = q.clone().requires_grad_(True)
+    potential = field._spring_potential(x)[0].sum()
+    (grad,) = torch.autograd.grad(potential, x)
+    expected = torch.zeros_like(qd).index_add(-1, field.spring_v, grad[:, field.spring_q])
+    torch.testing.assert_close(field.spring_force(q), expected)

@@ -462,7 +462,9 @@ class DeLaN(WorldModel):
         the loss has it), `inverse_mse`, at `qdd` or else the finite difference, and with a
         `residual_penalty`, `residual_mse`: the tree residual's share of the inverse
         dynamics, ||(M_res qdd + c_res + g_res + d_res) / tau_scale||^2 per DoF, which the
-        loss adds times the penalty so that the residual takes only what the tree cannot."""
+        loss adds times the penalty so that the residual takes only what the tree cannot;
+        the residual's quadratic spring potential (``structure.spring_potential``: springs no
+        rigid body holds) is left out of g_res, so the penalty does not weaken the springs."""
         terms = {}
         if forward and self.loss_kind in ("forward", "both"):
             next_q, next_qd = _needed(next_q, keys.NEXT_Q), _needed(next_qd, keys.NEXT_QD)
@@ -470,7 +472,10 @@ class DeLaN(WorldModel):
         if qdd is None and (self.residual_penalty > 0 or self.loss_kind != "forward"):
             qdd = (_needed(next_qd, keys.NEXT_QD) - qd) / self.control_dt
         if self.residual_penalty > 0:
-            residual = self.dynamics.residual.inverse_dynamics(q, qd, qdd)  # (B, nv)
+            lagrangian = self.dynamics.residual
+            residual = lagrangian.inverse_dynamics(q, qd, qdd)  # (B, nv)
+            if isinstance(lagrangian.field, LagrangianNetwork):
+                residual = residual - lagrangian.field.spring_force(q)
             terms["residual_mse"] = (residual / self.tau_scale).pow(2).mean()
         if self.loss_kind in ("inverse", "both"):
             tau = self.applied_force(q, qd, action)

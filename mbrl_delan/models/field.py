@@ -157,6 +157,14 @@ class LagrangianNetwork(MechanicsField):
         force = x @ stiffness + offset
         return ((0.5 * x @ stiffness + offset) * x).sum(-1), force
 
+    def spring_force(self, q: Tensor) -> Tensor:
+        """The quadratic potential's generalized force dV_spring/dq (..., nv), zero off the
+        spring coordinates and without a quadratic potential."""
+        force = torch.zeros(*q.shape[:-1], self.n, dtype=q.dtype, device=q.device)
+        if self.spring_stiffness is None:
+            return force
+        return force.index_add(-1, self.spring_v, self._spring_potential(q)[1].to(q.dtype))
+
     def joint_springs(self) -> Tensor | None:
         """K of the learned quadratic potential (m, m) over `springs`, in SI (None without)."""
         if self.spring_stiffness is None:
