@@ -46,7 +46,7 @@ def _groups(help_text: str) -> dict[str, list[str]]:
 @pytest.mark.parametrize(
     ("main", "groups"),
     [
-        (train.main, {"env", "logger", "model", "plan", "planner"}),
+        (train.main, {"env", "logger", "model", "plan", "planner", "tuning", "plan_tuning"}),
         (fit.main, {"data", "logger", "model"}),
         (bench.main, {"suite"}),
     ],
