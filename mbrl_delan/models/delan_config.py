@@ -48,11 +48,15 @@ class TreeConfig(DeLaNConfig):
     residual_penalty: float = rule(0.0, low=0)  # x the residual's torque share in the loss
 
 
-def known_root(system: System) -> tuple[tuple[float, ...], float]:
-    """`System.free_root` (the MJCF's free-root inertias and weight); a ConfigError naming
-    ``model.known_root`` without a free root."""
+def require_free_root(system: System) -> None:
+    """A ConfigError naming ``model.known_root`` where the system has no free root."""
     if not system.has_free_root:
         raise ConfigError(f"model.known_root=true needs a free root; {system.name} has none")
+
+
+def known_root(system: System) -> tuple[tuple[float, ...], float]:
+    """`System.free_root` (the MJCF's free-root inertias and weight), checked first."""
+    require_free_root(system)
     return system.free_root()
 
 
@@ -126,8 +130,7 @@ def build_tree(cfg: DictConfig, system: System) -> DeLaN:
     if cfg.lagrangian_residual:
         fixed |= {"start_level": cfg.start_level, "friction_init": cfg.start_level}
     if cfg.known_root:
-        if not system.has_free_root:
-            raise ConfigError(f"model.known_root=true needs a free root; {system.name} has none")
+        require_free_root(system)
         fixed |= {"root_inertia": tree_root_inertia(tree, system), "root_weight": weight}
     arguments = delan_arguments(cfg, system) | {"structure": delan_structure(cfg, system,
                                                                              **fixed)}  # fmt: skip
