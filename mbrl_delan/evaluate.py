@@ -229,9 +229,9 @@ def evaluate_run(
     if data is None:
         if run.kind != "fit":
             raise ValueError(f"{run.run_dir} is a train run: give data=FILE")
-        from mbrl_delan.conf.fitting import make_inverse_data
+        from mbrl_delan.conf.fitting import inverse_data as read_data
 
-        inverse_data = make_inverse_data(run.config.data)
+        inverse_data = read_data(run.config.data)
     else:
         inverse_data = _file_data(run, Path(data))
     if isinstance(model, TrainDeLaNTorques):

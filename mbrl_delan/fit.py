@@ -34,12 +34,6 @@ from mbrl_delan.conf.checks import (
     exit_on_config_errors,
     refuse_used_run_dir,
 )
-from mbrl_delan.conf.fitting import (  # the fit's engine; its Python API re-exported here
-    RUN_FILES,
-    FitResult,
-    fit_inverse_dynamics,
-    run,
-)
 from mbrl_delan.data.arrays import ArrayFormatError
 from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.data.mocap import (
@@ -47,6 +41,12 @@ from mbrl_delan.data.mocap import (
     ClipTooShortError,
     MocapFormatError,
     TrackingUnstableError,
+)
+from mbrl_delan.fit_run import (  # the fit's engine; its Python API re-exported here
+    RUN_FILES,
+    FitResult,
+    fit_inverse_dynamics,
+    run,
 )
 from mbrl_delan.runs import load_fit_model
 from mbrl_delan.sweep import discard_unstarted_run_dir

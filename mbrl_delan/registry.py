@@ -168,6 +168,8 @@ MODELS: Registry[Any] = Registry("model")
 PLANNERS: Registry[Any] = Registry("planner")
 # fit's inverse-dynamics models (python -m mbrl_delan.fit model=NAME)
 INVERSE_MODELS: Registry[Any] = Registry("model")
+# fit's data kinds (python -m mbrl_delan.fit data=NAME): each a `DataKind`
+FIT_DATA: Registry[Any] = Registry("data")
 register_model = MODELS.register  # builder: (model config group, System) -> WorldModel
 # what the planning policy calls on a planner (`planners.base.Planner`), beside its `horizon`
 PLANNER_METHODS = ("initial_mean", "shift", "carry", "warm_start", "plan")
@@ -201,3 +203,46 @@ def register_planner(
 
 # builder: (fit's model config group, fit.InverseContext) -> InverseDynamicsModel
 register_inverse_model = INVERSE_MODELS.register
+
+
+def _none(cfg: Any) -> None:
+    return None
+
+
+def _no_tree(cfg: Any) -> str:
+    return f"needs the robot's kinematic tree (an MJCF), which data={cfg.name} does not give"
+
+
+@dataclass(frozen=True)
+class DataKind:
+    """A fit's data kind (``python -m mbrl_delan.fit data=NAME``), each function taking the
+    config's data group typed by the kind's schema.
+
+    read: the group -> `mbrl_delan.data.inverse_data.InverseData` (reads its files or
+        simulates; a bad value or file is a ConfigError, ArrayFormatError or
+        FileNotFoundError naming it).
+    check: the rules between the group's keys, before anything is read (ConfigError).
+    splits: the group -> the names of the splits its data give (``stop_on`` names one).
+    tau: what the data's torques are (summary.json's ``tau``).
+    summary: the data's provenance -> summary.json's fields naming the data.
+    no_tree: the group -> why these data give the models no MJCF tree (a ConfigError's
+        message for the models fitted on one, by default that the kind gives none), None
+        when they do.
+    friction: the group -> the friction kind the data were made with, None when unknown.
+    mass_matrix_error: (group, q (N, nq), a model's M (N, nv, nv)) -> the median relative
+        error against the system that made the data, where it is known; None: not known.
+    """
+
+    read: Callable[[Any], Any]
+    check: Callable[[Any], None]
+    splits: Callable[[Any], tuple[str, ...]]
+    tau: str
+    summary: Callable[[Mapping[str, Any]], dict[str, Any]]
+    no_tree: Callable[[Any], str | None] = _no_tree
+    friction: Callable[[Any], str | None] = _none
+    mass_matrix_error: Callable[[Any, Any, Any], float] | None = None
+
+
+def register_fit_data(name: str, kind: DataKind, schema: type) -> DataKind:
+    """Register `kind` as the fit's ``data=name``, its group typed by `schema`."""
+    return FIT_DATA.add(name, kind, schema)

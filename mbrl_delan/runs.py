@@ -17,13 +17,12 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from mbrl_delan.conf.checks import DTYPES, load_config_plugins, migrate
-from mbrl_delan.conf.fitting import PROVENANCE_FILE, build_system_model, read_fit_run
+from mbrl_delan.conf.fitting import build_system_model
 from mbrl_delan.data.inverse_data import system_of
 from mbrl_delan.models.inverse import InverseDynamicsModel
 from mbrl_delan.training.checkpoint import CHECKPOINT_FILE, load_checkpoint
+from mbrl_delan.training.inverse_fit import MODEL_FILE, PROVENANCE_FILE, read_fit_run
 from mbrl_delan.training.recorder import RUN_CONFIG, SUMMARY_FILE, WEIGHTS_FILE
-
-FIT_MODEL_FILE = "model.pt"  # `mbrl_delan.conf.fitting.MODEL_FILE`
 
 
 @dataclass
@@ -49,14 +48,14 @@ def load_run(run_dir: str | Path) -> Run:
     run_dir = Path(run_dir)
     summary_path = run_dir / SUMMARY_FILE
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else None
-    if (run_dir / FIT_MODEL_FILE).is_file():
+    if (run_dir / MODEL_FILE).is_file():
         cfg, model = load_fit_model(run_dir)
         return Run("fit", run_dir, cfg, model.eval(), summary)
     weights = [run_dir / f for f in (CHECKPOINT_FILE, WEIGHTS_FILE) if (run_dir / f).is_file()]
     if (run_dir / RUN_CONFIG).is_file() and weights:
         return Run("train", run_dir, *_train_model(run_dir, weights[0]), summary)
     raise FileNotFoundError(
-        f"{run_dir} is not a finished run: it holds neither {FIT_MODEL_FILE} (fit) nor "
+        f"{run_dir} is not a finished run: it holds neither {MODEL_FILE} (fit) nor "
         f"{RUN_CONFIG} and {CHECKPOINT_FILE} or {WEIGHTS_FILE} (train)"
     )
 

@@ -17,8 +17,9 @@ from mbrl_delan.bench import run
 from mbrl_delan.benchmarks.own_arm import main, spring_stiffness_matrix
 from mbrl_delan.benchmarks.records import read_records
 from mbrl_delan.conf.checks import ConfigError, compose_config
-from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, _run
+from mbrl_delan.conf.fitting import FIT_CONFIG_DIR
 from mbrl_delan.data.excitation import ExcitationSettings, excitation_arrays, inverse_dynamics
+from mbrl_delan.fit_run import _run
 from mbrl_delan.runs import load_fit_model
 from mbrl_delan.systems.arms import (
     CAD_ERROR,

@@ -15,7 +15,7 @@ import pytest
 
 from mbrl_delan import keys
 from mbrl_delan.conf.checks import ConfigError, compose_config
-from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, _run
+from mbrl_delan.conf.fitting import FIT_CONFIG_DIR
 from mbrl_delan.data.arrays import read_arrays, save_arrays
 from mbrl_delan.data.excitation import (
     ExcitationSettings,
@@ -25,6 +25,7 @@ from mbrl_delan.data.excitation import (
     mass_matrix_error,
 )
 from mbrl_delan.evaluate import evaluate_run
+from mbrl_delan.fit_run import _run
 from mbrl_delan.systems.arms import (
     ARMS,
     FRICTION,

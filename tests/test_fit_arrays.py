@@ -18,7 +18,6 @@ import torch
 from tensordict import TensorDict
 
 from mbrl_delan import keys
-from mbrl_delan.conf.fitting import fit_inverse_dynamics
 from mbrl_delan.data.arrays import (
     ArrayFormatError,
     DerivativeSettings,
@@ -30,6 +29,7 @@ from mbrl_delan.data.inverse_data import FitSystem, array_inverse_data
 from mbrl_delan.data.synthetic import reference_terms, trajectory_dataset
 from mbrl_delan.evaluate import evaluate_run
 from mbrl_delan.evaluate import main as evaluate_main
+from mbrl_delan.fit_run import fit_inverse_dynamics
 from mbrl_delan.models.inverse import MLPInverse
 from mbrl_delan.runs import load_run
 from mbrl_delan.systems.system import layout_from_names, load_system
@@ -483,11 +483,11 @@ def _three_joint_file(folder: Path) -> Path:
 
 def test_a_test_error_far_above_the_validation_error_is_warned_about(caplog) -> None:
     final = {"val": {"r2": 0.999}, "test": {"r2": 0.95}}
-    with caplog.at_level(logging.WARNING, logger="mbrl_delan.conf.fitting"):
+    with caplog.at_level(logging.WARNING, logger="mbrl_delan.training.inverse_fit"):
         assert generalisation_gap(final, "val") == pytest.approx(0.049)
     assert "test R2 0.9500 is 0.0490 below val R2 0.9990" in caplog.text
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="mbrl_delan.conf.fitting"):
+    with caplog.at_level(logging.WARNING, logger="mbrl_delan.training.inverse_fit"):
         assert generalisation_gap({"val": {"r2": 0.999}, "test": {"r2": 0.995}}, "val") < 0.01
         assert generalisation_gap(final, None) is None  # nothing stops the training
     assert not caplog.text

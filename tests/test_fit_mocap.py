@@ -28,7 +28,7 @@ from torch import nn
 from mbrl_delan import keys
 from mbrl_delan.conf.builders import build_model
 from mbrl_delan.conf.checks import CONFIG_DIR, ConfigError
-from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, run, validate_fit_config
+from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, validate_fit_config
 from mbrl_delan.conf.loop import start_mechanics, with_fit_structure
 from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.data.mocap import (
@@ -43,6 +43,7 @@ from mbrl_delan.data.mocap.retarget import joint_layout
 from mbrl_delan.envs.registry import make_env_parts
 from mbrl_delan.fit_report import main as report_main
 from mbrl_delan.fit_report import seed_table
+from mbrl_delan.fit_run import run
 from mbrl_delan.models.field import tree_entries
 from mbrl_delan.models.inverse import (
     INVERSE_STRUCTURE,

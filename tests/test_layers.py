@@ -46,9 +46,10 @@ DEPENDS: dict[str, tuple[str, ...]] = {
     "fit_report": ("report",),
     "evaluate": ("runs",),
     "rescore": ("evaluate",),
-    "benchmarks": ("runs",),
+    "fit_run": ("conf",),
+    "benchmarks": ("runs", "fit_run"),
     "train": ("runs", "sweep"),
-    "fit": ("runs", "sweep"),
+    "fit": ("runs", "sweep", "fit_run"),
     "bench": ("benchmarks",),
 }
 PLACES = (*BOTTOM, *DEPENDS)

@@ -26,6 +26,7 @@ from mbrl_delan.conf.checks import CONFIGS as CONFIGS_ROOT
 from mbrl_delan.conf.loop import env_parts
 from mbrl_delan.envs import make_env_parts, make_real_env
 from mbrl_delan.registry import ENVS, MODELS, PLANNERS, load_plugins
+from mbrl_delan.systems.system import SLIDE
 
 CONFIGS = str(CONFIG_DIR)
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "slider"
@@ -196,32 +197,53 @@ def test_a_plugin_registers_an_inverse_model_typed_by_its_schema(user_project: P
         validate_fit_config(bad)
 
 
+def test_a_plugin_registers_a_data_kind_typed_by_its_schema(user_project: Path) -> None:
+    """The plugin's data kind: its group typed by its schema, its reader's splits on the
+    slide's system with the torques its law gives, and a model on an MJCF tree refused on
+    data that give none."""
+    from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, inverse_data, validate_fit_config
+
+    base = [f"plugins=[{PLUGIN}]", _fit_conf(user_project), "data=slide_log"]
+    with initialize_config_dir(config_dir=str(FIT_CONFIG_DIR), version_base=None):
+        cfg = compose("config", overrides=[*base, "model=linear_inverse", "data.force=3"])
+        unknown = compose("config", overrides=[*base, "+data.mass=2"])
+        few = compose("config", overrides=[*base, "data.samples=5"])
+        tree = compose("config", overrides=[*base, "model=white_box"])
+    validate_fit_config(cfg)
+    with pytest.raises(ConfigError, match="data.mass is not a config key"):
+        validate_fit_config(unknown)
+    with pytest.raises(ConfigError, match="data.samples=5"):
+        validate_fit_config(few)
+    with pytest.raises(ConfigError, match="kinematic tree .* data=slide_log does not give"):
+        validate_fit_config(tree)
+    data = inverse_data(cfg.data)
+    assert set(data.splits) == {"train", "val", "test"} and data.system.layout.types == (SLIDE,)
+    whole = torch.cat([data.splits[name] for name in ("train", "val", "test")])
+    assert whole.shape[0] == 600
+    tau = 2 * whole["qdd"] + 0.5 * whole["qd"] + 3.0
+    torch.testing.assert_close(whole["tau"], tau)
+
+
 @pytest.mark.slow
 @pytest.mark.heavy
 def test_fit_evaluate_and_load_run_with_the_users_inverse_model(
     user_project: Path, tmp_path: Path, run_main
 ) -> None:
-    """The user's inverse-dynamics model through `fit` (exact on a slide with viscous
-    friction and a constant force), then `evaluate` in a fresh interpreter, which imports the
-    plugin from the run's saved config (through `load_run`), and `load_run` there."""
-    import numpy as np
-
+    """The user's inverse-dynamics model through `fit` on the user's data kind (a slide with
+    viscous friction and a constant force, where the model is exact), then `evaluate` on the
+    run's own data in a fresh interpreter, which imports the plugin from the run's saved
+    config (through `load_run`) to read them again, and `load_run` there."""
     from mbrl_delan.fit import main as fit_main
 
-    rng = np.random.default_rng(0)
-    q, qd, qdd = (rng.uniform(-1, 1, (600, 1)) for _ in range(3))
-    data = tmp_path / "slide.npz"
-    trajectory = np.repeat(np.arange(6), 100)
-    np.savez(data, q=q, qd=qd, qdd=qdd, tau=2 * qdd + 0.5 * qd + 1, dt=0.01, trajectory=trajectory)
     run_dir = tmp_path / "fit"
     code, text = run_main(
         fit_main, f"plugins=[{PLUGIN}]", _fit_conf(user_project), "model=linear_inverse",
-        "data=arrays", f"data.path={data}", "data.joints=[slide]", "epochs=300", "lr=0.1",
-        "logger=none", f"hydra.run.dir={run_dir}",
+        "data=slide_log", "epochs=300", "lr=0.1", "logger=none", f"hydra.run.dir={run_dir}",
     )  # fmt: skip
     assert code == 0, text
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["model"] == "linear_inverse" and summary["test_r2"] > 0.999
+    assert summary["data"] == "slide_log" and summary["force"] == 1.0
     code = (
         "import sys; from mbrl_delan.evaluate import main; from mbrl_delan.runs import load_run; "
         f"print('evaluate exit', main([{str(run_dir)!r}])); "

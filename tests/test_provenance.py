@@ -52,7 +52,8 @@ def test_bench_records_carry_the_command_the_commit_and_the_host(tmp_path: Path)
 
 def test_a_fits_summary_names_where_it_comes_from(tmp_path: Path) -> None:
     from mbrl_delan.conf.checks import compose_config
-    from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, _run
+    from mbrl_delan.conf.fitting import FIT_CONFIG_DIR
+    from mbrl_delan.fit_run import _run
 
     overrides = ["data=excitation", "data.robot=ur5e", "data.samples=600", "model=white_box",
                  "logger=none", "threads=1"]  # fmt: skip

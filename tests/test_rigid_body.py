@@ -14,13 +14,14 @@ import torch
 from tensordict import TensorDict
 
 from mbrl_delan.conf.checks import ConfigError, compose_config
-from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, _run
+from mbrl_delan.conf.fitting import FIT_CONFIG_DIR
 from mbrl_delan.data.excitation import (
     ExcitationSettings,
     excitation_arrays,
     inverse_dynamics,
     mass_matrix_error,
 )
+from mbrl_delan.fit_run import _run
 from mbrl_delan.models.inertial import (
     cholesky_of_pi,
     inertial_parameters,

@@ -16,11 +16,11 @@ from mbrl_delan import keys
 from mbrl_delan.conf.checks import ConfigError, compose_config
 from mbrl_delan.conf.fitting import (
     FIT_CONFIG_DIR,
-    _run,
     build_system_model,
-    make_inverse_data,
+    inverse_data,
     validate_fit_config,
 )
+from mbrl_delan.fit_run import _run
 from mbrl_delan.models.inverse import DeLaNInverse
 from mbrl_delan.models.tree import TreeDynamics
 from mbrl_delan.runs import load_fit_model
@@ -41,7 +41,7 @@ def test_the_trees_mass_matrix_is_mujocos_at_the_starts_share() -> None:
     for share in (0.01, 0.0):
         cfg = compose_config(FIT_CONFIG_DIR, [*SMALL, "model.prior_scale=0.5",
                                               f"model.armature_start={share}"])  # fmt: skip
-        data = make_inverse_data(cfg.data)
+        data = inverse_data(cfg.data)
         model = build_system_model(cfg, data.system).double()
         assert isinstance(model, DeLaNInverse) and isinstance(model.dynamics, TreeDynamics)
         q = data.splits["train"][keys.Q][::100]
@@ -82,7 +82,7 @@ def test_the_coulomb_terms_width_is_the_model_groups() -> None:
     """``model.coulomb_velocity`` v: the Coulomb force is F tanh(qd / v) (at qd = v, F
     tanh(1) beside the viscous D qd); v <= 0 is a config error naming the key."""
     cfg = compose_config(FIT_CONFIG_DIR, [*SMALL, "model.coulomb_velocity=0.002"])
-    data = make_inverse_data(cfg.data)
+    data = inverse_data(cfg.data)
     model = build_system_model(cfg, data.system).double()
     friction = model.dynamics.dissipation
     assert friction.coulomb_velocity == 0.002

@@ -2,14 +2,15 @@
 
 A slider (one slide joint with a motor) whose task is to reach x = 1 (the task option
 ``env.task.target``), a linear world model,
-random shooting and a linear inverse-dynamics model. Run them through the loop, and the
-inverse model through the fit, from the repository's root:
+random shooting, a linear inverse-dynamics model and a data kind for the fit (a slide's
+simulated log). Run them through the loop, and the inverse model through the fit, from the
+repository's root:
 
     python -m mbrl_delan.train plugins=[examples.slider.slider_parts] \\
         'hydra.searchpath=[file://examples/slider/conf]' env=slider model=linear planner=shooting
     python -m mbrl_delan.fit plugins=[examples.slider.slider_parts] \\
         'hydra.searchpath=[file://examples/slider/fit_conf]' model=linear_inverse \\
-        data=arrays data.path=FILE data.joints=[slide]
+        data=slide_log
 
 See docs/architecture.md, "How to add an env / a task / a model / a planner".
 """
@@ -17,9 +18,12 @@ See docs/architecture.md, "How to add an env / a task / a model / a planner".
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
+from mbrl_delan.data.arrays import SPLITS
+from mbrl_delan.data.inverse_data import FitSystem, fields_inverse_data
 from mbrl_delan.models.base import LossOutput, ModelConfig, WorldModel
 from mbrl_delan.models.inverse import InverseDynamicsModel
 from mbrl_delan.planners.base import (
@@ -30,7 +34,9 @@ from mbrl_delan.planners.base import (
     sampling_builder,
 )
 from mbrl_delan.registry import (
+    DataKind,
     register_env,
+    register_fit_data,
     register_inverse_model,
     register_model,
     register_planner,
@@ -136,3 +142,35 @@ class LinearInverseConfig:
 @register_inverse_model("linear_inverse", schema=LinearInverseConfig)
 def build_linear_inverse(cfg, context):  # context: mbrl_delan.conf.inverse.InverseContext
     return LinearInverse(context.layout.nq, context.layout.nv, context.std_floor)
+
+
+@dataclass
+class SlideLogConfig:
+    name: str = "slide_log"
+    samples: int = rule(600, low=10)
+    seed: int = rule(0, low=0)
+    force: float = 1.0  # the constant force on the slide (N)
+
+
+def read_slide_log(cfg):  # the data group -> mbrl_delan.data.inverse_data.InverseData
+    """A slide of mass 2 with viscous friction 0.5 and a constant force: tau = 2 qdd + 0.5 qd
+    + force, in 6 trajectories of random states."""
+    q, qd, qdd = np.random.default_rng(cfg.seed).uniform(-1, 1, (3, cfg.samples, 1))
+    trajectory = np.arange(cfg.samples) * 6 // cfg.samples
+    fields = {"q": q, "qd": qd, "qdd": qdd, "tau": 2 * qdd + 0.5 * qd + cfg.force,
+              "dt": np.array(0.01), "trajectory": trajectory}  # fmt: skip
+    source = {"format": "slide_log", "seed": cfg.seed, "force": cfg.force}
+    return fields_inverse_data("slide_log", fields, FitSystem.of(["slide"]), source)
+
+
+register_fit_data(
+    "slide_log",
+    DataKind(
+        read=read_slide_log,
+        check=lambda cfg: None,  # no rules between its keys beyond the schema's ranges
+        splits=lambda cfg: SPLITS,
+        tau="the slide's force: 2 qdd + 0.5 qd + force",
+        summary=lambda provenance: {"seed": provenance["seed"], "force": provenance["force"]},
+    ),
+    SlideLogConfig,
+)

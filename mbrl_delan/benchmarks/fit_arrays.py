@@ -41,10 +41,10 @@ from mbrl_delan.benchmarks.identify import IdentifyConfig, fit_identification, m
 from mbrl_delan.benchmarks.own_arm import friction_torque_share
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.conf.bench_schema import FitArraysSuiteConfig
-from mbrl_delan.conf.fitting import fit_inverse_dynamics
 from mbrl_delan.data.arrays import save_arrays
 from mbrl_delan.data.inverse_data import FitSystem, array_inverse_data
 from mbrl_delan.data.synthetic import reference_terms, trajectory_dataset
+from mbrl_delan.fit_run import fit_inverse_dynamics
 from mbrl_delan.systems.system import System, load_system
 
 log = logging.getLogger(__name__)

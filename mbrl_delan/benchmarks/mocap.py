@@ -49,8 +49,9 @@ from mbrl_delan.benchmarks import (
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.conf.bench_schema import OverridesSuiteConfig
 from mbrl_delan.conf.checks import DTYPES, compose_config
-from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, make_dataset, validate_fit_config
+from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, validate_fit_config
 from mbrl_delan.conf.inverse import InverseContext, build_inverse_model
+from mbrl_delan.data.fit_kinds import make_dataset
 from mbrl_delan.data.mocap import (
     ClipFiles,
     ClipNotFoundError,

@@ -72,7 +72,8 @@ from mbrl_delan.benchmarks.figures import describe_curves, plot_error_curves, re
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.conf.bench_schema import OwnArmSuiteConfig
 from mbrl_delan.conf.checks import compose_config
-from mbrl_delan.conf.fitting import FIT_CONFIG_DIR, fit_splits
+from mbrl_delan.conf.fitting import FIT_CONFIG_DIR
+from mbrl_delan.fit_run import fit_splits
 from mbrl_delan.models.inverse import DeLaNInverse, InverseDynamicsModel
 from mbrl_delan.models.rigid_body import WhiteBoxInverse, data_friction_law
 from mbrl_delan.systems.arms import (

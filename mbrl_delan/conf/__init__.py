@@ -6,8 +6,10 @@ registered model or planner (`builders`), a training run (`loop`, `videos`), a f
 here.
 
 Importing it imports the package's own parts, each of which registers itself beside its
-class (`mbrl_delan.registry`): the envs, the world models and the planners."""
+class (`mbrl_delan.registry`): the envs, the world models, the planners and the fit's data
+kinds and models."""
 
+import mbrl_delan.data.fit_kinds  # noqa: F401
 import mbrl_delan.envs.registry  # noqa: F401
 import mbrl_delan.models.delan_config  # noqa: F401
 import mbrl_delan.models.delan_ensemble  # noqa: F401

@@ -49,6 +49,7 @@ from mbrl_delan.tasks.balance import BalanceCost
 from mbrl_delan.tasks.base import Task
 from mbrl_delan.tasks.humanoid import HumanoidTask
 from mbrl_delan.tasks.tracking import MotionTracking
+from mbrl_delan.training.inverse_fit import read_fit_run
 from mbrl_delan.training.loop import MBRLLoop, Schedule
 
 log = logging.getLogger(__name__)
@@ -311,8 +312,6 @@ def with_fit_structure(cfg: DictConfig) -> DictConfig:
 def _read_mocap_fit(model_cfg: DictConfig) -> tuple[DictConfig, dict[str, torch.Tensor]]:
     """The config and model state of the DeLaN fit `model.init_from` names; a `ConfigError`
     when the loop's model is not a DeLaN or the folder holds no DeLaN fit."""
-    from mbrl_delan.conf.fitting import read_fit_run
-
     where = f"model.init_from={model_cfg.init_from!r}"
     if model_cfg.name != "delan":
         raise ConfigError(f"{where} is for model=delan, not model={model_cfg.name}")

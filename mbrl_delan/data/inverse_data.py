@@ -27,7 +27,6 @@ from mbrl_delan.data.arrays import (
     read_arrays,
     split_trajectories,
 )
-from mbrl_delan.data.excitation import EXCITATION_FORMAT
 from mbrl_delan.data.mocap import MocapDataset, dof_groups, humanoid_cmu_xml, split_dataset
 from mbrl_delan.systems.arms import cad_spec
 from mbrl_delan.systems.system import (
@@ -140,10 +139,10 @@ class InverseData:
 
 
 def system_of(provenance: dict[str, Any]) -> FitSystem:
-    """The system a dataset's provenance names: an arrays file's (or generated excitation
-    data's) MJCF or joint list, else the model mocap data were retargeted onto (its DoFs
-    grouped by body part)."""
-    if provenance.get("format") not in (ARRAYS_FORMAT, EXCITATION_FORMAT):
+    """The system a dataset's provenance names: arrays' (a file's, generated excitation
+    data's, any data kind's made by `fields_inverse_data`) MJCF, CAD file or joint list, else
+    the model mocap data were retargeted onto (its DoFs grouped by body part)."""
+    if "system" not in provenance:
         return FitSystem.of_mjcf(mocap_xml(provenance), dof_groups)
     system = provenance["system"]
     if "cad" in system:

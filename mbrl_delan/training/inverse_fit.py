@@ -13,12 +13,15 @@ from __future__ import annotations
 
 import logging
 import math
+import pickle
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import torch
+from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
 from torch import Tensor
 
@@ -31,10 +34,15 @@ from mbrl_delan.training.fit import (
     batches,
     optimizer_epoch,
 )
+from mbrl_delan.training.recorder import RUN_CONFIG
 
 log = logging.getLogger(__name__)
 
 F64 = torch.float64
+
+# a fit's run dir holds, beside its config (RUN_CONFIG), the dataset's provenance and the model
+PROVENANCE_FILE = "dataset_provenance.json"
+MODEL_FILE = "model.pt"
 
 
 @dataclass
@@ -389,3 +397,23 @@ def generalisation_gap(final: dict[str, Any], stop_on: str | None) -> float | No
             final["test"]["r2"], gap, stop_on, final[stop_on]["r2"], stop_on, stop_on,
         )  # fmt: skip
     return gap
+
+
+def read_fit_run(run_dir: str | Path) -> tuple[DictConfig, dict[str, torch.Tensor]]:
+    """A finished fit's resolved config and its model's state dict (on the CPU).
+
+    Raises FileNotFoundError naming a missing ``config.yaml`` or ``model.pt`` and ValueError
+    for a file that is not what a fit writes."""
+    run_dir = Path(run_dir)
+    config_path, model_path = run_dir / RUN_CONFIG, run_dir / MODEL_FILE
+    for path in (config_path, model_path):
+        if not path.is_file():
+            raise FileNotFoundError(f"no {path.name} in {run_dir} (is it a fit's run dir?)")
+    cfg = OmegaConf.load(config_path)
+    try:
+        saved = torch.load(model_path, map_location="cpu", weights_only=True)
+    except (RuntimeError, EOFError, OSError, pickle.UnpicklingError) as err:
+        raise ValueError(f"{model_path} is not a readable model file: {err}") from err
+    if not isinstance(cfg, DictConfig) or not isinstance(saved, dict) or "state_dict" not in saved:
+        raise ValueError(f"{run_dir} does not hold a fit's config.yaml and model.pt")
+    return cfg, saved["state_dict"]
