@@ -38,8 +38,10 @@ from typing import Any
 import numpy as np
 import yaml
 from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 from scipy import stats
 
+from mbrl_delan.conf.checks import migrate
 from mbrl_delan.figure_style import legend_below, page_figure, save_figure
 from mbrl_delan.provenance import program_name
 from mbrl_delan.sweep import CRASH_FILE, last_iteration, read_crash
@@ -55,7 +57,7 @@ GROUP_KEYS = ("env", "model", "planner", "start", "config")
 RAN_WITH = (
     "seed", "device", "threads", "resume", "logger.", "video", "video_width", "video_height",
     "video_episodes", "video_every_eval", "video_backend", "buffer.memmap", "buffer.device",
-    "buffer.device_fraction", "budget.oracle_from",
+    "buffer.device_fraction", "budget.oracle_from", "accel.",
 )  # fmt: skip
 REQUIRED_KEYS = ("env", "model", "planner", "seed")
 ORACLE_FRACTION = 0.9
@@ -168,13 +170,20 @@ def run_start(run: Path) -> str:
 
 
 def run_config(run: Path) -> dict[str, Any]:
-    """The run's ``config.yaml`` as ``{"a.b": value}`` (`flat_config`); {} when it is
-    missing or unreadable."""
+    """The run's ``config.yaml`` as ``{"a.b": value}`` (`flat_config`), in today's keys
+    (`migrate`: a run saved before a key was added, moved or removed groups with today's runs
+    of the same settings); {} when it is missing or unreadable."""
     try:
         cfg = yaml.safe_load((run / RUN_CONFIG).read_text(encoding="utf-8"))
     except (OSError, yaml.YAMLError):
         return {}
-    return flat_config(cfg) if isinstance(cfg, dict) else {}
+    if not isinstance(cfg, dict):
+        return {}
+    try:
+        current = OmegaConf.to_container(migrate(OmegaConf.create(cfg)))
+    except OmegaConfBaseException:  # not a train config: its keys as saved
+        current = cfg
+    return flat_config(current)
 
 
 def _ran_with(key: str) -> bool:
@@ -308,15 +317,18 @@ def steps_to_fraction(
 
 def _groups(summaries: list[dict[str, Any]]) -> dict[Group, list[dict[str, Any]]]:
     """Runs by (env, model, planner, start), split by the config values that differ between
-    them (``config``: ``key=value`` pairs, empty when none do)."""
+    them (``config``: ``key=value`` pairs, empty when none do; a key a run's config lacks,
+    one added after it ran, is left out of its pairs). The model by its current name."""
     by_kind: dict[tuple[str, ...], list[dict[str, Any]]] = defaultdict(list)
     for s in summaries:
-        by_kind[(str(s["env"]), str(s["model"]), str(s["planner"]), str(s["start"]))].append(s)
+        model = s.get("config", {}).get("model.name", s["model"])
+        by_kind[(str(s["env"]), str(model), str(s["planner"]), str(s["start"]))].append(s)
     groups: dict[Group, list[dict[str, Any]]] = defaultdict(list)
     for kind, runs in by_kind.items():
         keys = differing_keys([r.get("config", {}) for r in runs])
         for r in runs:
-            config = " ".join(f"{k}={r.get('config', {}).get(k)}" for k in keys)
+            values = {k: r.get("config", {}).get(k) for k in keys}
+            config = " ".join(f"{k}={v}" for k, v in values.items() if v is not None)
             groups[(*kind, config)].append(r)  # type: ignore[arg-type]
     return {k: sorted(v, key=lambda s: s["seed"]) for k, v in sorted(groups.items())}
 
@@ -441,6 +453,40 @@ def _fall_cells(r: dict[str, Any]) -> list[str]:
         f"{r['oracle_falls_ci95_high']:.0%})",
         f"{r['mcnemar_p']:.2g} ({r['model_fell_only']} / {r['oracle_fell_only']})",
     ]
+
+
+def falls_table(table_rows: list[dict[str, Any]]) -> str:
+    """Markdown: the groups with paired final episodes, their falls against the oracle's
+    (pooled over seeds, Wilson 95% intervals), the exact McNemar p and the fraction of the
+    oracle's return: the narrow table `--page` writes into a docs page."""
+    lines = [
+        "| env | model | config | seeds | falls / paired (95% CI) | oracle's falls (95% CI) "
+        "| McNemar p (model only / oracle only) | fraction of oracle |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in table_rows:
+        if r["paired_episodes"]:
+            config = f"`{r['config']}`" if r["config"] else ""
+            seeds = r["seeds"].replace(" ", ",")
+            fraction = _pm(r["fraction_of_oracle_mean"], r["fraction_of_oracle_ci95"])
+            cells = [r["env"], r["model"], config, seeds, *_fall_cells(r), fraction]
+            lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+PAGE_BEGIN, PAGE_END = "<!-- report:begin -->", "<!-- report:end -->"
+
+
+def write_page(page: Path, command: str, table_rows: list[dict[str, Any]]) -> Path:
+    """Replace what lies between `PAGE_BEGIN` and `PAGE_END` in `page` by the command and
+    its `falls_table`. Raises ValueError when the page lacks the markers (nothing written)."""
+    text = page.read_text(encoding="utf-8")
+    begin, end = text.find(PAGE_BEGIN), text.find(PAGE_END)
+    if begin < 0 or end < begin:
+        raise ValueError(f"{page} has no {PAGE_BEGIN} ... {PAGE_END} block to write into")
+    block = f"{PAGE_BEGIN}\n```bash\n{command}\n```\n\n{falls_table(table_rows)}\n"
+    page.write_text(text[:begin] + block + text[end:], encoding="utf-8")
+    return page
 
 
 def _reach(row: dict[str, Any], fraction: float) -> str:
@@ -691,6 +737,20 @@ def write_report(
     return paths
 
 
+def _write_page(args: argparse.Namespace, summaries: list[dict[str, Any]]) -> int:
+    """`--page`: the falls table of the runs with paired final episodes (grouped among
+    themselves) into the page, the command that wrote it above it."""
+    table_rows = rows([s for s in summaries if paired_falls(s) is not None])
+    roots = " ".join(str(r) for r in args.roots)
+    command = f"python -m mbrl_delan.report {roots} --page {args.page}"
+    try:
+        log.info("wrote %s", write_page(args.page, command, table_rows))
+    except (OSError, ValueError) as err:
+        log.error("--page: %s; nothing written", err)
+        return 2
+    return 0
+
+
 def default_out(root: Path) -> Path:
     """Where the report goes without ``--out``: ``root``, or ``root/report`` for a run dir."""
     return root / "report" if is_run_dir(root) else root
@@ -714,6 +774,13 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="also write the returns figure here (a bare file name: into --out)",
     )
+    parser.add_argument(
+        "--page",
+        type=Path,
+        default=None,
+        help="write only the falls table, with this command, into this Markdown page between "
+        f"its {PAGE_BEGIN} and {PAGE_END} lines",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     missing = [r for r in args.roots if not r.is_dir()]
@@ -728,6 +795,8 @@ def main(argv: list[str] | None = None) -> int:
             ", ".join(map(str, args.roots)),
         )
         return 2
+    if args.page is not None:
+        return _write_page(args, summaries)
     table_rows = rows(summaries)
     print(markdown_table(table_rows))  # the table is the output: standard output
     for run in incomplete:

@@ -89,6 +89,63 @@ def test_paired_runs_pool_their_falls_over_seeds(tmp_path: Path) -> None:
     assert f"{mcnemar_exact(2, 1):.2g} (2 / 1)" in row
 
 
+def _paired_run(root: Path, name: str, seed: int, ours: list[int], theirs: list[int]) -> None:
+    run = make_run(root, name, summary(seed, 1.0, 1.0))
+    (run / "config.yaml").write_text(f"seed: {seed}\nenv:\n  episode_len: 100\n")
+    record = {"iteration": 1, "eval_episode_steps": ours, "oracle_episode_steps": theirs}
+    (run / "metrics.jsonl").write_text(json.dumps(record) + "\n")
+
+
+def test_page_gets_the_falls_table_of_the_paired_runs_between_its_markers(tmp_path: Path) -> None:
+    """`--page`: the paired runs' falls (1 of 4 against 0 of 4) and the command replace what
+    lies between the markers; the text around them stays; an unpaired run is left out."""
+    _paired_run(tmp_path / "runs", "s0", 0, [100, 40, 100, 100], [100] * 4)
+    make_run(tmp_path / "runs", "unpaired", summary(1, 0.5, 1.0))
+    page = tmp_path / "page.md"
+    page.write_text("# Results\n\n<!-- report:begin -->\nold\n<!-- report:end -->\n\nafter\n")
+    assert main([str(tmp_path / "runs"), "--page", str(page)]) == 0
+    text = page.read_text()
+    low, high = wilson_interval(1, 4)
+    assert text.startswith(
+        "# Results\n\n<!-- report:begin -->\n```bash\npython -m mbrl_delan.report"
+    )
+    assert f"| pendulum | delan |  | 0 | 1/4 ({low:.0%}-{high:.0%}) | 0/4 " in text
+    assert "old" not in text and text.endswith("<!-- report:end -->\n\nafter\n")
+    assert len([line for line in text.splitlines() if line.startswith("| pendulum")]) == 1
+
+
+def test_page_without_markers_is_one_line_and_left_as_it_was(tmp_path: Path, caplog) -> None:
+    _paired_run(tmp_path / "runs", "s0", 0, [100] * 4, [100] * 4)
+    page = tmp_path / "page.md"
+    page.write_text("# Results\n")
+    assert main([str(tmp_path / "runs"), "--page", str(page)]) == 2
+    assert page.read_text() == "# Results\n" and "no <!-- report:begin -->" in caplog.text
+
+
+def test_the_humanoid_results_page_holds_the_records_falls(tmp_path: Path) -> None:
+    """docs/humanoid_results.md's falls table is what its own command makes of the records
+    under docs/records/loops/ now (rerun on a copy of the page, from the repository)."""
+    import os
+    import shlex
+
+    repo = Path(__file__).resolve().parents[1]
+    page = repo / "docs" / "humanoid_results.md"
+    text = page.read_text(encoding="utf-8")
+    block = text[text.index("<!-- report:begin -->") : text.index("<!-- report:end -->")]
+    command = shlex.split(block.split("```bash\n")[1].split("\n")[0])
+    roots = command[3 : command.index("--page")]
+    copy = tmp_path / "page.md"
+    copy.write_text(text, encoding="utf-8")
+    cwd = os.getcwd()
+    try:
+        os.chdir(repo)
+        assert main([*roots, "--page", str(copy)]) == 0
+    finally:
+        os.chdir(cwd)
+    made = copy.read_text(encoding="utf-8").replace(str(copy), "docs/humanoid_results.md")
+    assert made == text, "rerun the command in docs/humanoid_results.md's falls section"
+
+
 def test_repeated_runs_of_a_seed_count_once(tmp_path: Path, caplog) -> None:
     """Four identical runs of seed 0 and one of seed 1 are two samples, not five: the row is
     the two seeds' (n 2, the same interval), and a warning names the repeats."""

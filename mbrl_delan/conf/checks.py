@@ -225,6 +225,7 @@ MIGRATIONS: dict[str, Any] = {
     "env.plan_speed": None,  # the balance cost's target speed was the task's
     "model.residual_penalty": 0.0,  # a tree residual fitted without the penalty
     "model.learn_springs": False,  # the tree's springs were the MJCF's
+    "model.spring_potential": False,  # the residual's potential was its network alone
     "budget.collect_envs": 1,
 }
 
