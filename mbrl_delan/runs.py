@@ -8,7 +8,7 @@ A ``fit`` run (``python -m mbrl_delan.fit``) holds ``model.pt``: its inverse-dyn
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -99,12 +99,14 @@ def _oracle_part(key: str, node: DictConfig) -> dict[str, Any]:
 @dataclass
 class OracleEpisodes:
     """A train run's oracle evaluation (returns and control steps per episode, its fidelity
-    reference's state) and its zero-torque returns, as its checkpoint holds them."""
+    reference's state) and its zero-torque returns, as its checkpoint holds them, and the
+    oracle's planning time (`Evaluation.planning_figures`, {} where it was not timed)."""
 
     returns: list[float]
     steps: list[int] | None
     zero_returns: list[float]
     fidelity_reference: dict[str, Any] | None
+    planning: dict[str, float] = field(default_factory=dict)
 
 
 ORACLE_FILE = "oracle.json"  # a train run's oracle and zero-torque episodes, on their own
@@ -135,6 +137,7 @@ def write_oracle(run_dir: Path, cfg: DictConfig, episodes: OracleEpisodes,
         if episodes.steps is None or limit is None
         else sum(s < limit for s in episodes.steps),
         "zero_returns": list(episodes.zero_returns),
+        "planning": dict(episodes.planning),
         **{k: stamp.get(k) for k in ("command", "git_commit", "dirty", "host")},
     }
     text = json.dumps(record, indent=1) + "\n"
@@ -165,7 +168,8 @@ def oracle_of_run(run_dir: str | Path, cfg: DictConfig) -> OracleEpisodes:
     if state.get("oracle_returns") is None or zero is None:
         raise ValueError(f"budget.oracle_from={run_dir}: its oracle has not been evaluated yet")
     return OracleEpisodes(state["oracle_returns"], state.get("oracle_steps"), zero,
-                          state["loop"].get("fidelity_reference"))  # fmt: skip
+                          state["loop"].get("fidelity_reference"),
+                          state["loop"].get("oracle_planning") or {})  # fmt: skip
 
 
 def _oracle_of_record(run_dir: Path, cfg: DictConfig) -> OracleEpisodes:
@@ -179,7 +183,7 @@ def _oracle_of_record(run_dir: Path, cfg: DictConfig) -> OracleEpisodes:
     _same_oracle(run_dir, theirs, cfg)
     reference = run_dir / ORACLE_REFERENCE_FILE
     state = torch.load(reference, weights_only=False) if reference.is_file() else None
-    return OracleEpisodes(returns, record.get("steps"), zero, state)
+    return OracleEpisodes(returns, record.get("steps"), zero, state, record.get("planning") or {})
 
 
 def _same_oracle(run_dir: Path, theirs: dict[str, Any], cfg: DictConfig) -> None:

@@ -19,6 +19,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from mbrl_delan import EXIT_INTERRUPTED
 from mbrl_delan.conf.checks import (
     ConfigError,
     command_line_overrides,
@@ -108,6 +109,7 @@ def _take_oracle(loop: MBRLLoop, episodes: OracleEpisodes) -> None:
     """Another run's oracle and zero-torque episodes as this run's (`budget.oracle_from`)."""
     loop.oracle_returns, loop.oracle_steps = episodes.returns, episodes.steps
     loop.zero_returns = episodes.zero_returns
+    loop.oracle_planning = dict(episodes.planning)
     if episodes.fidelity_reference is not None:
         loop.fidelity_reference = FidelityReference.from_state_dict(episodes.fidelity_reference)
 
@@ -119,7 +121,8 @@ def _keep_oracle(cfg: DictConfig, run_dir: Path, loop: MBRLLoop, stamp: dict[str
         return
     reference = loop.fidelity_reference
     episodes = OracleEpisodes(loop.oracle_returns, loop.oracle_steps, loop.zero_returns,
-                              None if reference is None else reference.state_dict())  # fmt: skip
+                              None if reference is None else reference.state_dict(),
+                              loop.oracle_planning)  # fmt: skip
     write_oracle(run_dir, cfg, episodes, stamp)
 
 
@@ -304,9 +307,6 @@ def _print_summary(run_dir: Path, s: dict[str, Any]) -> None:
     )
 
 
-EXIT_INTERRUPTED = 130  # a run stopped by Ctrl-C (SIGINT), as a shell reports it
-
-
 def _discard_refused(cfg: DictConfig) -> None:
     """A new run stopped before it wrote its config (refused by its input, or Ctrl-C while it
     was being built) leaves no folder; a resumed run's folder is never touched."""
@@ -322,6 +322,13 @@ def _stopped_by_user(cfg: DictConfig) -> None:
     if run_dir is None or not (run_dir / RUN_CONFIG).is_file():
         log.warning("stopped (Ctrl-C) before the run started: nothing was kept")
         _discard_refused(cfg)
+        return
+    if not (run_dir / CHECKPOINT_FILE).is_file():
+        log.warning(
+            "stopped (Ctrl-C) before the first checkpoint: %s holds the config only; run the "
+            "command again to start over",
+            run_dir,
+        )
         return
     rounds = last_iteration(run_dir)
     log.warning(

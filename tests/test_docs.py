@@ -671,3 +671,17 @@ def test_check_site_fails_on_wide_tables_and_wrapped_code() -> None:
         "architecture: table 'arm\tfriction' is 900 px wide, the column 688 px",
         "architecture: code block 'MuJoCo system --> real env' wraps (4 lines shown as 8)",
     ]
+
+
+def _where_it_stands(text: str) -> str:
+    start = text.index("## Where it stands")
+    return text[start : text.index("\n## ", start + 1)]
+
+
+def test_the_readme_says_where_it_stands_as_the_docs_index_does() -> None:
+    """README.md's "Where it stands" is docs/index.md's, word for word, its links led into
+    docs/: a figure changed in one and not the other fails here."""
+    index = _where_it_stands((DOCS / "index.md").read_text(encoding="utf-8"))
+    readme = _where_it_stands((REPO / "README.md").read_text(encoding="utf-8"))
+    expected = re.sub(r"\]\((?!https?:|#)([^)]+)\)", r"](docs/\1)", index)
+    assert readme == expected, "copy docs/index.md's 'Where it stands' into README.md"

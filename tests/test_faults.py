@@ -34,6 +34,7 @@ from mbrl_delan.training.checkpoint import (
     save_checkpoint,
 )
 from mbrl_delan.training.run_lock import RunLock, RunLockedError
+from mbrl_delan.training.summary import TIMING_KEYS
 
 RUN = [*TINY_TRAIN, "env.episode_len=10", "budget.iterations=2"]
 KILLS = 10
@@ -42,12 +43,12 @@ SEED = 0  # of the moments drawn
 
 def _records(run_dir: Path) -> list[dict]:
     lines = (run_dir / "metrics.jsonl").read_text().splitlines()
-    return [{k: v for k, v in json.loads(line).items() if k != "wall_time_s"} for line in lines]
+    return [{k: v for k, v in json.loads(line).items() if k not in TIMING_KEYS} for line in lines]
 
 
-# what differs between two processes of the same run: the time, the command (a resume's) and
+# what differs between two processes of the same run: the times, the command (a resume's) and
 # the host's load when it started
-PER_PROCESS = ("wall_time_s", "command", "host")
+PER_PROCESS = (*TIMING_KEYS, "command", "host")
 
 
 def _summary(run_dir: Path) -> dict:
@@ -583,3 +584,18 @@ def test_a_full_disk_at_the_start_names_the_folder_and_leaves_none(tmp_path, mon
     with pytest.raises(RunWriteError, match=f"{folder}.*No space left on device"):
         checkpoint.check_writable(folder)
     assert not folder.exists()
+
+
+@pytest.mark.parametrize("program", ["-m", "/venv/bin/mbrl-delan-train"])
+def test_ctrl_c_while_an_entry_point_imports_is_one_line(program: str) -> None:
+    """Ctrl-C during an entry point's imports (`python -m mbrl_delan.X` or a console script,
+    before its own handling begins): one line on stderr, no traceback, the process ends as
+    by SIGINT; a user's program that imports the package keeps Python's own traceback."""
+    entry = f"import sys; sys.argv[0] = {program!r}; import mbrl_delan; raise KeyboardInterrupt"
+    out = subprocess.run([sys.executable, "-c", entry], capture_output=True, text=True,
+                         timeout=60)  # fmt: skip
+    assert out.returncode in (-signal.SIGINT, 130), out
+    assert out.stderr == "stopped (Ctrl-C) while starting: nothing was written\n", out.stderr
+    user = "import mbrl_delan; raise KeyboardInterrupt"
+    out = subprocess.run([sys.executable, "-c", user], capture_output=True, text=True, timeout=60)
+    assert "Traceback" in out.stderr and "KeyboardInterrupt" in out.stderr, out.stderr

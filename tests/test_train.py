@@ -21,6 +21,7 @@ from mbrl_delan import keys
 from mbrl_delan.conf.checks import CONFIG_DIR
 from mbrl_delan.training.checkpoint import load_checkpoint
 from mbrl_delan.training.loop import Schedule
+from mbrl_delan.training.summary import TIMING_KEYS
 
 TINY = TINY_TRAIN
 DATA = Path(__file__).parent / "data"  # holds the CMU clip 09_06 (a run)
@@ -122,8 +123,13 @@ def test_tiny_training_run_writes_everything(finished_run: Path) -> None:
         "git_commit",
         "dirty",
         "host",
+        "plan_ms_median",  # the run's own planning time beside its figures
+        "plan_ms_per_control_step",
+        "plan_load_1min",
+        "oracle_plan_ms_median",
     ):
         assert key in summary, key
+    assert summary["plan_ms_median"] > 0 and summary["oracle_plan_ms_median"] > 0
     assert summary["env"] == "pendulum" and summary["model"] == "delan"
     assert summary["env_steps"] == 4 * 15  # one random episode + three on-policy ones
     recs = records(finished_run)
@@ -446,6 +452,20 @@ def test_paired_figures_count_falls_and_compare_where_both_stood() -> None:
     assert figures["oracle_episode_steps"] == [100, 100, 30, 100]
 
 
+def test_planning_figures_of_worked_replans() -> None:
+    """`Evaluation.planning_figures`: replans of 10, 30 and 20 ms serving 6 control steps (a
+    plan every two steps): the median replan 20 ms, 60 ms over 6 steps 10 ms per step; a
+    policy that never planned gives none."""
+    from mbrl_delan.training.loop import Evaluation
+
+    ev = Evaluation(plan_seconds=[0.010, 0.030, 0.020], planned_steps=6)
+    figures = ev.planning_figures("oracle_")
+    assert figures["oracle_plan_ms_median"] == pytest.approx(20.0)
+    assert figures["oracle_plan_ms_per_control_step"] == pytest.approx(10.0)
+    assert figures["oracle_plan_load_1min"] >= 0.0
+    assert Evaluation(returns=[1.0], steps=[10]).planning_figures() == {}
+
+
 @pytest.mark.slow
 def test_tiny_tree_run_pairs_its_final_evaluation_and_keeps_its_weights(tmp_path: Path) -> None:
     """model=tree on humanoid_stand with a paired final evaluation: the oracle plans the same
@@ -568,7 +588,7 @@ def test_a_loop_built_from_python_takes_its_threads_and_seed(tmp_path: Path) -> 
             assert torch.get_num_threads() == 1
             rounds: list[dict] = []
             loop.run(schedule_of(cfg), oracle, LoopHooks(log_round=rounds.append))
-            drop = ("wall_time_s",)
+            drop = TIMING_KEYS
             results.append(([{k: v for k, v in r.items() if k not in drop} for r in rounds],
                             loop.model.state_dict()))  # fmt: skip
     finally:

@@ -23,6 +23,7 @@ from hydra.errors import HydraException, MissingConfigException
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import ConfigAttributeError, ConfigKeyError, OmegaConfBaseException
 
+from mbrl_delan import EXIT_INTERRUPTED
 from mbrl_delan.conf.schema import ACCEL_KEYS, TrainConfig
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.registry import ENVS, MODELS, PLANNERS, PluginError, load_plugins
@@ -79,7 +80,9 @@ def exit_on_config_errors(hydra_main: Callable[[], Any]) -> Any:
     """Run a ``@hydra.main`` function; a config error, from Hydra's composition or from the
     checks before the run starts, ends the process with exit code 2 and one line naming it
     (Hydra alone prints several lines and exits 1), as does a run file that cannot be
-    written (`RunWriteError`: the path and the reason). Other errors propagate unchanged."""
+    written (`RunWriteError`: the path and the reason), and Ctrl-C that the run did not handle
+    itself (one line, exit 130). Other errors propagate unchanged."""
+    sys.excepthook = sys.__excepthook__  # the start's one-line Ctrl-C (`mbrl_delan`) is over
     previous = os.environ.get("HYDRA_FULL_ERROR")
     os.environ["HYDRA_FULL_ERROR"] = "1"  # Hydra raises its errors instead of exiting 1
     try:
@@ -99,6 +102,9 @@ def exit_on_config_errors(hydra_main: Callable[[], Any]) -> Any:
     except RunWriteError as err:
         log.error("%s", err)
         sys.exit(2)
+    except KeyboardInterrupt:
+        log.warning("stopped (Ctrl-C): the run's folder, if it was made, keeps what it wrote")
+        sys.exit(EXIT_INTERRUPTED)
     finally:
         if previous is None:
             os.environ.pop("HYDRA_FULL_ERROR", None)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -125,6 +126,7 @@ class PlannerPolicy(TensorDictModuleBase):
         self._episode_step = 0  # control steps since `reset`
         self._carried: dict[str, Tensor] = {}  # planner state for the next warm start
         self.last_result: Any = None  # what the last `plan` call returned
+        self.plan_seconds: list[float] = []  # wall time of each replan (objective + plan)
 
     def reset(self) -> None:
         """Forget the plan (start of an episode); the generator keeps its stream."""
@@ -151,6 +153,13 @@ class PlannerPolicy(TensorDictModuleBase):
         return action
 
     def _replan(self, q: Tensor, qd: Tensor) -> None:
+        start = time.perf_counter()
+        self._plan_once(q, qd)
+        if self.plan_device.type == "cuda":  # the plan's kernels done, as its action needs
+            torch.cuda.synchronize(self.plan_device)
+        self.plan_seconds.append(time.perf_counter() - start)
+
+    def _plan_once(self, q: Tensor, qd: Tensor) -> None:
         if self._plan is None:
             init = self.planner.initial_mean(device=self.plan_device)
         else:

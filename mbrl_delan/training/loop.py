@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -257,6 +258,23 @@ class Evaluation:
     returns: list[float] = field(default_factory=list)
     rollouts: list[TensorDict] = field(default_factory=list)  # the first `keep_rollouts` kept
     steps: list[int] = field(default_factory=list)  # each episode's control steps
+    # the planning of the episodes evaluated in this process (not kept by a checkpoint):
+    # each replan's wall time, and the control steps they served
+    plan_seconds: list[float] = field(default_factory=list)
+    planned_steps: int = 0
+
+    def planning_figures(self, prefix: str = "") -> dict[str, float]:
+        """`plan_ms_median` (the median replan), `plan_ms_per_control_step` (all replans over
+        the control steps they served) and `plan_load_1min` (the host's load as the
+        evaluation ended), each with `prefix`; {} for a policy that does not plan."""
+        if not self.plan_seconds or not self.planned_steps:
+            return {}
+        seconds = torch.tensor(self.plan_seconds, dtype=torch.float64)
+        return {
+            f"{prefix}plan_ms_median": 1e3 * float(seconds.median()),
+            f"{prefix}plan_ms_per_control_step": 1e3 * float(seconds.sum()) / self.planned_steps,
+            f"{prefix}plan_load_1min": os.getloadavg()[0],
+        }
 
     def episode_records(self, episode_len: int) -> dict[str, Any]:
         """Each episode's return and control steps, and the falls (episodes that ended before
@@ -342,6 +360,7 @@ class MBRLLoop:
         self.last_evaluation: Evaluation | None = None  # of the last `iterate`, if it evaluated
         self.oracle_returns: list[float] | None = None  # once `run` has evaluated the oracle
         self.oracle_steps: list[int] | None = None  # its episodes' control steps
+        self.oracle_planning: dict[str, float] = {}  # its planning time (`planning_figures`)
         # zero controls from the final evaluation's starts, once `run` has evaluated them
         self.zero_returns: list[float] | None = None
         self.oracle_rollouts: list[TensorDict] = []  # its first `keep_eval_rollouts` episodes
@@ -378,6 +397,7 @@ class MBRLLoop:
                 ev = self._evaluate_oracle(oracle, episodes, schedule.paired, episode_done)
             self.oracle_returns, self.oracle_rollouts = ev.returns, ev.rollouts
             self.oracle_steps, self.oracle_done, self.oracle_state = ev.steps, None, None
+            self.oracle_planning = ev.planning_figures("oracle_")
             hooks.checkpoint()
         if self.zero_returns is None:
             self.evaluate_zero(schedule.final_eval_episodes)
@@ -477,13 +497,17 @@ class MBRLLoop:
         is extended in place); `after_episode` is called after each new one."""
         ev = done if done is not None else Evaluation()
         generator = getattr(policy, "generator", None) if paired else None
+        timings: list[float] = getattr(policy, "plan_seconds", [])  # a planner's replans
         for i in range(len(ev.returns), episodes):
             s = EVAL_SEED_OFFSET + self.seed * 100 + i
             if generator is not None:
                 generator.manual_seed(PLANNER_SEED_OFFSET + s)
+            planned = len(timings)
             rollout = run_episode(self.eval_env, policy, s, self.episode_len)
             ev.returns.append(episode_return(rollout))
             ev.steps.append(int(rollout.shape[0]))
+            ev.plan_seconds += timings[planned:]
+            ev.planned_steps += int(rollout.shape[0]) if len(timings) > planned else 0
             if i < keep_rollouts:
                 ev.rollouts.append(rollout)
             after_episode()
@@ -605,6 +629,7 @@ class MBRLLoop:
             eval_return_mean=ev.mean, eval_return_std=ev.std, eval_steps_median=ev.median_steps
         )
         metrics.update(ev.episode_records(self.episode_len))
+        metrics.update(ev.planning_figures())
         if pending.paired:
             metrics.update(self.paired_figures(ev))
         metrics.update(self.fidelity())
@@ -651,6 +676,7 @@ class MBRLLoop:
             "pending": None if self.pending is None else self.pending.state_dict(),
             "oracle_done": None if self.oracle_done is None else self.oracle_done.state_dict(),
             "oracle_state": self.oracle_state,
+            "oracle_planning": self.oracle_planning,
             "zero_returns": self.zero_returns,
             "fidelity_reference": None
             if self.fidelity_reference is None
@@ -676,6 +702,7 @@ class MBRLLoop:
         oracle_done = state.get("oracle_done")
         self.oracle_done = None if oracle_done is None else Evaluation.of_state(oracle_done)
         self.oracle_state = state.get("oracle_state")
+        self.oracle_planning = state.get("oracle_planning") or {}  # older checkpoints: none
         reference = state.get("fidelity_reference")
         if reference is not None:
             self.fidelity_reference = FidelityReference.from_state_dict(reference)

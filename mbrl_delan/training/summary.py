@@ -13,6 +13,10 @@ from mbrl_delan.training.recorder import METRICS_FILE, read_metrics
 
 # a paired final evaluation's figures (`MBRLLoop.paired_figures`), in the summary too
 PAIRED_KEYS = ("paired_episodes", "falls", "oracle_falls", "both_stood", "standing_return_ratio")
+# the last evaluation's planning time (`Evaluation.planning_figures`)
+PLANNING_KEYS = ("plan_ms_median", "plan_ms_per_control_step", "plan_load_1min")
+# the figures of how long a run took, which two processes of one seeded run do not share
+TIMING_KEYS = ("wall_time_s", *PLANNING_KEYS, *(f"oracle_{key}" for key in PLANNING_KEYS))
 
 
 def run_summary(cfg: DictConfig, run_dir: Path, loop: MBRLLoop) -> dict[str, Any]:
@@ -41,7 +45,8 @@ def run_summary(cfg: DictConfig, run_dir: Path, loop: MBRLLoop) -> dict[str, Any
         # where the oracle's episodes come from: this run, or the run (or record) named
         "oracle_source": cfg.budget.get("oracle_from") or "this run",
     }
-    return with_zero_baseline(loop, summary | {k: last[k] for k in PAIRED_KEYS if k in last})
+    figures = {k: last[k] for k in (*PAIRED_KEYS, *PLANNING_KEYS) if k in last}
+    return with_zero_baseline(loop, summary | figures | loop.oracle_planning)
 
 
 def last_evaluation(run_dir: Path) -> dict[str, Any]:
