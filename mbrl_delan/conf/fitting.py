@@ -36,7 +36,6 @@ from mbrl_delan.systems.system import HINGE
 OmegaConf.register_new_resolver("stem", lambda value: Path(str(value)).stem, replace=True)
 
 FIT_CONFIG_DIR = CONFIGS / "fit"  # this entry point's YAML files
-TREE_MODELS = ("white_box", "tree_delan")  # the fit's models built on the data's MJCF tree
 
 
 def _choice(path: str, value: Any, choices: tuple[str, ...]) -> None:
@@ -94,7 +93,7 @@ def _check_fit_rules(cfg: DictConfig) -> None:
         check_residual_start(cfg.model)
     kind.check(cfg.data)
     no_tree = kind.no_tree(cfg.data)
-    if cfg.model.name in TREE_MODELS and no_tree is not None:
+    if getattr(INVERSE_MODELS[cfg.model.name].schema, "needs_tree", False) and no_tree:
         raise ConfigError(f"model={cfg.model.name} {no_tree}")
 
 

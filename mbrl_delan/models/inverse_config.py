@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import mujoco
 from omegaconf import MISSING, DictConfig
@@ -29,8 +30,10 @@ from mbrl_delan.systems.system import JointLayout
 
 @dataclass
 class InverseModelConfig:
-    """What every fit model group has; a plugin's schema extends it."""
+    """What every fit model group has; a plugin's schema extends it. `needs_tree`: the model
+    is built on the robot's MJCF tree, which the fit's data must give."""
 
+    needs_tree: ClassVar[bool] = False
     name: str = MISSING
 
 
@@ -71,6 +74,8 @@ class DeLaNInverseConfig(InverseModelConfig):
 class TreeDeLaNInverseConfig(DeLaNInverseConfig):
     """``model=tree_delan``; `start_level` above `diag_shift` (`check_residual_start`)."""
 
+    needs_tree: ClassVar[bool] = True
+
     prior_scale: float = rule(low=0, above=True)
     start_level: float = rule(low=0, above=True)
     armature_start: float = rule(0.0, low=0)
@@ -79,6 +84,8 @@ class TreeDeLaNInverseConfig(DeLaNInverseConfig):
 @dataclass
 class WhiteBoxInverseConfig(InverseModelConfig):
     """``model=white_box`` (a run saved before `friction_law`: frictionloss)."""
+
+    needs_tree: ClassVar[bool] = True
 
     prior_scale: float = rule(low=0, above=True)
     prior_weight: float = rule(low=0)
