@@ -469,22 +469,54 @@ def falls_table(table_rows: list[dict[str, Any]]) -> str:
             config = f"`{r['config']}`" if r["config"] else ""
             seeds = r["seeds"].replace(" ", ",")
             fraction = _pm(r["fraction_of_oracle_mean"], r["fraction_of_oracle_ci95"])
-            cells = [r["env"], r["model"], config, seeds, *_fall_cells(r), fraction]
+            cells = [r["env"], _model_cell(r), config, seeds, *_fall_cells(r), fraction]
             lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _model_cell(row: dict[str, Any]) -> str:
+    """The model, and where it started when not from scratch (a fit, `model.init_from`)."""
+    return row["model"] if row["start"] == SCRATCH else f"{row['model']} ({row['start']})"
+
+
+def returns_table(table_rows: list[dict[str, Any]]) -> str:
+    """Markdown: per group the seeds, the fraction of the oracle's return and the final
+    evaluation return (mean ± the 95% interval's half-width over seeds) and the env steps:
+    the narrow table `--page` writes for runs without paired episodes."""
+    lines = [
+        "| env | model | planner | config | seeds | fraction of oracle | eval return | env steps |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in table_rows:
+        config = f"`{r['config']}`" if r["config"] else ""
+        cells = [r["env"], _model_cell(r), r["planner"], config, r["seeds"].replace(" ", ","),
+                 _pm(r["fraction_of_oracle_mean"], r["fraction_of_oracle_ci95"]),
+                 _pm(r["eval_return_mean"], r["eval_return_ci95"]),
+                 _plain(r["env_steps_mean"], ".0f")]  # fmt: skip
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
 PAGE_BEGIN, PAGE_END = "<!-- report:begin -->", "<!-- report:end -->"
 
 
-def write_page(page: Path, command: str, table_rows: list[dict[str, Any]]) -> Path:
+def page_tables(summaries: list[dict[str, Any]]) -> str:
+    """`falls_table` of the runs with paired final episodes and `returns_table` of the
+    others, each set grouped among itself (the tables present)."""
+    paired = [s for s in summaries if paired_falls(s) is not None]
+    others = [s for s in summaries if paired_falls(s) is None]
+    tables = [falls_table(rows(paired))] if paired else []
+    return "\n\n".join([*tables, *([returns_table(rows(others))] if others else [])])
+
+
+def write_page(page: Path, command: str, summaries: list[dict[str, Any]]) -> Path:
     """Replace what lies between `PAGE_BEGIN` and `PAGE_END` in `page` by the command and
-    its `falls_table`. Raises ValueError when the page lacks the markers (nothing written)."""
+    its `page_tables`. Raises ValueError when the page lacks the markers (nothing written)."""
     text = page.read_text(encoding="utf-8")
     begin, end = text.find(PAGE_BEGIN), text.find(PAGE_END)
     if begin < 0 or end < begin:
         raise ValueError(f"{page} has no {PAGE_BEGIN} ... {PAGE_END} block to write into")
-    block = f"{PAGE_BEGIN}\n```bash\n{command}\n```\n\n{falls_table(table_rows)}\n"
+    block = f"{PAGE_BEGIN}\n```bash\n{command}\n```\n\n{page_tables(summaries)}\n"
     page.write_text(text[:begin] + block + text[end:], encoding="utf-8")
     return page
 
@@ -738,13 +770,11 @@ def write_report(
 
 
 def _write_page(args: argparse.Namespace, summaries: list[dict[str, Any]]) -> int:
-    """`--page`: the falls table of the runs with paired final episodes (grouped among
-    themselves) into the page, the command that wrote it above it."""
-    table_rows = rows([s for s in summaries if paired_falls(s) is not None])
+    """`--page`: the tables (`page_tables`) into the page, the command that wrote them above."""
     roots = " ".join(str(r) for r in args.roots)
     command = f"python -m mbrl_delan.report {roots} --page {args.page}"
     try:
-        log.info("wrote %s", write_page(args.page, command, table_rows))
+        log.info("wrote %s", write_page(args.page, command, summaries))
     except (OSError, ValueError) as err:
         log.error("--page: %s; nothing written", err)
         return 2
@@ -778,7 +808,8 @@ def main(argv: list[str] | None = None) -> int:
         "--page",
         type=Path,
         default=None,
-        help="write only the falls table, with this command, into this Markdown page between "
+        help="write only the falls and returns tables, with this command, into this Markdown "
+        "page between "
         f"its {PAGE_BEGIN} and {PAGE_END} lines",
     )
     args = parser.parse_args(argv)

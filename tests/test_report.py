@@ -96,9 +96,10 @@ def _paired_run(root: Path, name: str, seed: int, ours: list[int], theirs: list[
     (run / "metrics.jsonl").write_text(json.dumps(record) + "\n")
 
 
-def test_page_gets_the_falls_table_of_the_paired_runs_between_its_markers(tmp_path: Path) -> None:
-    """`--page`: the paired runs' falls (1 of 4 against 0 of 4) and the command replace what
-    lies between the markers; the text around them stays; an unpaired run is left out."""
+def test_page_gets_the_tables_of_the_paired_and_other_runs_between_its_markers(tmp_path: Path) -> None:
+    """`--page`: the paired runs' falls (1 of 4 against 0 of 4), the unpaired run's fraction of
+    the oracle (0.5) in a table of its own, and the command replace what lies between the
+    markers; the text around them stays."""
     _paired_run(tmp_path / "runs", "s0", 0, [100, 40, 100, 100], [100] * 4)
     make_run(tmp_path / "runs", "unpaired", summary(1, 0.5, 1.0))
     page = tmp_path / "page.md"
@@ -111,7 +112,8 @@ def test_page_gets_the_falls_table_of_the_paired_runs_between_its_markers(tmp_pa
     )
     assert f"| pendulum | delan |  | 0 | 1/4 ({low:.0%}-{high:.0%}) | 0/4 " in text
     assert "old" not in text and text.endswith("<!-- report:end -->\n\nafter\n")
-    assert len([line for line in text.splitlines() if line.startswith("| pendulum")]) == 1
+    assert "| pendulum | delan | mppi |  | 1 | 0.5 ± n/a | 0.5 ± n/a | 700 |" in text
+    assert len([line for line in text.splitlines() if line.startswith("| pendulum")]) == 2
 
 
 def test_page_without_markers_is_one_line_and_left_as_it_was(tmp_path: Path, caplog) -> None:
@@ -122,14 +124,19 @@ def test_page_without_markers_is_one_line_and_left_as_it_was(tmp_path: Path, cap
     assert page.read_text() == "# Results\n" and "no <!-- report:begin -->" in caplog.text
 
 
-def test_the_humanoid_results_page_holds_the_records_falls(tmp_path: Path) -> None:
-    """docs/humanoid_results.md's falls table is what its own command makes of the records
-    under docs/records/loops/ now (rerun on a copy of the page, from the repository)."""
+def test_the_results_pages_hold_what_the_records_give(tmp_path: Path) -> None:
+    """The docs' tables made from the records (docs/humanoid_results.md's, docs/results.md's)
+    are what their own command makes of the records under docs/records/loops/ now (rerun on
+    a copy of the page, from the repository)."""
+    repo = Path(__file__).resolve().parents[1]
+    for page in ("humanoid_results.md", "results.md"):
+        _check_page(repo, repo / "docs" / page, tmp_path)
+
+
+def _check_page(repo: Path, page: Path, tmp_path: Path) -> None:
     import os
     import shlex
 
-    repo = Path(__file__).resolve().parents[1]
-    page = repo / "docs" / "humanoid_results.md"
     text = page.read_text(encoding="utf-8")
     block = text[text.index("<!-- report:begin -->") : text.index("<!-- report:end -->")]
     command = shlex.split(block.split("```bash\n")[1].split("\n")[0])
@@ -142,8 +149,8 @@ def test_the_humanoid_results_page_holds_the_records_falls(tmp_path: Path) -> No
         assert main([*roots, "--page", str(copy)]) == 0
     finally:
         os.chdir(cwd)
-    made = copy.read_text(encoding="utf-8").replace(str(copy), "docs/humanoid_results.md")
-    assert made == text, "rerun the command in docs/humanoid_results.md's falls section"
+    made = copy.read_text(encoding="utf-8").replace(str(copy), f"docs/{page.name}")
+    assert made == text, f"rerun the command in docs/{page.name}'s table from the records"
 
 
 def test_repeated_runs_of_a_seed_count_once(tmp_path: Path, caplog) -> None:
