@@ -503,10 +503,15 @@ PAGE_BEGIN, PAGE_END = "<!-- report:begin -->", "<!-- report:end -->"
 def page_tables(summaries: list[dict[str, Any]]) -> str:
     """`falls_table` of the runs with paired final episodes and `returns_table` of the
     others, each set grouped among itself (the tables present)."""
-    paired = [s for s in summaries if paired_falls(s) is not None]
-    others = [s for s in summaries if paired_falls(s) is None]
-    tables = [falls_table(rows(paired))] if paired else []
-    return "\n\n".join([*tables, *([returns_table(rows(others))] if others else [])])
+    is_paired = [paired_falls(s) is not None for s in summaries]
+    paired = [s for s, p in zip(summaries, is_paired, strict=True) if p]
+    others = [s for s, p in zip(summaries, is_paired, strict=True) if not p]
+    tables = []
+    if paired:
+        tables.append(falls_table(rows(paired)))
+    if others:
+        tables.append(returns_table(rows(others)))
+    return "\n\n".join(tables)
 
 
 def write_page(page: Path, command: str, summaries: list[dict[str, Any]]) -> Path:
@@ -809,8 +814,7 @@ def main(argv: list[str] | None = None) -> int:
         type=Path,
         default=None,
         help="write only the falls and returns tables, with this command, into this Markdown "
-        "page between "
-        f"its {PAGE_BEGIN} and {PAGE_END} lines",
+        f"page between its {PAGE_BEGIN} and {PAGE_END} lines",
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
