@@ -96,7 +96,7 @@ def _paired_run(root: Path, name: str, seed: int, ours: list[int], theirs: list[
     (run / "metrics.jsonl").write_text(json.dumps(record) + "\n")
 
 
-def test_page_gets_the_tables_of_the_paired_and_other_runs_between_its_markers(tmp_path: Path) -> None:
+def test_page_gets_the_paired_and_other_runs_tables_between_its_markers(tmp_path: Path) -> None:
     """`--page`: the paired runs' falls (1 of 4 against 0 of 4), the unpaired run's fraction of
     the oracle (0.5) in a table of its own, and the command replace what lies between the
     markers; the text around them stays."""
