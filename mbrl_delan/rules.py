@@ -6,10 +6,17 @@ builder refuses a bad value with `ConfigError`."""
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from omegaconf import MISSING, ListConfig
+
+
+def check_choice(path: str, value: Any, choices: Sequence[str]) -> None:
+    """A `ConfigError` naming `path` and the valid `choices` unless `value` is one of them."""
+    if value not in choices:
+        raise ConfigError(f"{path}={value!r} is not valid; choose one of: {', '.join(choices)}")
 
 
 class ConfigError(ValueError):

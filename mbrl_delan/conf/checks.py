@@ -27,7 +27,7 @@ from mbrl_delan import EXIT_INTERRUPTED
 from mbrl_delan.conf.schema import ACCEL_KEYS, TrainConfig
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.registry import ENVS, MODELS, PLANNERS, PluginError, load_plugins
-from mbrl_delan.rules import ConfigError, field_rule
+from mbrl_delan.rules import ConfigError, check_choice, field_rule
 from mbrl_delan.training.checkpoint import RunWriteError
 from mbrl_delan.training.fit import FitConfig
 
@@ -47,11 +47,6 @@ def refuse_used_run_dir(run_dir: Path, run_files: Sequence[str], instead: str) -
             f"{run_dir} already holds a run ({', '.join(found)}); {instead} "
             "(those files were left as they were)"
         )
-
-
-def _choice(path: str, value: Any, choices: Sequence[str]) -> None:
-    if value not in choices:
-        raise ConfigError(f"{path}={value!r} is not valid; choose one of: {', '.join(choices)}")
 
 
 # what Hydra's composition and OmegaConf raise for a bad command line or config file
@@ -319,7 +314,7 @@ def validate_train_config(cfg: DictConfig) -> DictConfig:
     typed = typed_train_config(renamed(cfg))
     check_ranges(typed)
     for family, registry in (("env", ENVS), ("model", MODELS), ("planner", PLANNERS)):
-        _choice(f"{family}.name", typed[family].name, registry.names())
+        check_choice(f"{family}.name", typed[family].name, registry.names())
     check_device(typed.device)
     _check_rules(typed)
     build_fit_config(typed)

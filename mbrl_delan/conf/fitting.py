@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
@@ -30,17 +29,13 @@ from mbrl_delan.conf.inverse import (
 from mbrl_delan.data.inverse_data import FitSystem, InverseData
 from mbrl_delan.models.inverse import InverseDynamicsModel
 from mbrl_delan.registry import FIT_DATA, INVERSE_MODELS, DataKind
+from mbrl_delan.rules import check_choice
 from mbrl_delan.systems.system import HINGE
 
 # ${stem:${data.robot}} in run-dir names: a shipped arm's name, or an MJCF file's stem
 OmegaConf.register_new_resolver("stem", lambda value: Path(str(value)).stem, replace=True)
 
 FIT_CONFIG_DIR = CONFIGS / "fit"  # this entry point's YAML files
-
-
-def _choice(path: str, value: Any, choices: tuple[str, ...]) -> None:
-    if value not in choices:
-        raise ConfigError(f"{path}={value!r} is not valid; choose one of: {', '.join(choices)}")
 
 
 def data_kind(data: DictConfig) -> DataKind:
@@ -52,8 +47,8 @@ def typed_fit_config(cfg: DictConfig) -> DictConfig:
     """`cfg` merged into `FitRunConfig`, its data group into its kind's schema and its model
     group into the model's (`typed_model`): a wrong type or an unknown key is a ConfigError
     naming it."""
-    _choice("data.name", cfg.data.get("name"), FIT_DATA.names())
-    _choice("model.name", cfg.model.get("name"), INVERSE_MODELS.names())
+    check_choice("data.name", cfg.data.get("name"), FIT_DATA.names())
+    check_choice("model.name", cfg.model.get("name"), INVERSE_MODELS.names())
     base = OmegaConf.structured(FitRunConfig)
     with open_dict(base):
         base.data = OmegaConf.structured(FIT_DATA[cfg.data.name].schema)
@@ -84,7 +79,7 @@ def _check_fit_rules(cfg: DictConfig) -> None:
     kind's own rules, ``coulomb_lead``'s auto, a model on a tree the data do not give)."""
     kind = data_kind(cfg.data)
     if cfg.stop_on is not None:
-        _choice("stop_on", cfg.stop_on, kind.splits(cfg.data))
+        check_choice("stop_on", cfg.stop_on, kind.splits(cfg.data))
     if cfg.coulomb_lead not in (True, False, "auto"):
         raise ConfigError(
             f"coulomb_lead={cfg.coulomb_lead!r} is not valid; it must be true, false or auto"

@@ -42,16 +42,11 @@ from mbrl_delan.data.mocap import (
     load_dataset,
 )
 from mbrl_delan.registry import DataKind, register_fit_data
-from mbrl_delan.rules import ConfigError, rule
+from mbrl_delan.rules import ConfigError, check_choice, rule
 from mbrl_delan.systems.arms import ARMS, FRICTION_KINDS, STRUCTURES, arm, friction_kind
 from mbrl_delan.systems.system import JOINT_TYPES
 
 log = logging.getLogger(__name__)
-
-
-def _choice(path: str, value: Any, choices: tuple[str, ...]) -> None:
-    if value not in choices:
-        raise ConfigError(f"{path}={value!r} is not valid; choose one of: {', '.join(choices)}")
 
 
 # --- data=arrays -----------------------------------------------------------------------------
@@ -189,7 +184,7 @@ def check_excitation(cfg: DictConfig) -> None:
         raise ConfigError(f"data.robot={cfg.robot!r} is not valid; choose one of: "
                           f"{', '.join(ARMS)}, or give an MJCF file (.xml)")  # fmt: skip
     if not isinstance(cfg.friction, bool):
-        _choice("data.friction", cfg.friction, FRICTION_KINDS)
+        check_choice("data.friction", cfg.friction, FRICTION_KINDS)
     if cfg.test_seed is not None and cfg.test_seed == cfg.seed:
         raise ConfigError(f"data.test_seed={cfg.test_seed}: the training data's own seed")
     given = cfg.get("model_mjcf", "exact")
