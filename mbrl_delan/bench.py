@@ -31,6 +31,7 @@ from mbrl_delan.conf.checks import (
     load_config_plugins,
 )
 from mbrl_delan.provenance import provenance
+from mbrl_delan.stops import stop
 
 log = logging.getLogger("mbrl_delan.bench")
 
@@ -86,8 +87,7 @@ def hydra_main(cfg: DictConfig) -> None:
     try:
         run(cfg)
     except (ConfigError, UnknownSuiteError) as err:
-        log.error("config error: %s", err)
-        sys.exit(2)
+        stop("config error", err)
 
 
 def _checked_main() -> None:

@@ -41,14 +41,16 @@ from tensordict import TensorDict
 from torch import Tensor, nn
 
 from mbrl_delan import keys
-from mbrl_delan.data.arrays import COMPONENTS
+from mbrl_delan.data.arrays import COMPONENTS, ArrayFormatError
 from mbrl_delan.data.inverse_data import FitSystem, InverseData, array_inverse_data, system_of
 from mbrl_delan.models.delan import DeLaN
 from mbrl_delan.models.integrators import integrate
 from mbrl_delan.models.inverse import DeLaNInverse, InverseDynamicsModel
 from mbrl_delan.models.lagrangian import LagrangianDynamics
 from mbrl_delan.provenance import program_name
+from mbrl_delan.rules import ConfigError
 from mbrl_delan.runs import Run, load_run
+from mbrl_delan.stops import stop_line
 from mbrl_delan.systems.system import JointLayout
 from mbrl_delan.training.checkpoint import (
     CheckpointError,
@@ -59,6 +61,24 @@ from mbrl_delan.training.checkpoint import (
 from mbrl_delan.training.inverse_fit import evaluate_torques
 
 log = logging.getLogger("mbrl_delan.evaluate")
+
+# the stop line's kind of each input error of evaluate and rescore, the first that matches
+INPUT_ERRORS: tuple[tuple[type[BaseException], str], ...] = (
+    (ConfigError, "config error"),
+    (ArrayFormatError, "bad data file"),
+    (FileNotFoundError, "not found"),
+    (CheckpointError, "bad checkpoint"),
+    (RunWriteError, "write error"),
+    (ValueError, "bad input"),
+)
+
+
+def stop_on_input(err: BaseException) -> int:
+    """The stop line of an input error (`INPUT_ERRORS`' kind: the error); exit code 2."""
+    kind = next(kind for cls, kind in INPUT_ERRORS if isinstance(err, cls))
+    stop_line(kind, err)
+    return 2
+
 
 THRESHOLD = 0.1  # normalised position error that ends an open-loop rollout
 OPTIONS = ("data", "out", "threshold", "batch_size")
@@ -307,8 +327,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             check_writable(out.parent)  # before the work: an unwritable out= fails at once
         result = evaluate_run(run_dir, options.get("data"), batch_size, threshold)
     except (FileNotFoundError, ValueError, CheckpointError, RunWriteError) as err:
-        log.error("%s", err)  # the data, run, checkpoint or out= file named
-        return 2
+        return stop_on_input(err)  # the data, run, checkpoint or out= file named
     for name, split in result["splits"].items():
         rollout = split.get("rollout", {}).get("median_rollout_s")
         log.info(
@@ -327,8 +346,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         atomic_write(out, lambda f: f.write(text.encode("utf-8")), keep_prev=False)
     except RunWriteError as err:
-        log.error("%s", err)
-        return 2
+        return stop_on_input(err)
     return 0
 
 

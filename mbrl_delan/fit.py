@@ -21,7 +21,6 @@ dataset, 1 bad mocap data (NaN, malformed AMC, unstable PD tracking) or diverged
 from __future__ import annotations
 
 import logging
-import sys
 from pathlib import Path
 from typing import NoReturn
 
@@ -49,6 +48,7 @@ from mbrl_delan.fit_run import (  # the fit's engine; its Python API re-exported
     run,
 )
 from mbrl_delan.runs import load_fit_model
+from mbrl_delan.stops import stop
 from mbrl_delan.sweep import discard_unstarted_run_dir
 from mbrl_delan.systems.external import MissingPackageError
 from mbrl_delan.training.fit import TrainingDivergedError
@@ -60,9 +60,8 @@ log = logging.getLogger(__name__)
 
 def _exit_on_input(kind: str, err: Exception, run_dir: Path) -> NoReturn:
     """A bad input: one line (`kind`: what is wrong, the error), no run folder left, exit 2."""
-    log.error("%s: %s", kind, err)
     discard_unstarted_run_dir(run_dir, "fit.log")
-    sys.exit(2)
+    stop(kind, err)
 
 
 @hydra.main(version_base="1.3", config_path="configs/fit", config_name="config")
@@ -82,8 +81,7 @@ def hydra_main(cfg: DictConfig) -> float | None:
     except MissingPackageError as err:
         _exit_on_input("missing package", err, run_dir)
     except TrainingDivergedError as err:
-        log.error("training diverged: %s", err)
-        sys.exit(1)
+        stop("training diverged", err, 1)
     return summary.get("val_clip_mse")
 
 

@@ -18,6 +18,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from mbrl_delan.stops import stop_line
 from mbrl_delan.training.recorder import METRICS_FILE, SUMMARY_FILE, read_metrics
 
 log = logging.getLogger(__name__)
@@ -180,15 +181,13 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     missing = [r for r in args.runs if not r.is_dir()]
     if missing:
-        log.error("not a folder: %s", ", ".join(map(str, missing)))
+        stop_line("not a folder", ", ".join(map(str, missing)))
         return 2
     runs = find_fit_runs(args.runs)
     if not runs:
-        log.error(
-            "no runs of mbrl_delan.fit (no %s with final errors) in %s",
-            SUMMARY_FILE,
-            ", ".join(map(str, args.runs)),
-        )
+        folders = ", ".join(map(str, args.runs))
+        stop_line("no runs", f"no run of mbrl_delan.fit (no {SUMMARY_FILE} with final errors) "
+                  f"in {folders}")  # fmt: skip
         return 2
     if args.table or (args.figure is None and not args.seeds and not args.clips):
         sys.stdout.write(table(runs) + "\n")  # the command's output, for piping into a file

@@ -151,6 +151,7 @@ def _settings(cfg: DictConfig, epochs: int) -> InverseFitSettings:
         stop_on=cfg.stop_on,
         patience=cfg.patience,
         min_delta=cfg.min_delta,
+        min_rel_delta=cfg.min_rel_delta,
     )
 
 

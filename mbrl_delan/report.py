@@ -44,6 +44,7 @@ from scipy import stats
 from mbrl_delan.conf.checks import migrate
 from mbrl_delan.figure_style import legend_below, page_figure, save_figure
 from mbrl_delan.provenance import program_name
+from mbrl_delan.stops import stop_line
 from mbrl_delan.sweep import CRASH_FILE, last_iteration, read_crash
 from mbrl_delan.training.recorder import METRICS_FILE, RUN_CONFIG, flat_config, read_metrics
 
@@ -781,7 +782,7 @@ def _write_page(args: argparse.Namespace, summaries: list[dict[str, Any]]) -> in
     try:
         log.info("wrote %s", write_page(args.page, command, summaries))
     except (OSError, ValueError) as err:
-        log.error("--page: %s; nothing written", err)
+        stop_line("cannot write the page", f"{err}; nothing written")
         return 2
     return 0
 
@@ -820,15 +821,13 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     missing = [r for r in args.roots if not r.is_dir()]
     if missing:
-        log.error("not a folder: %s", ", ".join(map(str, missing)))
+        stop_line("not a folder", ", ".join(map(str, missing)))
         return 2
     summaries, incomplete = find_runs(args.roots)
     if not summaries and not incomplete:
-        log.error(
-            "no runs in %s (a run dir holds config.yaml, summary.json or crash.json); "
-            "nothing written",
-            ", ".join(map(str, args.roots)),
-        )
+        folders = ", ".join(map(str, args.roots))
+        stop_line("no runs", f"none in {folders} (a run dir holds config.yaml, summary.json or "
+                  "crash.json); nothing written")  # fmt: skip
         return 2
     if args.page is not None:
         return _write_page(args, summaries)

@@ -32,7 +32,7 @@ from omegaconf import DictConfig
 
 from mbrl_delan.conf.checks import DTYPES, ConfigError
 from mbrl_delan.conf.loop import build_loop, build_world_model, env_parts
-from mbrl_delan.evaluate import key_value_option
+from mbrl_delan.evaluate import key_value_option, stop_on_input
 from mbrl_delan.provenance import program_name
 from mbrl_delan.runs import load_run
 from mbrl_delan.training.checkpoint import CheckpointError, RunWriteError, atomic_write
@@ -130,8 +130,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             print(text)
     except (FileNotFoundError, ValueError, ConfigError, CheckpointError, RunWriteError) as err:
-        log.error("%s", err)
-        return 2
+        return stop_on_input(err)
     log.info("%s: %d of %d fell (the oracle %d), %.4f of its return where both stood",
              args.run_dir, result["falls"], result["paired_episodes"], result["oracle_falls"],
              result["standing_return_ratio"])  # fmt: skip

@@ -42,6 +42,7 @@ from mbrl_delan.conf.checks import (
     refuse_used_run_dir,
     validate_train_config,
 )
+from mbrl_delan.stops import stop, stop_line
 from mbrl_delan.training.checkpoint import (
     CHECKPOINT_FILE,
     RunWriteError,
@@ -253,9 +254,7 @@ class StartChecks(Callback):
             except (ConfigError, *COMPOSE_ERRORS) as err:
                 bad.append((number, label, err))
         for number, label, err in bad:
-            log.error(
-                "config error: sweep member #%d (%s): %s", number, label, config_error_line(err)
-            )
+            stop_line("config error", f"sweep member #{number} ({label}): {config_error_line(err)}")
         if bad:
             sys.exit(2)
 
@@ -316,8 +315,7 @@ def lock_run_dir(run_dir: Path) -> RunLock:
     try:
         lock.acquire()
     except RunLockedError as err:
-        log.error("%s", err)
-        sys.exit(2)
+        stop("run in use", err)
     return lock
 
 
@@ -326,8 +324,7 @@ def exit_unless_writable(run_dir: Path) -> None:
     try:
         check_writable(run_dir)
     except RunWriteError as err:
-        log.error("%s", err)
-        sys.exit(2)
+        stop("write error", err)
 
 
 # command-line keys a resumed run takes over its saved config: how long and where it runs and

@@ -37,6 +37,7 @@ from mbrl_delan.data.buffer import NonFiniteDataError
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.provenance import provenance
 from mbrl_delan.runs import OracleEpisodes, oracle_of_run, write_oracle
+from mbrl_delan.stops import STOPPED, stop_line
 from mbrl_delan.sweep import (
     crash_dir,
     discard_unstarted_run_dir,
@@ -320,24 +321,17 @@ def _stopped_by_user(cfg: DictConfig) -> None:
     checkpoint; a new run stopped before its config was written leaves no folder."""
     run_dir = crash_dir(cfg)
     if run_dir is None or not (run_dir / RUN_CONFIG).is_file():
-        log.warning("stopped (Ctrl-C) before the run started: nothing was kept")
+        stop_line(STOPPED, "before the run started: nothing was kept", logging.WARNING)
         _discard_refused(cfg)
         return
     if not (run_dir / CHECKPOINT_FILE).is_file():
-        log.warning(
-            "stopped (Ctrl-C) before the first checkpoint: %s holds the config only; run the "
-            "command again to start over",
-            run_dir,
-        )
+        stop_line(STOPPED, f"before the first checkpoint: {run_dir} holds the config only; "
+                  "run the command again to start over", logging.WARNING)  # fmt: skip
         return
     rounds = last_iteration(run_dir)
-    log.warning(
-        "stopped (Ctrl-C) after %s: %s keeps its last checkpoint; continue with "
-        "python -m mbrl_delan.train resume=%s",
-        f"round {rounds}" if rounds is not None else "no round",
-        run_dir,
-        run_dir,
-    )
+    after = f"round {rounds}" if rounds is not None else "no round"
+    stop_line(STOPPED, f"after {after}: {run_dir} keeps its last checkpoint; continue with "
+              f"python -m mbrl_delan.train resume={run_dir}", logging.WARNING)  # fmt: skip
 
 
 @hydra.main(version_base="1.3", config_path="configs/train", config_name="config")
@@ -349,35 +343,34 @@ def run(cfg: DictConfig) -> float | None:
         _stopped_by_user(cfg)
         sys.exit(EXIT_INTERRUPTED)
     except ConfigError as err:
-        log.error("config error: %s", err)
+        stop_line("config error", err)
         _discard_refused(cfg)
         exit_or_raise(2, err)
     except TrainingDivergedError as err:
-        log.error("training diverged: %s (the last good checkpoint is kept)", err)
-        if cfg.model.get("init_from") is not None:
-            log.error(
-                "the model started from model.init_from=%s: a DeLaN fitted on motion capture "
-                "without model.armature=true can have a nearly singular M off the mocap's "
-                "states, so its forward predictions blow up (docs/humanoid.md, starting from "
-                "the mocap fit)",
-                cfg.model.init_from,
-            )
+        hint = (
+            f"; the model started from model.init_from={cfg.model.init_from}: a DeLaN fitted "
+            "on motion capture without model.armature=true can have a nearly singular M off "
+            "the mocap's states, so its forward predictions blow up (docs/humanoid.md, "
+            "starting from the mocap fit)"
+        )
+        stop_line("training diverged", f"{err} (the last good checkpoint is kept)"
+                  f"{hint if cfg.model.get('init_from') is not None else ''}")  # fmt: skip
         exit_or_raise(1, err)
     except NonFiniteDataError as err:
-        log.error("bad data: %s (not added to the buffer; the last checkpoint is kept)", err)
+        stop_line("bad data", f"{err} (not added to the buffer; the last checkpoint is kept)")
         exit_or_raise(1, err)
     except MissingPackageError as err:
-        log.error("missing package: %s", err)
+        stop_line("missing package", err)
         _discard_refused(cfg)
         exit_or_raise(2, err)
     except (CheckpointError, FileNotFoundError) as err:
-        log.error("cannot resume: %s", err)
+        stop_line("cannot resume", err)
         exit_or_raise(2, err)
     except RunWriteError as err:
         run_dir = crash_dir(cfg)
         resumable = run_dir is not None and (run_dir / CHECKPOINT_FILE).is_file()
         hint = f"; once it can be written, python -m mbrl_delan.train resume={run_dir}"
-        log.error("%s%s", err, hint if resumable else "")
+        stop_line("write error", f"{err}{hint if resumable else ''}")
         exit_or_raise(2, err)
     return summary["eval_return_mean"]
 

@@ -273,7 +273,7 @@ def test_missing_folder_is_an_error(tmp_path: Path) -> None:
 def test_a_folder_without_runs_is_one_line_and_writes_nothing(tmp_path: Path, caplog) -> None:
     (tmp_path / "notes").mkdir()
     assert main([str(tmp_path)]) == 2
-    assert f"no runs in {tmp_path}" in caplog.text
+    assert f"no runs: none in {tmp_path}" in caplog.text
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes"]
 
 

@@ -21,6 +21,7 @@ from typing import Any
 
 from mbrl_delan.benchmarks.records import read_records
 from mbrl_delan.figure_style import legend_below, page_figure, save_figure
+from mbrl_delan.stops import stop_line
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +61,7 @@ def read_record_files(paths: list[Path]) -> list[dict[str, Any]] | None:
         try:
             records += read_records(path)
         except (OSError, json.JSONDecodeError) as err:
-            log.error("cannot read records from %s: %s", path, err)
+            stop_line("cannot read records", f"{path}: {err}")
             return None
     return records
 
@@ -109,10 +110,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         curves = error_curves(records)
     except ValueError as err:
-        log.error("%s", err)
+        stop_line("bad input", err)
         return 2
     if not curves:
-        log.error("no %s records in %s", ROLLOUT_ERROR, ", ".join(map(str, args.files)))
+        stop_line("no records", f"no {ROLLOUT_ERROR} records in {', '.join(map(str, args.files))}")
         return 2
     for line in describe_curves(curves):
         log.info("%s", line)

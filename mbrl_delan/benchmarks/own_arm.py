@@ -76,6 +76,7 @@ from mbrl_delan.conf.fitting import FIT_CONFIG_DIR
 from mbrl_delan.fit_run import fit_splits
 from mbrl_delan.models.inverse import DeLaNInverse, InverseDynamicsModel
 from mbrl_delan.models.rigid_body import WhiteBoxInverse, data_friction_law
+from mbrl_delan.stops import stop_line
 from mbrl_delan.systems.arms import (
     FRICTION_KINDS,
     arm_model,
@@ -387,8 +388,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("give --out PNG for the figure, or --table")
     curves = sample_curves(records, args.robot, args.friction)
     if not curves:
-        log.error("no %s test_torque_mse records of %s in %s", SUITE, args.robot,
-                  ", ".join(map(str, args.files)))  # fmt: skip
+        files = ", ".join(map(str, args.files))
+        stop_line("no records", f"no {SUITE} test_torque_mse records of {args.robot} in {files}")
         return 2
     for line in describe_curves(curves, x="samples"):
         log.info("%s", line)

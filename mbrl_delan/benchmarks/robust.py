@@ -56,6 +56,7 @@ from mbrl_delan.conf.checks import compose_train_config
 from mbrl_delan.envs.real import MujocoTaskEnv
 from mbrl_delan.figure_style import page_figure, save_figure
 from mbrl_delan.planners.policy import PlannerPolicy
+from mbrl_delan.stops import stop_line
 from mbrl_delan.systems.system import State
 
 log = logging.getLogger(__name__)
@@ -308,7 +309,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     points = setting_points(records, timing)
     if not points:
-        log.error("no suite robust records in %s", ", ".join(map(str, args.files)))
+        stop_line("no records", f"no suite robust records in {', '.join(map(str, args.files))}")
         return 2
     for label, p in points.items():
         log.info("%s: %d of %d fell, %.1f ms per control step", label, p.falls, p.episodes, p.ms)

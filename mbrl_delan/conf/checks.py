@@ -28,6 +28,7 @@ from mbrl_delan.conf.schema import ACCEL_KEYS, TrainConfig
 from mbrl_delan.models.base import WorldModel
 from mbrl_delan.registry import ENVS, MODELS, PLANNERS, PluginError, load_plugins
 from mbrl_delan.rules import ConfigError, check_choice, field_rule
+from mbrl_delan.stops import STOPPED, stop
 from mbrl_delan.training.checkpoint import RunWriteError
 from mbrl_delan.training.fit import FitConfig
 
@@ -66,9 +67,8 @@ def config_error_line(err: BaseException) -> str:
 
 
 def exit_config_error(err: BaseException) -> NoReturn:
-    """Log `config_error_line(err)` and exit with code 2."""
-    log.error("config error: %s", config_error_line(err))
-    sys.exit(2)
+    """Stop with ``config error: <config_error_line(err)>`` and exit code 2."""
+    stop("config error", config_error_line(err))
 
 
 def exit_on_config_errors(hydra_main: Callable[[], Any]) -> Any:
@@ -95,11 +95,10 @@ def exit_on_config_errors(hydra_main: Callable[[], Any]) -> Any:
             )
         )
     except RunWriteError as err:
-        log.error("%s", err)
-        sys.exit(2)
+        stop("write error", err)
     except KeyboardInterrupt:
-        log.warning("stopped (Ctrl-C): the run's folder, if it was made, keeps what it wrote")
-        sys.exit(EXIT_INTERRUPTED)
+        stop(STOPPED, "the run's folder, if it was made, keeps what it wrote",
+             EXIT_INTERRUPTED)  # fmt: skip
     finally:
         if previous is None:
             os.environ.pop("HYDRA_FULL_ERROR", None)

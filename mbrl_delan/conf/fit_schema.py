@@ -48,6 +48,7 @@ class FitRunConfig:
     epochs: int = rule(low=1)
     patience: int | None = rule(None, low=1)
     min_delta: float = rule(low=0)
+    min_rel_delta: float = rule(low=0, high=1, below=True)
     stop_on: str | None = None
     eval_every: int = rule(low=0)
     batch_size: int = rule(low=1)

@@ -135,6 +135,7 @@ class InverseFitSettings:
     stop_on: str | None = None  # split evaluated after every epoch: its lowest error is kept
     patience: int | None = None  # with stop_on: epochs without a lower error that end the fit
     min_delta: float = 0.0  # patience restarts only below best - min_delta (normalised MSE)
+    min_rel_delta: float = 0.0  # ... and only below best x (1 - min_rel_delta): scale-free
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch_size < 1 or self.eval_batch_size < 1:
@@ -145,6 +146,13 @@ class InverseFitSettings:
             raise ValueError(f"patience must be >= 1 or None: {self}")
         if not 0.0 <= self.min_delta < math.inf:
             raise ValueError(f"min_delta must be finite and >= 0: {self}")
+        if not 0.0 <= self.min_rel_delta < 1.0:
+            raise ValueError(f"min_rel_delta must be in [0, 1): {self}")
+
+    def improves(self, error: float, best: float) -> bool:
+        """Whether `error` restarts the patience against the lowest error so far `best`:
+        lower by more than `min_delta` and by more than the share `min_rel_delta` of it."""
+        return error < min(best - self.min_delta, best * (1.0 - self.min_rel_delta))
 
     def evaluates(self, epoch: int) -> bool:
         """Whether the splits are evaluated after `epoch` (counted from 1)."""
@@ -314,7 +322,7 @@ def fit_inverse_model(
         if stop_on is None:
             continue
         error = errors[stop_on].mse
-        since_best = 0 if error < best_error - settings.min_delta else since_best + 1
+        since_best = 0 if settings.improves(error, best_error) else since_best + 1
         if error < best_error:
             best, best_error = last_good, error
         if settings.patience is not None and since_best >= settings.patience:
