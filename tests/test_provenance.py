@@ -61,3 +61,13 @@ def test_a_fits_summary_names_where_it_comes_from(tmp_path: Path) -> None:
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert {"command", "git_commit", "dirty", "host"} <= set(summary)
     assert summary["host"]["threads"] >= 1
+
+
+def test_every_kept_bench_record_says_where_it_comes_from() -> None:
+    """The bench records under docs/records/ carry the provenance keys, null where the
+    record predates them (what made it is then unknown, and says so); a loop's are in its
+    summary.json."""
+    records = Path(__file__).resolve().parents[1] / "docs" / "records"
+    for path in sorted({*records.glob("*.jsonl"), *records.glob("own_arm/*.jsonl")}):
+        for record in read_records(path):
+            assert {"command", "git_commit", "dirty", "host"} <= set(record), path
