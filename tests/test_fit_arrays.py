@@ -196,15 +196,17 @@ def test_early_stopping_keeps_the_lowest_validation_error(arm2_data) -> None:
     assert evaluate_torques(model, val).mse == pytest.approx(best, rel=1e-9)
 
 
-def test_min_delta_stops_on_small_gains_and_keeps_the_best(arm2_data) -> None:
-    """Gains under min_delta do not restart the patience; the lowest error is still kept."""
+@pytest.mark.parametrize("rule", ["min_delta", "min_rel_delta"])
+def test_min_delta_stops_on_small_gains_and_keeps_the_best(arm2_data, rule: str) -> None:
+    """Gains under min_delta (or the share min_rel_delta of the best error) do not restart
+    the patience; the lowest error is still kept."""
     from mbrl_delan.training.inverse_fit import evaluate_torques
 
-    def fit(delta: float) -> tuple[MLPInverse, list]:
+    def fit(**threshold: float) -> tuple[MLPInverse, list]:
         torch.manual_seed(0)
         model = MLPInverse(load_system("arm2").layout, hidden=8).double()
         settings = InverseFitSettings(
-            epochs=30, batch_size=32, stop_on="val", patience=2, min_delta=delta
+            epochs=30, batch_size=32, stop_on="val", patience=2, **threshold
         )
         optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)  # small: it keeps improving
         results = fit_inverse_model(
@@ -213,15 +215,26 @@ def test_min_delta_stops_on_small_gains_and_keeps_the_best(arm2_data) -> None:
         )  # fmt: skip
         return model, results
 
-    _, plain = fit(0.0)
+    _, plain = fit()
     first = plain[0].errors["val"].mse
-    model, strict = fit(0.9 * first)  # only an error below a tenth of the first counts
+    # only an error below a tenth of the first (of the best) counts
+    model, strict = fit(**{rule: 0.9 * first if rule == "min_delta" else 0.9})
     errors = [r.errors["val"].mse for r in strict]
     assert len(strict) == 3 < len(plain)  # the first epoch, then two without that gain
-    assert errors[2] < errors[0]  # it did improve, by less than min_delta
+    assert errors[2] < errors[0]  # it did improve, by less than the threshold
     assert evaluate_torques(model, arm2_data[160:]).mse == pytest.approx(min(errors), rel=1e-9)
-    with pytest.raises(ValueError, match="min_delta"):
-        InverseFitSettings(min_delta=-1.0)
+    with pytest.raises(ValueError, match=rule):
+        InverseFitSettings(**{rule: -1.0})
+
+
+def test_the_relative_threshold_is_scale_free() -> None:
+    """The same relative gains count at any error level (precise data's 1e-6 as noisy data's
+    1e-2); an absolute threshold counts them at one level only."""
+    relative, absolute = InverseFitSettings(min_rel_delta=0.01), InverseFitSettings(min_delta=1e-3)
+    for scale in (1e-6, 1e-2, 1.0):
+        assert relative.improves(0.98 * scale, scale)  # a 2% gain
+        assert not relative.improves(0.995 * scale, scale)  # a 0.5% gain
+    assert absolute.improves(0.98, 1.0) and not absolute.improves(0.98e-2, 1e-2)
 
 
 # ---------------------------------------------------------------- reading a run back
