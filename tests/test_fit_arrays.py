@@ -529,3 +529,20 @@ def test_a_damaged_or_foreign_npz_exits_2_in_one_line(
     assert code == 2 and "Traceback" not in text and "pickled" not in text, text
     assert f"bad data file: {path}: field '<file>': is not a readable .npz archive" in text
     assert not run_dir.exists()
+
+
+def test_the_fit_arrays_suite_records_each_fits_stopping_rule_and_tables_it() -> None:
+    """Suite fit_arrays (quick) records the stopping rule each fit ran under, and its table
+    (``python -m mbrl_delan.benchmarks.fit_arrays FILES``) has one row per arm and run."""
+    from dataclasses import replace
+
+    from mbrl_delan.benchmarks.fit_arrays import FitArraysConfig, results_table, run_fit_arrays
+
+    quick = FitArraysConfig.quick()
+    cfg = replace(quick, overrides=(*quick.overrides, "min_rel_delta=0.25"))
+    records = [r.to_dict() for r in run_fit_arrays(cfg)]
+    delan = [r for r in records if r["setting"] == "delan"]
+    assert delan and all(r["stopping"]["min_rel_delta"] == 0.25 for r in delan)
+    table = results_table(records)
+    row = "| arm2 | min_delta 1e-05, min_rel_delta 0.25 | 0 |"
+    assert len(table) == 3 and table[2].startswith(row), table
