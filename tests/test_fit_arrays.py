@@ -544,5 +544,5 @@ def test_the_fit_arrays_suite_records_each_fits_stopping_rule_and_tables_it() ->
     delan = [r for r in records if r["setting"] == "delan"]
     assert delan and all(r["stopping"]["min_rel_delta"] == 0.25 for r in delan)
     table = results_table(records)
-    row = "| arm2 | min_delta 1e-05, min_rel_delta 0.25 | 0 |"
+    row = "| arm2 | min_delta 0, min_rel_delta 0.25 | 0 |"
     assert len(table) == 3 and table[2].startswith(row), table
