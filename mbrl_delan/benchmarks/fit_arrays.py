@@ -257,8 +257,10 @@ def run_fit_arrays_suite(
     added to every fit's."""
     cfg = FitArraysConfig.quick() if bench.quick else FitArraysConfig()
     overrides = (*cfg.overrides, *options.overrides)
-    yield from run_fit_arrays(replace(cfg, fit_seed=options.seed or 0, overrides=overrides,
-                                      torque_noise=options.torque_noise))  # fmt: skip
+    cfg = replace(cfg, fit_seed=options.seed or 0, overrides=overrides,
+                  torque_noise=options.torque_noise,
+                  systems=tuple(options.systems or cfg.systems))  # fmt: skip
+    yield from run_fit_arrays(cfg)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -155,6 +155,7 @@ class FitArraysSuiteConfig(SuiteConfig):
     seed: int | None = rule(None, low=0)
     overrides: list[str] = field(default_factory=list)
     torque_noise: float = rule(0.0, low=0)  # the torques' noise: a share of each joint's RMS
+    systems: list[str] | None = rule(None, choices=("arm2", "arm3"), nonempty=True)
 
 
 @dataclass
