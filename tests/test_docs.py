@@ -38,7 +38,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser
 from omegaconf import DictConfig
 
 from mbrl_delan import bench, evaluate, fit_report, report, rescore
-from mbrl_delan.benchmarks import figures, own_arm, robust
+from mbrl_delan.benchmarks import figures, fit_arrays, own_arm, robust
 from mbrl_delan.conf.builders import build_model, build_planner
 from mbrl_delan.conf.checks import DTYPES, validate_train_config
 from mbrl_delan.conf.fitting import validate_fit_config
@@ -108,6 +108,7 @@ ARGPARSE_ENTRY_POINTS: dict[str, Callable[[list[str]], Any]] = {
     "mbrl_delan.fit_report": fit_report.main,
     "mbrl_delan.benchmarks.figures": figures.main,
     "mbrl_delan.benchmarks.own_arm": own_arm.main,
+    "mbrl_delan.benchmarks.fit_arrays": fit_arrays.main,
     "mbrl_delan.benchmarks.robust": robust.main,
     "mbrl_delan.evaluate": evaluate.main,
     "mbrl_delan.rescore": rescore.main,

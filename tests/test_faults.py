@@ -404,7 +404,7 @@ def test_a_write_that_fails_is_exit_2_naming_it_and_the_resume_ends_as_the_run(
     text = log.read_text()
     assert code == 2 and "Traceback" not in text, text
     path = run_dir / ("checkpoint.pt" if phase == "checkpoint" else "metrics.jsonl")
-    errors = [line for line in text.splitlines() if "ERROR" in line]
+    errors = [line for line in text.splitlines() if line.startswith("write error: ")]
     assert len(errors) == 1, text
     assert f"cannot write {path}: {os.strerror(errno_)} (errno {errno_})" in errors[0], text
     assert "Error executing job" not in text, text  # Hydra's own line: the task caught it
