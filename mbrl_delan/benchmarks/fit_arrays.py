@@ -55,7 +55,6 @@ log = logging.getLogger(__name__)
 SUITE = "fit_arrays"
 SYSTEMS = ("arm2", "arm3")
 NOT_METRICS = ("epochs", "stopping")  # a setting's fields beside its figures
-SETTINGS = ("delan", "mlp", "identify")
 
 
 def stopping(cfg: Any) -> dict[str, Any]:
