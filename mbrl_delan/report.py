@@ -39,10 +39,10 @@ import numpy as np
 import yaml
 from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
-from scipy import stats
 
 from mbrl_delan.conf.checks import migrate
 from mbrl_delan.figure_style import legend_below, page_figure, save_figure
+from mbrl_delan.intervals import CONFIDENCE, mcnemar_exact, mean_ci, wilson_interval
 from mbrl_delan.provenance import program_name
 from mbrl_delan.stops import stop_line
 from mbrl_delan.sweep import CRASH_FILE, last_iteration, read_crash
@@ -64,7 +64,6 @@ REQUIRED_KEYS = ("env", "model", "planner", "seed")
 ORACLE_FRACTION = 0.9
 REACH_FRACTIONS = (0.5, 0.8, ORACLE_FRACTION)  # the table's "env steps to x of the oracle"
 SCRATCH = "scratch"  # a run's start when its model did not start from a fit
-CONFIDENCE = 0.95
 
 REPORT_MD = "report.md"
 REPORT_CSV = "report.csv"
@@ -233,33 +232,6 @@ def _finite(values: Iterable[Any]) -> list[float]:
         if isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v):
             out.append(float(v))
     return out
-
-
-def mean_ci(values: list[float], level: float = CONFIDENCE) -> tuple[float | None, float | None]:
-    """Mean and confidence-interval half-width over seeds (Student t).
-
-    half-width = t_{(1 + level) / 2, n - 1} * s / sqrt(n), with s the sample std (ddof 1).
-    Returns (None, None) without values and (mean, None) for a single value.
-    """
-    if not values:
-        return None, None
-    mean = statistics.fmean(values)
-    if len(values) < 2:
-        return mean, None
-    t = float(stats.t.ppf((1.0 + level) / 2.0, len(values) - 1))
-    return mean, t * statistics.stdev(values) / math.sqrt(len(values))
-
-
-def wilson_interval(k: int, n: int, level: float = CONFIDENCE) -> tuple[float, float]:
-    """The Wilson score interval of a rate k / n (n >= 1): the falls' 95% interval."""
-    ci = stats.binomtest(k, n).proportion_ci(confidence_level=level, method="wilson")
-    return float(ci.low), float(ci.high)
-
-
-def mcnemar_exact(b: int, c: int) -> float:
-    """The exact McNemar test's two-sided p-value on the discordant pairs: b episodes where
-    only the model fell, c where only the oracle fell (binomial, 1/2 each); 1 without any."""
-    return 1.0 if b + c == 0 else float(stats.binomtest(min(b, c), b + c, 0.5).pvalue)
 
 
 def paired_falls(run: dict[str, Any]) -> tuple[list[bool], list[bool]] | None:

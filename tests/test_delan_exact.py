@@ -188,3 +188,39 @@ def test_forward_dynamics_takes_the_lead_linearly_implicit() -> None:
     lhs = (terms.mass_matrix + slope) @ qdd.unsqueeze(-1)
     rhs = tau - terms.coriolis - terms.gravity - terms.dissipation
     torch.testing.assert_close(lhs.squeeze(-1), rhs, rtol=1e-9, atol=1e-9)
+
+
+def _fit_coulomb_width(qd_noise: float, steps: int = 400) -> Tensor:
+    """A learned-width Coulomb term (F known) fitted to tau = F sign(qd) seen through
+    velocities with Gaussian noise of std `qd_noise`; its width per DoF after the fit."""
+    g = torch.Generator().manual_seed(3)
+    qd = 0.2 * torch.randn(4096, 2, generator=g, dtype=torch.float64)
+    tau = 0.5 * torch.sign(qd)
+    seen = qd + qd_noise * torch.randn(qd.shape, generator=g, dtype=torch.float64)
+    dissipation = Dissipation(2, coulomb=True, coulomb_velocity=0.01, learn_velocity=True)
+    dissipation = dissipation.double()
+    with torch.no_grad():
+        dissipation.raw_viscous.fill_(-30.0)  # no viscous friction
+        dissipation.raw_coulomb.copy_(torch.log(torch.expm1(torch.tensor(0.5))))
+    optimizer = torch.optim.Adam([dissipation.raw_velocity], lr=0.05)
+    for _ in range(steps):
+        optimizer.zero_grad()
+        (dissipation(seen) - tau).square().mean().backward()
+        optimizer.step()
+    return dissipation.velocity.detach()
+
+
+def test_a_learned_coulomb_width_follows_the_velocities_noise() -> None:
+    """The width starts at `coulomb_velocity` (F tanh(qd / v_c) as with it fixed); fitted to
+    F sign(qd), exact velocities narrow it below its start, and velocities with noise sigma
+    widen it to the scale of sigma: E[sign(qd) | qd + e] = erf(.) is best matched by a tanh
+    of width about 1.2 sigma for qd spread much wider than sigma."""
+    fixed = Dissipation(2, coulomb=True, coulomb_velocity=0.01)
+    learned = Dissipation(2, coulomb=True, coulomb_velocity=0.01, learn_velocity=True)
+    learned.load_state_dict(fixed.state_dict(), strict=False)
+    qd = torch.linspace(-0.05, 0.05, 11)[:, None].expand(11, 2)
+    torch.testing.assert_close(learned(qd), fixed(qd))
+    assert (_fit_coulomb_width(0.0) < 0.005).all()
+    sigma = 0.02
+    width = _fit_coulomb_width(sigma)
+    assert ((width > 0.7 * sigma) & (width < 2.0 * sigma)).all(), width

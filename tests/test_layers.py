@@ -25,7 +25,9 @@ def _module_name(path: Path) -> str:
 MODULES = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
 
 # the bottom floor: every place may import it, it imports nothing above it
-BOTTOM = ("", "keys", "rules", "stops", "registry", "figure_style", "configs", "provenance")
+BOTTOM = (
+    "", "keys", "rules", "stops", "registry", "figure_style", "configs", "provenance", "intervals",
+)  # fmt: skip
 # each other place (a folder, or a top-level module) and the places it builds on directly; it
 # may import those and what they build on, never a sibling it does not name (data and models
 # are siblings: neither imports the other). docs/architecture.md's table is this one.

@@ -157,3 +157,23 @@ def test_the_figure_counts_falls_per_setting(tmp_path: Path) -> None:
     assert robust_figure(timed) == 0
     assert (tmp_path / "falls.png").stat().st_size > 0
     assert robust_figure([str(tmp_path / "missing.jsonl"), "--out", str(tmp_path / "x.png")]) == 2
+
+
+def test_the_table_gives_each_settings_fall_rate_with_its_wilson_interval(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """0 falls in 100 episodes: the Wilson 95% interval is 0 to z^2 / (n + z^2) = 3.7%;
+    the speed is the episodes' mean over the records (weighted by their episodes)."""
+    base = dict(suite="robust", unit="", device="cpu", plan_cost="balance", planner="mppi",
+                num_samples=32, iterations=1, horizon=30, episodes=50, push=None,
+                oracle_substeps=1)  # fmt: skip
+    records = [base | dict(metric="falls", value=0, seed=s, speed_mean=speed)
+               for s, speed in ((0, 0.8), (1, 1.0))] + [
+               base | dict(metric="plan_ms_per_control_step", value=20.0, seed=0)]  # fmt: skip
+    path = tmp_path / "robust.jsonl"
+    path.write_text("\n".join(json.dumps(r) for r in records))
+    assert robust_figure([str(path)]) == 0
+    row = capsys.readouterr().out.splitlines()[-1]
+    z2 = 1.959964**2
+    assert row == (f"| balance: mppi N 32 x 1, H 30, 1 physics step | 100 | 0 | "
+                   f"0.0% (0.0% to {z2 / (100 + z2):.1%}) | 0.90 | 20.0 |")  # fmt: skip

@@ -25,7 +25,9 @@ displacement over the episode's duration, m/s):
 - `plan_ms_per_control_step`: the mean over all control steps of all its episodes (ms);
 - `return_mean`: the mean episode return.
 
-`python -m mbrl_delan.benchmarks.robust FILE [FILE ...] --out PNG [--timing FILE ...]` draws
+`python -m mbrl_delan.benchmarks.robust FILE [FILE ...] [--out PNG] [--timing FILE ...]`
+prints a Markdown table (`fall_table`: per setting the episodes, falls, the fall rate with its
+95% Wilson interval, mean speed and planning ms) and with `--out` draws
 the share of episodes that fell against the planning ms per control step, one point per
 setting (`setting_label`: the plan cost, the planner's samples, iterations and horizon and
 the oracle's physics steps per control step; pushed runs apart) over all its seeds; a setting
@@ -55,6 +57,7 @@ from mbrl_delan.conf.bench_schema import RobustSuiteConfig
 from mbrl_delan.conf.checks import compose_train_config
 from mbrl_delan.envs.real import MujocoTaskEnv
 from mbrl_delan.figure_style import page_figure, save_figure
+from mbrl_delan.intervals import wilson_interval
 from mbrl_delan.planners.policy import PlannerPolicy
 from mbrl_delan.stops import stop_line
 from mbrl_delan.systems.system import State
@@ -227,12 +230,18 @@ class SettingPoint:
 
     falls: int = 0
     episodes: int = 0
+    speed_sum: float = 0.0  # sum of the records' speed_mean x their episodes (m/s)
     ms_sum: float = 0.0  # sum of the timed records' ms x their episodes
     ms_episodes: int = 0  # the episodes those records timed
 
     @property
     def ms(self) -> float:
         return self.ms_sum / max(self.ms_episodes, 1)
+
+    @property
+    def speed(self) -> float:
+        """The episodes' mean forward speed (m/s)."""
+        return self.speed_sum / max(self.episodes, 1)
 
 
 def setting_points(
@@ -246,6 +255,7 @@ def setting_points(
         point = points[setting_label(r)]
         point.falls += int(r["value"])
         point.episodes += int(r["episodes"])
+        point.speed_sum += float(r.get("speed_mean") or 0.0) * int(r["episodes"])
     own, apart = _by_setting(_robust(records, METRIC_MS)), _by_setting(_robust(timing, METRIC_MS))
     for label, point in points.items():
         for r in apart.get(label) or own.get(label, []):
@@ -293,10 +303,22 @@ def plot_falls(points: dict[str, SettingPoint], path: Path, title: str,
     return save_figure(fig, path)
 
 
+def fall_table(points: dict[str, SettingPoint]) -> str:
+    """A Markdown table, one row per setting: its episodes, falls, fall rate with the 95%
+    Wilson interval, mean forward speed and planning ms per control step."""
+    rows = ["| setting | episodes | falls | fall rate (95% interval) | speed (m/s) | plan ms |",
+            "|---|---:|---:|---|---:|---:|"]  # fmt: skip
+    for label, p in sorted(points.items()):
+        low, high = wilson_interval(p.falls, p.episodes)
+        rate = f"{p.falls / p.episodes:.1%} ({low:.1%} to {high:.1%})"
+        rows.append(f"| {label} | {p.episodes} | {p.falls} | {rate} | {p.speed:.2f} | {p.ms:.1f} |")
+    return "\n".join(rows)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="falls against planning time, suite robust")
     parser.add_argument("files", nargs="+", type=Path, help="records of suite robust (JSONL)")
-    parser.add_argument("--out", type=Path, required=True, help="the figure to write (PNG)")
+    parser.add_argument("--out", type=Path, help="the figure to write (PNG); none: the table only")
     parser.add_argument("--title", default="humanoid_stand: the oracle's falls and plan time")
     parser.add_argument("--control-ms", type=float, default=15.0, help="the control period")
     parser.add_argument(
@@ -311,9 +333,9 @@ def main(argv: list[str] | None = None) -> int:
     if not points:
         stop_line("no records", f"no suite robust records in {', '.join(map(str, args.files))}")
         return 2
-    for label, p in points.items():
-        log.info("%s: %d of %d fell, %.1f ms per control step", label, p.falls, p.episodes, p.ms)
-    log.info("figure: %s", plot_falls(points, args.out, args.title, args.control_ms))
+    print(fall_table(points))  # the table is the command's output: stdout
+    if args.out is not None:
+        log.info("figure: %s", plot_falls(points, args.out, args.title, args.control_ms))
     return 0
 
 

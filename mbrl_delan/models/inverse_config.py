@@ -63,6 +63,7 @@ class DeLaNInverseConfig(InverseModelConfig):
     dissipation: bool = MISSING
     coulomb: bool = MISSING
     coulomb_velocity: float = rule(0.01, low=0, above=True)
+    learn_coulomb_velocity: bool = False  # the width learned per joint from coulomb_velocity
     still_first_order: bool = MISSING
     spring_potential: bool = False
     tree_sparse: bool = False

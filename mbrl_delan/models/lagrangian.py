@@ -131,6 +131,9 @@ class Dissipation(nn.Module):
     friction opposes where the velocity is going, as a soft friction constraint (MuJoCo's
     ``frictionloss`` opposes qdd + b qd, l = 1 / b) does; it starts at 0.69 `LEAD_UNIT`.
     Without qdd (energy, `LagrangianDynamics.terms`) the argument is qd.
+    `learn_velocity`: the width v_c is learned per DoF, v_c = `coulomb_velocity` exp(w), w
+    starting at 0: exact velocities pull it toward a sign law, noisy ones widen it to about
+    their noise (the expected friction force under noise is smooth on that scale).
     """
 
     LEAD_UNIT = 0.01  # s
@@ -142,13 +145,17 @@ class Dissipation(nn.Module):
         coulomb_velocity: float = 0.01,
         raw_init: float = -4.0,
         lead: bool = False,
+        learn_velocity: bool = False,
     ) -> None:
         super().__init__()
         if lead and not coulomb:
             raise ValueError("a Coulomb lead needs Coulomb friction (coulomb=True)")
+        if learn_velocity and not coulomb:
+            raise ValueError("a learned Coulomb width needs Coulomb friction (coulomb=True)")
         self.raw_viscous = nn.Parameter(torch.full((n,), raw_init))
         self.raw_coulomb = nn.Parameter(torch.full((n,), raw_init - 2.0)) if coulomb else None
         self.raw_lead = nn.Parameter(torch.zeros(n)) if lead else None
+        self.raw_velocity = nn.Parameter(torch.zeros(n)) if learn_velocity else None
         self.coulomb_velocity = coulomb_velocity
         self.register_buffer("viscous_scale", torch.ones(n))
         self.register_buffer("coulomb_scale", torch.ones(n))
@@ -163,6 +170,13 @@ class Dissipation(nn.Module):
         """The Coulomb lead l per DoF (n,) in s; None without."""
         return None if self.raw_lead is None else self.LEAD_UNIT * F.softplus(self.raw_lead)
 
+    @property
+    def velocity(self) -> Tensor | float:
+        """The Coulomb width v_c: `coulomb_velocity`, or per DoF (n,) where learned."""
+        if self.raw_velocity is None:
+            return self.coulomb_velocity
+        return self.coulomb_velocity * torch.exp(self.raw_velocity)
+
     def _coulomb(self) -> Tensor:
         return self.coulomb_scale * F.softplus(self.raw_coulomb)
 
@@ -170,7 +184,7 @@ class Dissipation(nn.Module):
         """dd/dqd at qdd = 0, per DoF (..., n): D + F sech^2(qd / v_c) / v_c, >= 0."""
         slope = self.viscous.expand_as(qd)
         if self.raw_coulomb is not None:
-            slope = slope + self._coulomb() * self._sech2(qd) / self.coulomb_velocity
+            slope = slope + self._coulomb() * self._sech2(qd) / self.velocity
         return slope
 
     def lead_inertia(self, qd: Tensor) -> Tensor | None:
@@ -179,17 +193,17 @@ class Dissipation(nn.Module):
         lead = self.lead
         if lead is None:
             return None
-        return self._coulomb() * lead * self._sech2(qd) / self.coulomb_velocity
+        return self._coulomb() * lead * self._sech2(qd) / self.velocity
 
     def _sech2(self, qd: Tensor) -> Tensor:
-        return 1.0 - torch.tanh(qd / self.coulomb_velocity).square()
+        return 1.0 - torch.tanh(qd / self.velocity).square()
 
     def forward(self, qd: Tensor, qdd: Tensor | None = None) -> Tensor:
         """d at (qd, qdd) (..., n); qdd None: at qdd = 0."""
         force = self.viscous * qd
         if self.raw_coulomb is not None:
             argument = qd if qdd is None or self.raw_lead is None else qd + self.lead * qdd
-            force = force + self._coulomb() * torch.tanh(argument / self.coulomb_velocity)
+            force = force + self._coulomb() * torch.tanh(argument / self.velocity)
         return force
 
 

@@ -38,6 +38,7 @@ class Structure:
     coulomb_lead: the Coulomb friction opposes qd + l qdd with a learned lead l per DoF (a
         soft friction constraint's, as MuJoCo's ``frictionloss``); not with `yaw_invariant`.
     coulomb_velocity: the Coulomb force's width, F tanh(qd / coulomb_velocity) (> 0).
+    learn_coulomb_velocity: the width learned per DoF from `coulomb_velocity` (`Dissipation`).
     translation_invariant: M and V's network do not see a free root's height; V gains an
         exact gravity term w z in it (`LagrangianNetwork`, ``heights``).
     yaw_invariant: a free root's heading and horizontal position enter nothing; M turns with
@@ -76,6 +77,7 @@ class Structure:
     coulomb: bool = True
     coulomb_lead: bool = False
     coulomb_velocity: float = 0.01
+    learn_coulomb_velocity: bool = False
     translation_invariant: bool = False
     yaw_invariant: bool = False
     still_first_order: bool = False
@@ -94,7 +96,7 @@ class Structure:
     MECHANICS: ClassVar[tuple[str, ...]] = (
         "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb", "coulomb_lead",
         "translation_invariant", "yaw_invariant", "still_first_order", "dof_parents", "armature",
-        "spring_potential",
+        "spring_potential", "learn_coulomb_velocity",
     )  # fmt: skip
 
     def __post_init__(self) -> None:
@@ -105,6 +107,8 @@ class Structure:
             object.__setattr__(self, "armature", tuple(values))
         if self.coulomb_lead and not (self.dissipation and self.coulomb):
             raise ValueError("coulomb_lead needs Coulomb friction (dissipation and coulomb)")
+        if self.learn_coulomb_velocity and not (self.dissipation and self.coulomb):
+            raise ValueError("learn_coulomb_velocity needs Coulomb friction (dissipation, coulomb)")
         if self.coulomb_lead and self.yaw_invariant:
             raise ValueError("coulomb_lead acts in joint axes: not with yaw_invariant")
         if self.friction_init is not None and self.friction_init <= 0:
@@ -160,6 +164,7 @@ class Structure:
                 coulomb_velocity=self.coulomb_velocity,
                 raw_init=raw_init,
                 lead=self.coulomb_lead,
+                learn_velocity=self.learn_coulomb_velocity,
             )  # fmt: skip
             if self.dissipation
             else None
@@ -250,7 +255,7 @@ class LagrangianConfig(ModelConfig):
 STRUCTURE_KEYS = (
     "hidden", "layers", "activation", "diag_shift", "dissipation", "coulomb", "coulomb_velocity",
     "still_first_order", "translation_invariant", "yaw_invariant", "inertia_scaling", "residual",
-    "spring_potential",
+    "spring_potential", "learn_coulomb_velocity",
 )  # fmt: skip
 
 

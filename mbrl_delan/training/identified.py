@@ -118,7 +118,8 @@ def identified_summary(
 ) -> dict[str, Any]:  # fmt: skip
     """summary.json's ``identified``: per body its mass and centre of mass, identified and
     the file's; per joint each learned number beside the file's; for tree_delan the
-    residual's share of the torques on `test` (module docstring)."""
+    residual's share of the torques on `test` (module docstring) and, where learned, its
+    Coulomb width per joint (``residual_coulomb_velocity``)."""
     names = [file_model.body(b).name or f"body{b}" for b in numbers.bodies]
     own = np.stack([inertial_parameters(file_model, b) for b in numbers.bodies])
     com = numbers.inertials[:, 1:4] / numbers.inertials[:, :1]
@@ -133,7 +134,19 @@ def identified_summary(
     out: dict[str, Any] = {"file": IDENTIFIED_FILE, "bodies": bodies, "joints": joints}
     if test is not None and isinstance(model, DeLaNInverse):
         out["residual_torque_share"] = residual_torque_share(model, test)
+    if isinstance(model, DeLaNInverse) and (width := learned_coulomb_velocity(model)) is not None:
+        out["residual_coulomb_velocity"] = width
     return out
+
+
+@torch.no_grad()
+def learned_coulomb_velocity(model: DeLaNInverse) -> list[float] | None:
+    """The residual's learned Coulomb width per DoF (rad/s or m/s); None where not learned.
+    (nv,)"""
+    dissipation = model.dynamics.dissipation  # the residual's under a tree
+    if dissipation is None or dissipation.raw_velocity is None:
+        return None
+    return dissipation.velocity.cpu().double().tolist()
 
 
 @torch.no_grad()
