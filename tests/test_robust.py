@@ -177,3 +177,19 @@ def test_the_table_gives_each_settings_fall_rate_with_its_wilson_interval(
     z2 = 1.959964**2
     assert row == (f"| balance: mppi N 32 x 1, H 30, 1 physics step | 100 | 0 | "
                    f"0.0% (0.0% to {z2 / (100 + z2):.1%}) | 0.90 | 20.0 |")  # fmt: skip
+
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("records", ["robust_stand_100.jsonl", "robust_walk_100.jsonl"])
+def test_the_oracles_fall_rates_in_the_docs_are_their_records(
+    records: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The table docs/humanoid_results.md shows for each oracle's 100 episodes is what the
+    documented command prints from the kept records, and they hold 100 episodes."""
+    path = REPO / "docs" / "records" / records
+    assert robust_figure([str(path)]) == 0
+    table = capsys.readouterr().out.strip()
+    assert table in (REPO / "docs" / "humanoid_results.md").read_text()
+    assert table.splitlines()[-1].split(" | ")[1] == "100"
