@@ -38,7 +38,8 @@ class Structure:
     coulomb_lead: the Coulomb friction opposes qd + l qdd with a learned lead l per DoF (a
         soft friction constraint's, as MuJoCo's ``frictionloss``); not with `yaw_invariant`.
     coulomb_velocity: the Coulomb force's width, F tanh(qd / coulomb_velocity) (> 0).
-    learn_coulomb_velocity: the width learned per DoF from `coulomb_velocity` (`Dissipation`).
+    learn_coulomb_velocity: the width learned per DoF from `coulomb_velocity` (`Dissipation`),
+        where there is a Coulomb term (`dissipation` and `coulomb`).
     translation_invariant: M and V's network do not see a free root's height; V gains an
         exact gravity term w z in it (`LagrangianNetwork`, ``heights``).
     yaw_invariant: a free root's heading and horizontal position enter nothing; M turns with
@@ -107,8 +108,8 @@ class Structure:
             object.__setattr__(self, "armature", tuple(values))
         if self.coulomb_lead and not (self.dissipation and self.coulomb):
             raise ValueError("coulomb_lead needs Coulomb friction (dissipation and coulomb)")
-        if self.learn_coulomb_velocity and not (self.dissipation and self.coulomb):
-            raise ValueError("learn_coulomb_velocity needs Coulomb friction (dissipation, coulomb)")
+        if not (self.dissipation and self.coulomb):  # no Coulomb term: no width to learn
+            object.__setattr__(self, "learn_coulomb_velocity", False)
         if self.coulomb_lead and self.yaw_invariant:
             raise ValueError("coulomb_lead acts in joint axes: not with yaw_invariant")
         if self.friction_init is not None and self.friction_init <= 0:
