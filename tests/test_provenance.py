@@ -71,3 +71,22 @@ def test_every_kept_bench_record_says_where_it_comes_from() -> None:
     for path in sorted({*records.glob("*.jsonl"), *records.glob("own_arm/*.jsonl")}):
         for record in read_records(path):
             assert {"command", "git_commit", "dirty", "host"} <= set(record), path
+
+
+def test_the_kept_stand_oracles_are_the_episodes_every_loop_of_their_seed_met() -> None:
+    """docs/records/oracles/humanoid_stand/n32h30_s<seed>/oracle.json (the default preset's
+    oracle, evaluated on its own) holds, to the last digit, the oracle episodes of the final
+    paired evaluation of every kept humanoid_stand loop of that seed at that preset."""
+    records = Path(__file__).resolve().parents[1] / "docs" / "records"
+    oracles = sorted((records / "oracles" / "humanoid_stand").glob("n32h30_s*/oracle.json"))
+    assert oracles
+    for path in oracles:
+        oracle = json.loads(path.read_text())
+        seed = path.parent.name.removeprefix("n32h30_s")
+        runs = sorted((records / "loops" / "humanoid_stand").glob(f"*_n32h30*_s{seed}"))
+        assert runs, path
+        for loop in runs:
+            lines = (loop / "metrics.jsonl").read_text().splitlines()
+            paired = [r for r in map(json.loads, lines) if "oracle_episode_steps" in r][-1]
+            assert paired["oracle_episode_steps"] == oracle["steps"], loop
+            assert paired["oracle_episode_returns"] == oracle["returns"], loop
