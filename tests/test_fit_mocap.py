@@ -140,6 +140,7 @@ def test_fit_writes_per_epoch_metrics_summary_and_figure(fitted, name: str) -> N
         assert {g: None for g in part["groups"]}.keys() == GROUP_SIZES.keys()
         assert math.isfinite(part["joint_mse_si"]) and part["r2"] <= 1.0
     assert summary["dof_groups"] == GROUP_SIZES
+    assert 0 < summary["train_s"] <= summary["wall_time_s"] and summary["cpu_time_s"] > 0
     for file in ("loss_curves.png", "model.pt", "config.yaml", "dataset_provenance.json"):
         assert (run_dir / file).is_file(), file
     if name == "delan":
