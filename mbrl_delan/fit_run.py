@@ -132,7 +132,7 @@ def fit_splits(
         summary = fit_summary(cfg, data, model, splits, results)
         summary["train_s"] = train_s  # training (identification) with its evaluations
         summary["wall_time_s"] = time.perf_counter() - start
-        summary["cpu_time_s"] = time.process_time() - cpu_start  # every thread's: with threads=1, the fit's cost on an idle core
+        summary["cpu_time_s"] = time.process_time() - cpu_start  # all threads (threads=1: one core)
         summary |= stamp
         recorder.write_summary(summary)
         _write_identified(model, data.system, run_dir)

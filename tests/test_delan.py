@@ -284,13 +284,19 @@ def test_armature_adds_a_known_diagonal_to_m() -> None:
 
 @pytest.mark.parametrize("n", [1, 3])
 def test_spring_potential_is_the_quadratic_and_its_force_matches_autograd(n: int) -> None:
-    """With ``spring_potential`` and the network's V head at zero, V = 1/2 q^T K q + b^T q
-    exactly (K the symmetric part of the learned matrix) and g = K q + b; with the network's
-    V too, g still equals autograd's dV/dq (one DoF included, off the scalar path)."""
+    """With ``spring_potential`` and the network's V head at zero, V = 1/2 x^T K x + b^T x
+    exactly with x = q - c (K the symmetric part of the learned matrix in the data's units,
+    c the data's mean) and g = K x + b; with the network's V too, g still equals autograd's
+    dV/dq (one DoF included, off the scalar path). A unit of W_ii pushes one torque std f_i
+    at one position std d_i."""
     m = model(n, spring_potential=True)
     field = m.dynamics.field
     q, qd = random_state(n, batch=8)
+    q_data = 0.3 + 2.0 * torch.rand(500, n, dtype=torch.float64) * torch.linspace(0.5, 1.5, n)
+    torque_std = torch.linspace(0.1, 30.0, n, dtype=torch.float64)
     with torch.no_grad():
+        field.energy_scale.fill_(30.0)
+        field.set_spring_units(q_data, torque_std)
         field.spring_stiffness.copy_(torch.randn(n, n))
         field.spring_offset.copy_(torch.randn(n))
     c_ref, g_ref = reference_terms(m, q, qd)
@@ -300,8 +306,29 @@ def test_spring_potential_is_the_quadratic_and_its_force_matches_autograd(n: int
         field.trunk.head.bias[field.v_row].zero_()
     K = field.joint_springs()
     torch.testing.assert_close(K, K.T)
+    W, spread = field.spring_stiffness.detach(), q_data.std(dim=0)
+    torch.testing.assert_close(K.diagonal() * spread, W.diagonal() * torque_std)
     terms = m.terms(q, torch.zeros_like(qd))
-    b = field.spring_offset * field.energy_scale
-    torch.testing.assert_close(terms.gravity, q @ K + b, rtol=1e-9, atol=1e-10)
-    quadratic = 0.5 * ((q @ K) * q).sum(-1) + q @ b
+    x = q - q_data.mean(dim=0)
+    b = field.spring_offset.detach() * torque_std
+    torch.testing.assert_close(terms.gravity, x @ K + b, rtol=1e-9, atol=1e-10)
+    quadratic = 0.5 * ((x @ K) * x).sum(-1) + x @ b
     torch.testing.assert_close(terms.potential_energy, quadratic, rtol=1e-9, atol=1e-10)
+
+
+def test_spring_weights_saved_without_units_load_on_the_raw_coordinates() -> None:
+    """A state dict from before the springs had units (no scale, force scale or centre)
+    loads with K = E (W + W^T) / 2 on q itself, as it was fitted."""
+    m = model(3, spring_potential=True)
+    field = m.dynamics.field
+    with torch.no_grad():
+        field.energy_scale.fill_(7.0)
+        field.spring_stiffness.copy_(torch.randn(3, 3))
+    state = {k: v for k, v in m.state_dict().items() if not k.endswith(
+        ("spring_scale", "spring_force_scale", "spring_centre"))}  # fmt: skip
+    fresh = model(3, spring_potential=True)
+    fresh.dynamics.field.set_spring_units(torch.rand(50, 3, dtype=torch.float64) + 1.0,
+                                          torch.ones(3, dtype=torch.float64))  # fmt: skip
+    fresh.load_state_dict(state)
+    W = field.spring_stiffness.detach()
+    torch.testing.assert_close(fresh.dynamics.field.joint_springs(), 3.5 * (W + W.T))

@@ -409,6 +409,8 @@ class DeLaN(WorldModel):
         if isinstance(field, LagrangianNetwork) and field.still_potential:
             still_tau = tau_std.index_select(0, field.features.plain_v)
             field.still_scale.copy_(still_tau.clamp_min(CONSTANT_RATIO * float(tau_std.max())))
+        if isinstance(field, LagrangianNetwork):
+            field.set_spring_units(data[keys.Q], tau_std)
         dissipation = self.dynamics.dissipation
         if dissipation is not None:
             dissipation.viscous_scale.copy_(_fill_geometric(tau_std / qd_rms, known))

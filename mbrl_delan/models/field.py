@@ -15,6 +15,8 @@ from mbrl_delan.models.kernels import linear, linear_t
 from mbrl_delan.models.lagrangian import MechanicsField, MechanicsJet, root_frame_jet
 from mbrl_delan.models.tangent_mlp import MLPPass, TangentMLP
 
+SPRING_UNITS = {"spring_scale": 1.0, "spring_force_scale": 1.0, "spring_centre": 0.0}
+
 # up to this many DoFs, L's head is laid out as the matrix (`LagrangianNetwork._matrix_head`):
 # no per-sample scatter in the small systems' compiled planners; above, over L's entries only
 MATRIX_HEAD_MAX_N = 6
@@ -40,10 +42,15 @@ class LagrangianNetwork(MechanicsField):
     it never moves, and a free network makes up large ones on new motions).
 
     `springs`: (q index, v index) of hinge and slide coordinates x that V also holds a
-    learned quadratic of, V += 1/2 x^T K x + b^T x with K symmetric (both start at 0, in
-    units of ``energy_scale``): linear springs, each joint's and those that couple joints
-    (a tendon over two joints), exactly and wherever the data did not reach, which an MLP
-    on (sin q, cos q) extrapolates only as far as the data went.
+    learned quadratic of, V += 1/2 (x - c)^T K (x - c) + b^T x with K symmetric (both start
+    at 0): linear springs, each joint's and those that couple joints (a tendon over two
+    joints), exactly and wherever the data did not reach, which an MLP on (sin q, cos q)
+    extrapolates only as far as the data went. Units (`set_spring_units`, from the data): c
+    the coordinates' mean, K_ij = W_ij sqrt(f_i f_j / (d_i d_j)) and b_i = f_i beta_i for
+    the learned W (symmetrised) and beta, f_i the joint's torque std and d_i its coordinate's:
+    a unit of W_ii is a spring that pushes one torque std at one std from the mean, so every
+    entry learns at the rate of the joint's own torques (in one energy unit for all of them,
+    joints of small torques saw their springs jump by a tenth of their torque per step).
 
     `dof_parents`: each DoF's parent DoF in the kinematic tree (-1 at the root; MuJoCo's
     ``dof_parentid``, parents before children). L is then upper-triangular with entries
@@ -110,9 +117,11 @@ class LagrangianNetwork(MechanicsField):
         self.register_buffer("height_v", torch.tensor(height_v, dtype=torch.long), persistent=False)
         self._index_pairs("spring", springs)
         self.spring_stiffness: nn.Parameter | None = None
-        if springs:  # K = (W + W^T) / 2 and b, in units of energy_scale
+        if springs:  # W (K = E S (W + W^T) / 2 S) and beta (b = E g beta)
             self.spring_stiffness = nn.Parameter(torch.zeros(len(springs), len(springs)))
             self.spring_offset = nn.Parameter(torch.zeros(len(springs)))
+            for name, fill in SPRING_UNITS.items():  # S, g, c; ones and zeros: E on raw x
+                self.register_buffer(name, torch.full((len(springs),), fill))
         self.height_weight: nn.Parameter | None = None
         if heights:  # w_k in units of energy_scale per metre (m g for a free root's height)
             self.height_weight = nn.Parameter(torch.zeros(len(heights)))
@@ -146,16 +155,43 @@ class LagrangianNetwork(MechanicsField):
             index = torch.tensor([p[k] for p in pairs], dtype=torch.long)
             self.register_buffer(f"{name}_{suffix}", index, persistent=False)
 
-    def _spring_potential(self, q: Tensor) -> tuple[Tensor, Tensor]:
-        """1/2 x^T K x + b^T x (...) and its force K x + b (..., m) on the spring
-        coordinates x (`springs`), in energy units."""
+    @torch.no_grad()
+    def set_spring_units(self, q: Tensor, torque_std: Tensor) -> None:
+        """The quadratic potential's units from the data: positions q (N, nq) and every
+        DoF's torque std (nv,) (see the class). A coordinate that does not move gets a spread
+        of 1e-3, a torque below 1e-6 of the largest that floor."""
+        if self.spring_stiffness is None:
+            return
+        x = q.index_select(-1, self.spring_q).to(self.spring_scale)
+        force = torque_std.index_select(0, self.spring_v).to(x)
+        force = force.clamp_min(1e-6 * float(torque_std.max()))
+        energy = self.energy_scale.to(x)
+        self.spring_scale.copy_((force / (energy * x.std(dim=0).clamp_min(1e-3))).sqrt())
+        self.spring_force_scale.copy_(force / energy)
+        self.spring_centre.copy_(x.mean(dim=0))
+
+    def _spring_terms(self) -> tuple[Tensor, Tensor]:
+        """K (m, m) and b (m,) of the quadratic potential, in SI."""
         assert self.spring_stiffness is not None
-        weight = self.spring_stiffness
-        stiffness = 0.5 * (weight + weight.T) * self.energy_scale
-        offset = self.spring_offset * self.energy_scale
-        x = q.index_select(-1, self.spring_q).to(stiffness.dtype)
+        weight, scale = self.spring_stiffness, self.spring_scale
+        stiffness = 0.5 * (weight + weight.T) * (scale.unsqueeze(-1) * scale) * self.energy_scale
+        return stiffness, self.spring_offset * self.spring_force_scale * self.energy_scale
+
+    def _spring_potential(self, q: Tensor) -> tuple[Tensor, Tensor]:
+        """1/2 (x - c)^T K (x - c) + b^T (x - c) (...) and its force K (x - c) + b
+        (..., m) on the spring coordinates x (`springs`)."""
+        stiffness, offset = self._spring_terms()
+        x = q.index_select(-1, self.spring_q).to(stiffness.dtype) - self.spring_centre
         force = x @ stiffness + offset
         return ((0.5 * x @ stiffness + offset) * x).sum(-1), force
+
+    def _load_from_state_dict(self, state_dict: dict[str, Tensor], prefix: str,
+                              *args: object, **kwargs: object) -> None:  # fmt: skip
+        """Weights saved before the springs had units load with the old ones (E on raw x)."""
+        if self.spring_stiffness is not None:
+            for name, fill in SPRING_UNITS.items():
+                state_dict.setdefault(prefix + name, torch.full_like(getattr(self, name), fill))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def spring_force(self, q: Tensor) -> Tensor:
         """The quadratic potential's generalized force dV_spring/dq (..., nv), zero off the
@@ -169,8 +205,7 @@ class LagrangianNetwork(MechanicsField):
         """K of the learned quadratic potential (m, m) over `springs`, in SI (None without)."""
         if self.spring_stiffness is None:
             return None
-        weight = self.spring_stiffness
-        return (0.5 * (weight + weight.T) * self.energy_scale).detach()
+        return self._spring_terms()[0].detach()
 
     def _height_potential(self, q: Tensor) -> tuple[Tensor, Tensor]:
         """sum_k w_k q_k (...) and w in SI units (K,)."""
