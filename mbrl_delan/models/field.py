@@ -42,15 +42,14 @@ class LagrangianNetwork(MechanicsField):
     it never moves, and a free network makes up large ones on new motions).
 
     `springs`: (q index, v index) of hinge and slide coordinates x that V also holds a
-    learned quadratic of, V += 1/2 (x - c)^T K (x - c) + b^T x with K symmetric (both start
+    learned quadratic of, V += 1/2 (x - c)^T K (x - c) + b^T (x - c) with K symmetric (both start
     at 0): linear springs, each joint's and those that couple joints (a tendon over two
     joints), exactly and wherever the data did not reach, which an MLP on (sin q, cos q)
     extrapolates only as far as the data went. Units (`set_spring_units`, from the data): c
     the coordinates' mean, K_ij = W_ij sqrt(f_i f_j / (d_i d_j)) and b_i = f_i beta_i for
     the learned W (symmetrised) and beta, f_i the joint's torque std and d_i its coordinate's:
     a unit of W_ii is a spring that pushes one torque std at one std from the mean, so every
-    entry learns at the rate of the joint's own torques (in one energy unit for all of them,
-    joints of small torques saw their springs jump by a tenth of their torque per step).
+    entry learns at the rate of the joint's own torques.
 
     `dof_parents`: each DoF's parent DoF in the kinematic tree (-1 at the root; MuJoCo's
     ``dof_parentid``, parents before children). L is then upper-triangular with entries
