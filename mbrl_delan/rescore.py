@@ -1,4 +1,4 @@
-"""``python -m mbrl_delan.rescore RUN_DIR [episodes=N] [body=fitted|mjcf] [out=FILE]``.
+"""``python -m mbrl_delan.rescore RUN_DIR [episodes=N] [body=..] [springs=..] [out=FILE]``.
 
 A finished train run's paired final evaluation, again, from its record: its config, its
 final weights (``world_model.pt``, else the checkpoint's) and the oracle's episodes of its
@@ -6,14 +6,17 @@ last paired evaluation in ``metrics.jsonl``. The model's planner meets the same 
 the same planner seeds, so ``body=fitted`` (the default) repeats the recorded episodes, and
 ``body=mjcf`` puts the MJCF's own inertias, damping and armature under a tree model
 (`model=tree`, `tree_delan`) and keeps the rest of the fit (contact law, joint limits,
-springs, residual, scales): what the fitted rigid body costs the plans.
+springs, residual, scales): what the fitted rigid body costs the plans. ``springs=env`` puts
+the env's own joint springs (its physics' MJCF: on `humanoid_stand_exo` the exoskeleton's)
+in a tree model's tree and zeroes the residual's quadratic potential (`model.spring_potential`;
+its network kept): what the learned springs cost the plans.
 
 JSON on stdout, or in ``out=FILE``: `paired_episodes`, `falls`, `oracle_falls`, `both_stood`,
 `standing_return_ratio` (as the run's summary), the episodes' `returns` and `steps`, the
-record's own `recorded_steps` and `body`.
+record's own `recorded_steps`, `body` and `springs`.
 
 Exit codes: 0 done, 2 a folder that is not a finished paired run (one line naming what it
-lacks), a bad option, or ``body=mjcf`` on a model without a tree.
+lacks), a bad option, or ``body=mjcf`` or ``springs=env`` on a model without a tree.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from omegaconf import DictConfig
 from mbrl_delan.conf.checks import DTYPES, ConfigError
 from mbrl_delan.conf.loop import build_loop, build_world_model, env_parts
 from mbrl_delan.evaluate import key_value_option, stop_on_input
+from mbrl_delan.models.tree import RigidBodyTree
 from mbrl_delan.provenance import program_name
 from mbrl_delan.runs import load_run
 from mbrl_delan.training.checkpoint import CheckpointError, RunWriteError, atomic_write
@@ -42,8 +46,12 @@ from mbrl_delan.training.recorder import METRICS_FILE, read_metrics
 log = logging.getLogger("mbrl_delan.rescore")
 
 BODIES = ("fitted", "mjcf")
+SPRINGS = ("fitted", "env")
 RIGID_BODY = ("raw_inertia", "raw_damping", "raw_armature", "start_factor")  # the tree's
-OPTIONS = ("episodes", "body", "out")
+TREE_SPRINGS = {False: ("stiffness", "spring_ref"), True: ("raw_stiffness", "spring_ref")}
+QUADRATIC = ("field.spring_stiffness", "field.spring_offset")  # the residual's potential
+OPTIONS = ("episodes", "body", "springs", "out")
+TREE_MODELS = ("tree", "tree_delan")
 
 
 def recorded_evaluation(run_dir: Path) -> dict[str, Any]:
@@ -61,8 +69,7 @@ def recorded_evaluation(run_dir: Path) -> dict[str, Any]:
 def mjcf_body(cfg: DictConfig, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """`state` with its tree's inertias, damping and armature replaced by the MJCF's own;
     a ValueError for a model without a tree."""
-    if cfg.model.name not in ("tree", "tree_delan"):
-        raise ValueError(f"body=mjcf needs a tree model (model=tree, tree_delan): {cfg.model.name}")
+    _need_tree(cfg, "body=mjcf")
     exact_cfg = cfg.copy()
     exact_cfg.model.start = "mjcf"
     exact = build_world_model(exact_cfg, env_parts(exact_cfg).system, torch.device("cpu"),
@@ -70,11 +77,34 @@ def mjcf_body(cfg: DictConfig, state: dict[str, torch.Tensor]) -> dict[str, torc
     return state | {f"dynamics.tree.{k}": exact[f"dynamics.tree.{k}"] for k in RIGID_BODY}
 
 
-def rescore(run_dir: Path, episodes: int | None = None, body: str = "fitted") -> dict[str, Any]:
+def env_springs(cfg: DictConfig, state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """`state` with its tree's springs the env's own (stiffness and rest of each DoF in the
+    env's physics MJCF) and the residual's quadratic potential zeroed; a ValueError for a
+    model without a tree."""
+    _need_tree(cfg, "springs=env")
+    learned = bool(cfg.model.get("learn_springs", False))
+    physics = env_parts(cfg).physics.mj_model()
+    own = RigidBodyTree.from_mujoco(physics, learn_springs=learned).state_dict()
+    swapped = {f"dynamics.tree.{k}": own[k] for k in TREE_SPRINGS[learned]}
+    zeroed = {k: torch.zeros_like(v) for k, v in state.items() if k.endswith(QUADRATIC)}
+    return state | swapped | zeroed
+
+
+def _need_tree(cfg: DictConfig, option: str) -> None:
+    """A ValueError naming `option` unless the run's model has a tree."""
+    if cfg.model.name not in TREE_MODELS:
+        raise ValueError(f"{option} needs a tree model (model=tree, tree_delan): {cfg.model.name}")
+
+
+def rescore(
+    run_dir: Path, episodes: int | None = None, body: str = "fitted", springs: str = "fitted"
+) -> dict[str, Any]:
     """The paired figures of `run_dir`'s final model on its recorded starts (module
     docstring); `episodes` None: as many as the record holds."""
     if body not in BODIES:
         raise ValueError(f"body={body!r}: one of {', '.join(BODIES)}")
+    if springs not in SPRINGS:
+        raise ValueError(f"springs={springs!r}: one of {', '.join(SPRINGS)}")
     record = recorded_evaluation(run_dir)
     run = load_run(run_dir)  # its config (migrated) and final weights
     cfg = run.config
@@ -84,10 +114,12 @@ def rescore(run_dir: Path, episodes: int | None = None, body: str = "fitted") ->
     state = run.model.state_dict()
     if body == "mjcf":
         state = mjcf_body(cfg, state)
+    if springs == "env":
+        state = env_springs(cfg, state)
     with tempfile.TemporaryDirectory() as scratch:  # the loop's buffer, never written here
         loop, _ = build_loop(cfg, Path(scratch))
         loop.model.load_state_dict(state)
-        return _paired(loop, record, n) | {"body": body, "run": str(run_dir)}
+        return _paired(loop, record, n) | {"body": body, "springs": springs, "run": str(run_dir)}
 
 
 def _paired(loop: MBRLLoop, record: dict[str, Any], n: int) -> dict[str, Any]:
@@ -108,7 +140,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("run_dir", type=Path, help="a finished train run's folder or record folder")
     p.add_argument(
         "options", nargs="*", type=key_value_option(OPTIONS),
-        help="episodes=N (default: the record's), body=fitted|mjcf, out=FILE",
+        help="episodes=N (default: the record's), body=fitted|mjcf, springs=fitted|env, out=FILE",
     )  # fmt: skip
     return p
 
@@ -123,7 +155,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if text is not None and not text.isdigit():
             raise ValueError(f"episodes={text}: a whole number of episodes")
         episodes = None if text is None else int(text)
-        result = rescore(args.run_dir, episodes, options.get("body", "fitted"))
+        result = rescore(
+            args.run_dir, episodes, options.get("body", "fitted"), options.get("springs", "fitted")
+        )
         text = json.dumps(result, indent=1)
         if "out" in options:
             atomic_write(Path(options["out"]), lambda f: f.write(text.encode()), keep_prev=False)

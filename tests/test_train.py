@@ -555,6 +555,37 @@ def test_tiny_tree_run_pairs_its_final_evaluation_and_keeps_its_weights(tmp_path
     assert "its seed is 0, this run's 1" in refused.stdout + refused.stderr
 
 
+def test_rescore_env_springs_are_the_exoskeletons_and_the_quadratic_goes() -> None:
+    """`springs=env` on humanoid_stand_exo: the swapped tree's springs pull as MuJoCo's
+    `qfrc_spring` in the exoskeleton's MJCF at a bent pose, the residual's quadratic
+    potential is gone, and a model without a tree is refused naming the option."""
+    import mujoco
+
+    from mbrl_delan.conf.loop import build_world_model, env_parts
+    from mbrl_delan.rescore import env_springs
+
+    with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base=None):
+        cfg = compose("config", overrides=["env=humanoid_stand_exo", "model=tree_delan",
+                                           "model.spring_potential=true"])  # fmt: skip
+        mlp = compose("config", overrides=["env=humanoid_stand_exo", "model=ensemble"])
+    parts = env_parts(cfg)
+    model = build_world_model(cfg, parts.system, torch.device("cpu"), torch.float64)
+    with torch.no_grad():  # a learned quadratic to remove
+        model.dynamics.residual.field.spring_stiffness.fill_(0.3)
+    model.load_state_dict(env_springs(cfg, model.state_dict()))
+    physics = parts.physics.mj_model()
+    data = mujoco.MjData(physics)
+    data.qpos[:] = physics.qpos0
+    data.qpos[7:] += torch.linspace(-0.6, 0.4, physics.nq - 7, dtype=torch.float64).numpy()
+    mujoco.mj_forward(physics, data)
+    q = torch.tensor(data.qpos)
+    torch.testing.assert_close(model.dynamics.tree.spring(q), -torch.tensor(data.qfrc_spring))
+    assert data.qfrc_spring[6:].any()  # the exoskeleton's springs pull at this pose
+    assert not model.dynamics.residual.field.spring_force(q).any()
+    with pytest.raises(ValueError, match="springs=env needs a tree model"):
+        env_springs(mlp, {})
+
+
 def test_rescore_names_what_a_folder_lacks_in_one_line(tmp_path: Path, capsys, caplog) -> None:
     """`python -m mbrl_delan.rescore` on a folder without a paired final evaluation, or with
     a bad option, exits 2 naming the file or the option, without a traceback."""
