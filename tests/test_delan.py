@@ -318,7 +318,7 @@ def test_spring_potential_is_the_quadratic_and_its_force_matches_autograd(n: int
 
 def test_spring_weights_saved_without_units_load_on_the_raw_coordinates() -> None:
     """A state dict from before the springs had units (no scale, force scale or centre)
-    loads with K = E (W + W^T) / 2 on q itself, as it was fitted."""
+    loads with K = E (W + W^T) / 2 on q itself, as it was fitted, whole or as mechanics."""
     m = model(3, spring_potential=True)
     field = m.dynamics.field
     with torch.no_grad():
@@ -332,3 +332,8 @@ def test_spring_weights_saved_without_units_load_on_the_raw_coordinates() -> Non
     fresh.load_state_dict(state)
     W = field.spring_stiffness.detach()
     torch.testing.assert_close(fresh.dynamics.field.joint_springs(), 3.5 * (W + W.T))
+    mechanics = model(3, spring_potential=True)
+    mechanics.dynamics.field.set_spring_units(torch.rand(50, 3, dtype=torch.float64) + 1.0,
+                                              torch.ones(3, dtype=torch.float64))  # fmt: skip
+    mechanics.load_mechanics(state)
+    torch.testing.assert_close(mechanics.dynamics.field.joint_springs(), 3.5 * (W + W.T))

@@ -22,7 +22,7 @@ from mbrl_delan.models.contact import (
     implicit_acceleration,
 )
 from mbrl_delan.models.features import rotation_matrix
-from mbrl_delan.models.field import LagrangianNetwork
+from mbrl_delan.models.field import SPRING_UNITS, LagrangianNetwork
 from mbrl_delan.models.integrators import INTEGRATORS, integrate
 from mbrl_delan.models.lagrangian import (
     LagrangianTerms,
@@ -347,6 +347,11 @@ class DeLaN(WorldModel):
         (another width, depth, system or structure option) raises ValueError naming it.
         """
         own = {k: v for k, v in self.state_dict().items() if _is_mechanics(k)}
+        state = dict(state) | {  # mechanics saved before the springs had units: the old ones
+            k: torch.full_like(v, SPRING_UNITS[k.rsplit(".", 1)[-1]])
+            for k, v in own.items()
+            if k not in state and k.rsplit(".", 1)[-1] in SPRING_UNITS
+        }
         missing = sorted(k for k in own if k not in state)
         wrong = sorted(
             f"{k} {tuple(state[k].shape)} (this model: {tuple(own[k].shape)})"
