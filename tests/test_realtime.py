@@ -21,6 +21,7 @@ from mbrl_delan.benchmarks.realtime import (
     PLANNER_FIELDS,
     RealtimeConfig,
     _fields,
+    busy_processes,
     case_config,
     model_case,
 )
@@ -32,7 +33,7 @@ from mbrl_delan.objectives.mujoco import MujocoObjectiveFactory, PlanPhysics
 def test_quick_suite_writes_the_contract(tmp_path: Path) -> None:
     out = tmp_path / "realtime.jsonl"
     cmd = [sys.executable, "-m", "mbrl_delan.bench", "suite=realtime", "quick=true", "threads=1"]
-    cmd += ["tasks=[pendulum]", "models=[mujoco,ensemble]", f"out={out}"]
+    cmd += ["tasks=[pendulum]", "models=[mujoco,ensemble]", "load=1", f"out={out}"]
     cmd += [f"hydra.run.dir={tmp_path / 'run'}"]
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
@@ -41,10 +42,21 @@ def test_quick_suite_writes_the_contract(tmp_path: Path) -> None:
     for r in records:
         assert r["suite"] == "realtime" and r["metric"] == "plan_ms_per_control_step"
         assert r["task"] == "pendulum" and r["threads"] == 1 and r["planner"] == "mppi"
+        assert r["load"] == 1 and r["load_cpu_s"] > 0
         assert set(PLANNER_FIELDS) <= set(r)
         assert math.isfinite(r["value"]) and r["value"] > 0
     oracle = records[0]
     assert oracle["steps_survived"] == 5 and oracle["episode_len"] == 5  # the quick episode
+
+
+def test_the_load_generator_keeps_its_processes_busy_inside_its_block() -> None:
+    """`load=N`'s generator: N processes that use about a core each while the block runs,
+    none left running after it."""
+    import time
+
+    with busy_processes(2) as load:
+        time.sleep(1.5)
+    assert load.processes == 2 and load.cpu_s > 0.3  # busy, even on a shared host (idle: 3 s)
 
 
 def test_an_ilqr_oracle_case_is_recorded_as_ilqr() -> None:

@@ -19,8 +19,12 @@ a plugin's too) and each dynamics in `models` (`mujoco`, `delan`, `tree`, `tree_
   start state (one warm-started plan, then the stored plan's next actions) divided by
   `replan_every`, timed as `TimingConfig` says (the median over `repeats` measurements).
 
+With `load` N > 0 every case is timed beside N busy processes (`busy_processes`: each a
+Python loop that keeps one core busy): the planner on a host that others use.
+
 Every record carries `task`, `dynamics`, `threads` (torch's, which are also MuJoCo's rollout
-threads), the planner and its `num_samples`, `iterations`, `knots`, `interpolation`,
+threads), `load` (the busy processes beside it) and `load_cpu_s` (the CPU seconds they got),
+the planner and its `num_samples`, `iterations`, `knots`, `interpolation`,
 `horizon` and `replan_every` (control steps per plan), `substeps` (the model's integrator
 steps per control step; for `mujoco` the oracle's physics steps, `env.oracle_substeps`), and
 the control period `control_dt_ms`.
@@ -29,8 +33,12 @@ the control period `control_dt_ms`.
 from __future__ import annotations
 
 import logging
+import resource
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -69,6 +77,7 @@ MODEL_OVERRIDES = {
     "ensemble": ("model=ensemble",),
 }
 QUICK_STEPS = 5  # control steps of a mujoco episode under `quick`
+BUSY_LOOP = "while True: pass"  # what each process of `load` runs
 PLANNER_FIELDS = ("num_samples", "iterations", "knots", "interpolation", "horizon", "replan_every")
 
 
@@ -81,6 +90,7 @@ class RealtimeConfig:
     overrides: tuple[str, ...] = ()  # train-config overrides of every case
     oracle_steps: int | None = None  # control steps of the mujoco episodes (None: the task's)
     seed: int = 0
+    load: int = 0  # busy processes beside each timed case
 
     @classmethod
     def from_options(cls, options: RealtimeSuiteConfig, quick: bool = False) -> RealtimeConfig:
@@ -92,7 +102,34 @@ class RealtimeConfig:
             overrides=tuple(options.overrides),
             oracle_steps=QUICK_STEPS if quick and steps is None else steps,
             seed=options.seed or 0,
+            load=options.load,
         )
+
+
+@dataclass
+class Load:
+    """The busy processes beside a timed case: how many, and the CPU seconds they got."""
+
+    processes: int
+    cpu_s: float = 0.0
+
+
+@contextmanager
+def busy_processes(count: int) -> Iterator[Load]:
+    """`count` processes that each keep one core busy while the block runs (``python -c
+    "while True: pass"``: one thread, no memory traffic), stopped after it; the `Load` it
+    yields holds their CPU seconds once the block is done."""
+    load = Load(count)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    workers = [subprocess.Popen([sys.executable, "-c", BUSY_LOOP]) for _ in range(count)]
+    try:
+        yield load
+    finally:
+        for worker in workers:
+            worker.kill()
+            worker.wait()
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        load.cpu_s = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
 
 
 class TimedPolicy:
@@ -199,12 +236,14 @@ def run_realtime_suite(options: RealtimeSuiteConfig, bench: BenchSettings) -> It
             cfg = case_config(task, dynamics, rt.overrides)
             control_dt = make_env_parts(task, None, None).system.control_dt
             fields = _fields(cfg, task, dynamics, control_dt)
-            log.info("realtime: %s on %s (%s)", dynamics, task, fields)
-            if dynamics == "mujoco":
-                ms, extra = mujoco_case(cfg, task, rt.oracle_steps, rt.seed)
-                device = "cpu"
-            else:
-                ms, extra = model_case(cfg, task, bench, rt.seed)
-                device = bench.device.type
+            log.info("realtime: %s on %s (%s), %d busy processes", dynamics, task, fields,
+                     rt.load)  # fmt: skip
+            with busy_processes(rt.load) as load:
+                if dynamics == "mujoco":
+                    ms, extra = mujoco_case(cfg, task, rt.oracle_steps, rt.seed)
+                else:
+                    ms, extra = model_case(cfg, task, bench, rt.seed)
+            device = "cpu" if dynamics == "mujoco" else bench.device.type
             case = f"{task}-{dynamics}"
-            yield BenchRecord(SUITE, case, METRIC, ms, "ms", device, fields | extra | host)
+            record = fields | {"load": load.processes, "load_cpu_s": load.cpu_s} | extra | host
+            yield BenchRecord(SUITE, case, METRIC, ms, "ms", device, record)

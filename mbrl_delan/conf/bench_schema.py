@@ -130,6 +130,7 @@ class RealtimeSuiteConfig(SuiteConfig):
     oracle_steps: int | None = rule(None, low=1)
     seed: int | None = rule(None, low=0)
     overrides: list[str] = field(default_factory=list)
+    load: int = rule(0, low=0)  # busy processes beside each timed case
 
     def check(self) -> None:
         registered("tasks", self.tasks, ENVS)
