@@ -1,4 +1,4 @@
-"""``python -m mbrl_delan.rescore RUN_DIR [episodes=N] [body=..] [springs=..] [out=FILE]``.
+"""``python -m mbrl_delan.rescore RUN_DIR [episodes=N] [body=] [springs=] [samples=N] [out=]``.
 
 A finished train run's paired final evaluation, again, from its record: its config, its
 final weights (``world_model.pt``, else the checkpoint's) and the oracle's episodes of its
@@ -9,11 +9,13 @@ the same planner seeds, so ``body=fitted`` (the default) repeats the recorded ep
 springs, residual, scales): what the fitted rigid body costs the plans. ``springs=env`` puts
 the env's own joint springs (its physics' MJCF: on `humanoid_stand_exo` the exoskeleton's)
 in a tree model's tree and zeroes the residual's quadratic potential (`model.spring_potential`;
-its network kept): what the learned springs cost the plans.
+its network kept): what the learned springs cost the plans. ``samples=N`` plans the model's
+episodes with N samples per iteration (`planner.num_samples`) against the recorded oracle's:
+how much of the gap a wider search closes.
 
 JSON on stdout, or in ``out=FILE``: `paired_episodes`, `falls`, `oracle_falls`, `both_stood`,
 `standing_return_ratio` (as the run's summary), the episodes' `returns` and `steps`, the
-record's own `recorded_steps`, `body` and `springs`.
+record's own `recorded_steps`, `body`, `springs` and `num_samples`.
 
 Exit codes: 0 done, 2 a folder that is not a finished paired run (one line naming what it
 lacks), a bad option, or ``body=mjcf`` or ``springs=env`` on a model without a tree.
@@ -50,7 +52,7 @@ SPRINGS = ("fitted", "env")
 RIGID_BODY = ("raw_inertia", "raw_damping", "raw_armature", "start_factor")  # the tree's
 TREE_SPRINGS = {False: ("stiffness", "spring_ref"), True: ("raw_stiffness", "spring_ref")}
 QUADRATIC = ("field.spring_stiffness", "field.spring_offset")  # the residual's potential
-OPTIONS = ("episodes", "body", "springs", "out")
+OPTIONS = ("episodes", "body", "springs", "samples", "out")
 TREE_MODELS = ("tree", "tree_delan")
 
 
@@ -97,10 +99,11 @@ def _need_tree(cfg: DictConfig, option: str) -> None:
 
 
 def rescore(
-    run_dir: Path, episodes: int | None = None, body: str = "fitted", springs: str = "fitted"
-) -> dict[str, Any]:
+    run_dir: Path, episodes: int | None = None, body: str = "fitted", springs: str = "fitted",
+    samples: int | None = None,
+) -> dict[str, Any]:  # fmt: skip
     """The paired figures of `run_dir`'s final model on its recorded starts (module
-    docstring); `episodes` None: as many as the record holds."""
+    docstring); `episodes` None: as many as the record holds; `samples` None: the run's."""
     if body not in BODIES:
         raise ValueError(f"body={body!r}: one of {', '.join(BODIES)}")
     if springs not in SPRINGS:
@@ -116,10 +119,13 @@ def rescore(
         state = mjcf_body(cfg, state)
     if springs == "env":
         state = env_springs(cfg, state)
+    if samples is not None:
+        cfg.planner.num_samples = samples
     with tempfile.TemporaryDirectory() as scratch:  # the loop's buffer, never written here
         loop, _ = build_loop(cfg, Path(scratch))
         loop.model.load_state_dict(state)
-        return _paired(loop, record, n) | {"body": body, "springs": springs, "run": str(run_dir)}
+        options = {"body": body, "springs": springs, "num_samples": cfg.planner.num_samples}
+        return _paired(loop, record, n) | options | {"run": str(run_dir)}
 
 
 def _paired(loop: MBRLLoop, record: dict[str, Any], n: int) -> dict[str, Any]:
@@ -140,9 +146,18 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("run_dir", type=Path, help="a finished train run's folder or record folder")
     p.add_argument(
         "options", nargs="*", type=key_value_option(OPTIONS),
-        help="episodes=N (default: the record's), body=fitted|mjcf, springs=fitted|env, out=FILE",
+        help="episodes=N (default: the record's), body=fitted|mjcf, springs=fitted|env, "
+        "samples=N (default: the run's), out=FILE",
     )  # fmt: skip
     return p
+
+
+def _count(options: dict[str, str], key: str) -> int | None:
+    """The whole number given as `key` (None when not given); a ValueError naming it."""
+    text = options.get(key)
+    if text is not None and not (text.isdigit() and int(text) > 0):
+        raise ValueError(f"{key}={text}: a whole number above 0")
+    return None if text is None else int(text)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -151,13 +166,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     options = dict(args.options)
     logging.basicConfig(level=logging.INFO, format="[%(name)s][%(levelname)s] - %(message)s")
     try:
-        text = options.get("episodes")
-        if text is not None and not text.isdigit():
-            raise ValueError(f"episodes={text}: a whole number of episodes")
-        episodes = None if text is None else int(text)
-        result = rescore(
-            args.run_dir, episodes, options.get("body", "fitted"), options.get("springs", "fitted")
-        )
+        episodes, samples = (_count(options, key) for key in ("episodes", "samples"))
+        result = rescore(args.run_dir, episodes, options.get("body", "fitted"),
+                         options.get("springs", "fitted"), samples)  # fmt: skip
         text = json.dumps(result, indent=1)
         if "out" in options:
             atomic_write(Path(options["out"]), lambda f: f.write(text.encode()), keep_prev=False)

@@ -510,6 +510,8 @@ def test_tiny_tree_run_pairs_its_final_evaluation_and_keeps_its_weights(tmp_path
     assert again["falls"] == summary["falls"] and again["paired_episodes"] == 2
     exact = rescore(record, episodes=1, body="mjcf")
     assert exact["paired_episodes"] == 1 and exact["body"] == "mjcf"
+    wider = rescore(record, episodes=1, samples=again["num_samples"] + 8)
+    assert wider["paired_episodes"] == 1 and wider["num_samples"] == again["num_samples"] + 8
     # a second model takes this run's oracle and zero-torque episodes: the same figures, no
     # oracle episode planned again; a run of another seed is refused naming the key
     other = tmp_path / "tree_delan"
@@ -597,7 +599,10 @@ def test_rescore_names_what_a_folder_lacks_in_one_line(tmp_path: Path, capsys, c
     with pytest.raises(SystemExit) as stop:
         main([str(tmp_path), "body"])
     assert stop.value.code == 2
-    assert "the options are episodes=, body=, out=" in capsys.readouterr().err
+    assert "the options are episodes=, body=, springs=, samples=, out=" in capsys.readouterr().err
+    caplog.clear()
+    assert main([str(tmp_path), "samples=0"]) == 2
+    assert "samples=0: a whole number above 0" in caplog.text
 
 
 def test_a_loop_built_from_python_takes_its_threads_and_seed(tmp_path: Path) -> None:
