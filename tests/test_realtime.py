@@ -17,6 +17,7 @@ from hydra import compose, initialize_config_dir
 
 from mbrl_delan.bench import build_options
 from mbrl_delan.benchmarks import BenchSettings, TimingConfig
+from mbrl_delan.benchmarks.profile import PARTS, frame_part, profile_parts
 from mbrl_delan.benchmarks.realtime import (
     PLANNER_FIELDS,
     RealtimeConfig,
@@ -33,16 +34,22 @@ from mbrl_delan.objectives.mujoco import MujocoObjectiveFactory, PlanPhysics
 def test_quick_suite_writes_the_contract(tmp_path: Path) -> None:
     out = tmp_path / "realtime.jsonl"
     cmd = [sys.executable, "-m", "mbrl_delan.bench", "suite=realtime", "quick=true", "threads=1"]
-    cmd += ["tasks=[pendulum]", "models=[mujoco,ensemble]", "load=1", f"out={out}"]
+    cmd += ["tasks=[pendulum]", "models=[mujoco,ensemble]", "load=1", "profile=true", f"out={out}"]
     cmd += [f"hydra.run.dir={tmp_path / 'run'}"]
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=tmp_path, timeout=600)
     assert done.returncode == 0, done.stdout + done.stderr
-    records = [json.loads(line) for line in out.read_text().splitlines()]
+    lines = [json.loads(line) for line in out.read_text().splitlines()]
+    records = [r for r in lines if r["metric"] == "plan_ms_per_control_step"]
     assert [r["dynamics"] for r in records] == ["mujoco", "ensemble"]
+    shares = {r["part"]: r for r in lines if r["metric"] == "step_share"}
+    assert set(shares) == set(PARTS)  # the learned model's profile; the oracle has none
+    assert sum(r["value"] for r in shares.values()) == pytest.approx(1.0)
+    assert shares["network"]["value"] > 0 and shares["kinematics"]["value"] == 0
+    assert all(r["dynamics"] == "ensemble" for r in shares.values())
     for r in records:
         assert r["suite"] == "realtime" and r["metric"] == "plan_ms_per_control_step"
         assert r["task"] == "pendulum" and r["threads"] == 1 and r["planner"] == "mppi"
-        assert r["load"] == 1 and r["load_cpu_s"] > 0
+        assert r["load"] == 1 and r["load_cpu_s"] > 0 and r["load_1min"] >= 0
         assert set(PLANNER_FIELDS) <= set(r)
         assert math.isfinite(r["value"]) and r["value"] > 0
     oracle = records[0]
@@ -57,6 +64,34 @@ def test_the_load_generator_keeps_its_processes_busy_inside_its_block() -> None:
     with busy_processes(2) as load:
         time.sleep(1.5)
     assert load.processes == 2 and load.cpu_s > 0.3  # busy, even on a shared host (idle: 3 s)
+
+
+def test_a_profiled_operator_counts_for_the_innermost_function_a_rule_names() -> None:
+    assert frame_part("/x/mbrl_delan/models/contact.py(440): _solve") == "solve"
+    assert frame_part("mbrl_delan/models/contact.py(289): kinematics") == "contact"
+    assert frame_part("mbrl_delan/models/tree.py(335): kinematics") == "kinematics"
+    assert frame_part("mbrl_delan/models/tree.py(350): mass_matrix") == "mass_matrix"
+    assert frame_part("mbrl_delan/systems/posarith.py(98): quat_mul") is None  # a helper
+    assert frame_part("torch/nn/modules/linear.py(120): forward") is None
+
+
+def test_the_profiled_parts_split_an_integrator_step() -> None:
+    """Operators under the integrator count for it, those under its caller (no package
+    function) for `other`; the parts sum to the call's time."""
+    from mbrl_delan.models.integrators import semi_implicit_euler
+
+    layout = make_env_parts("pendulum", None, None).system.layout
+    q, qd = torch.zeros(256, 1), torch.ones(256, 1)
+
+    def call() -> None:
+        accel = -torch.sin(q) * 9.81  # the caller's operators
+        semi_implicit_euler(layout, lambda q_, qd_: accel * qd_.cos(), q, qd, 0.01)
+
+    call()
+    parts = profile_parts(call, runs=3)
+    assert set(parts) == set(PARTS) and all(v >= 0 for v in parts.values())
+    assert parts["integrator"] > 0 and parts["other"] > 0
+    assert sum(v for k, v in parts.items() if k not in ("integrator", "other", "python")) == 0
 
 
 def test_an_ilqr_oracle_case_is_recorded_as_ilqr() -> None:

@@ -19,11 +19,17 @@ a plugin's too) and each dynamics in `models` (`mujoco`, `delan`, `tree`, `tree_
   start state (one warm-started plan, then the stored plan's next actions) divided by
   `replan_every`, timed as `TimingConfig` says (the median over `repeats` measurements).
 
+With `profile` a learned model's case also yields metric `step_share` per part (field `part`:
+`benchmarks.profile.PARTS`): the share of its eager path's planning time (the same cycle with
+`accel.compile=false`) in that part, with `part_ms_per_control_step` and the eager path's
+`eager_ms_per_control_step` (`benchmarks.profile` says how the time is split).
+
 With `load` N > 0 every case is timed beside N busy processes (`busy_processes`: each a
 Python loop that keeps one core busy): the planner on a host that others use.
 
 Every record carries `task`, `dynamics`, `threads` (torch's, which are also MuJoCo's rollout
-threads), `load` (the busy processes beside it) and `load_cpu_s` (the CPU seconds they got),
+threads), `load` (the busy processes beside it), `load_cpu_s` (the CPU seconds they got) and
+`load_1min` (the host's 1-minute load average when the case ends),
 the planner and its `num_samples`, `iterations`, `knots`, `interpolation`,
 `horizon` and `replan_every` (control steps per plan), `substeps` (the model's integrator
 steps per control step; for `mujoco` the oracle's physics steps, `env.oracle_substeps`), and
@@ -33,11 +39,12 @@ the control period `control_dt_ms`.
 from __future__ import annotations
 
 import logging
+import os
 import resource
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -55,6 +62,7 @@ from mbrl_delan.benchmarks import (
     synchronizer,
     time_call,
 )
+from mbrl_delan.benchmarks.profile import profile_parts
 from mbrl_delan.benchmarks.records import BenchRecord
 from mbrl_delan.conf.bench_schema import RealtimeSuiteConfig
 from mbrl_delan.conf.checks import compose_train_config
@@ -69,6 +77,8 @@ log = logging.getLogger(__name__)
 
 SUITE = "realtime"
 METRIC = "plan_ms_per_control_step"
+SHARE_METRIC = "step_share"
+EAGER = ("accel.compile=false",)  # the profiled path: every operator seen by the profiler
 # the learned models' planning path: the DeLaN compiled, as the loop runs it with compile on
 MODEL_OVERRIDES = {
     "delan": ("model=delan", "accel.compile=true"),
@@ -91,6 +101,7 @@ class RealtimeConfig:
     oracle_steps: int | None = None  # control steps of the mujoco episodes (None: the task's)
     seed: int = 0
     load: int = 0  # busy processes beside each timed case
+    profile: bool = False  # a learned model's case also splits its eager path into parts
 
     @classmethod
     def from_options(cls, options: RealtimeSuiteConfig, quick: bool = False) -> RealtimeConfig:
@@ -103,6 +114,7 @@ class RealtimeConfig:
             oracle_steps=QUICK_STEPS if quick and steps is None else steps,
             seed=options.seed or 0,
             load=options.load,
+            profile=options.profile,
         )
 
 
@@ -204,10 +216,11 @@ def _root_speed(system: System, rollout: TensorDictBase) -> dict[str, float]:
     )
 
 
-def model_case(cfg: DictConfig, task: str, bench: BenchSettings, seed: int) -> tuple[float, dict]:
-    """The loop's policy over an untrained model: ms per control step, timed over whole
-    replanning cycles (`planner.replan_every` calls of `act`, the first of them a
-    warm-started plan) and divided by their length."""
+def policy_cycle(cfg: DictConfig, task: str, bench: BenchSettings,
+                 seed: int) -> tuple[Callable[[], None], int]:  # fmt: skip
+    """One replanning cycle of the loop's policy over an untrained model from the task's start
+    of `seed` (`planner.replan_every` calls of `act`, the first a warm-started plan), and its
+    length."""
     from mbrl_delan.conf.loop import build_policy, build_world_model
 
     parts = make_env_parts(task, None, None)
@@ -218,14 +231,40 @@ def model_case(cfg: DictConfig, task: str, bench: BenchSettings, seed: int) -> t
     q = start.q.to(bench.device, torch.float32)
     qd = start.qd.to(bench.device, torch.float32)
     policy.reset()
-    cycle = policy.replan_every
 
     def control_steps() -> None:
-        for _ in range(cycle):
+        for _ in range(policy.replan_every):
             policy.act(q, qd)
 
-    timing = time_call(control_steps, bench.timing, synchronizer(bench.device))
-    return 1e3 * timing.seconds_per_call / cycle, timing.fields()
+    return control_steps, policy.replan_every
+
+
+def model_case(cfg: DictConfig, task: str, bench: BenchSettings, seed: int) -> tuple[float, dict]:
+    """The loop's policy over an untrained model: ms per control step, timed over whole
+    replanning cycles and divided by their length."""
+    cycle, length = policy_cycle(cfg, task, bench, seed)
+    timing = time_call(cycle, bench.timing, synchronizer(bench.device))
+    return 1e3 * timing.seconds_per_call / length, timing.fields()
+
+
+def profile_case(cfg: DictConfig, task: str, bench: BenchSettings,
+                 seed: int) -> dict[str, float]:  # fmt: skip
+    """ms per control step of the eager path in each part (`benchmarks.profile`)."""
+    cycle, length = policy_cycle(cfg, task, bench, seed)
+    cycle()  # first-call costs are not a part
+    seconds = profile_parts(cycle, runs=max(bench.timing.repeats, 1))
+    return {part: 1e3 * value / length for part, value in seconds.items()}
+
+
+def share_records(case: str, device: str, fields: dict[str, Any],
+                  part_ms: dict[str, float]) -> Iterator[BenchRecord]:  # fmt: skip
+    """The `step_share` records of one profiled case."""
+    eager_ms = sum(part_ms.values())
+    for part, ms in part_ms.items():
+        record = fields | {"part": part, "part_ms_per_control_step": ms,
+                           "eager_ms_per_control_step": eager_ms}  # fmt: skip
+        yield BenchRecord(SUITE, f"{case}-{part}", SHARE_METRIC, ms / eager_ms, "share", device,
+                          record)  # fmt: skip
 
 
 def run_realtime_suite(options: RealtimeSuiteConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
@@ -243,7 +282,16 @@ def run_realtime_suite(options: RealtimeSuiteConfig, bench: BenchSettings) -> It
                     ms, extra = mujoco_case(cfg, task, rt.oracle_steps, rt.seed)
                 else:
                     ms, extra = model_case(cfg, task, bench, rt.seed)
+                load_1min = os.getloadavg()[0]
+                part_ms = None
+                if rt.profile and dynamics != "mujoco":
+                    eager = case_config(task, dynamics, (*rt.overrides, *EAGER))
+                    part_ms = profile_case(eager, task, bench, rt.seed)
             device = "cpu" if dynamics == "mujoco" else bench.device.type
             case = f"{task}-{dynamics}"
-            record = fields | {"load": load.processes, "load_cpu_s": load.cpu_s} | extra | host
-            yield BenchRecord(SUITE, case, METRIC, ms, "ms", device, record)
+            load_fields = {"load": load.processes, "load_cpu_s": load.cpu_s,
+                           "load_1min": load_1min}  # fmt: skip
+            yield BenchRecord(SUITE, case, METRIC, ms, "ms", device,
+                              fields | load_fields | extra | host)  # fmt: skip
+            if part_ms is not None:
+                yield from share_records(case, device, fields | load_fields | host, part_ms)

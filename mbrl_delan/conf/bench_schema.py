@@ -131,6 +131,7 @@ class RealtimeSuiteConfig(SuiteConfig):
     seed: int | None = rule(None, low=0)
     overrides: list[str] = field(default_factory=list)
     load: int = rule(0, low=0)  # busy processes beside each timed case
+    profile: bool = False  # learned models' cases also split their eager path into parts
 
     def check(self) -> None:
         registered("tasks", self.tasks, ENVS)

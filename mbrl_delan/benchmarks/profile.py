@@ -1,0 +1,133 @@
+"""Where a learned model's planning time goes: the eager path's time split into parts.
+
+`profile_parts` runs a call (one replanning cycle of the planner on a model) under
+`torch.profiler` twice:
+
+1. with Python stacks: each operator's self time goes to the part of the innermost package
+   function on its call chain that `PART_RULES` names (helpers that no rule names, such as
+   the quaternion arithmetic, count for their caller);
+2. without stacks: the operators' total self time, which the shares of pass 1 divide.
+
+The wall time of the call without the profiler, less the operators' time of pass 2, is the
+part `python`: the interpreter and the dispatcher between operators. The parts sum to the
+unprofiled wall time. Only CPU time is split; on CUDA the operators' CPU time is their launch.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from collections.abc import Callable
+
+from torch.autograd.profiler_util import FunctionEvent
+from torch.profiler import ProfilerActivity, profile
+
+PACKAGE = "mbrl_delan/"
+PYTHON = "python"  # the part outside the operators
+OTHER = "other"  # operators under no function a rule names
+
+# (file under the package, its functions ("": every function of the file), part); the first
+# rule that matches a frame names its part
+PART_RULES: tuple[tuple[str, str, str], ...] = (
+    ("models/contact.py", "implicit_acceleration _solve", "solve"),
+    ("models/contact.py", "", "contact"),
+    ("models/lagrangian.py", "forward_dynamics _solve with_armature", "solve"),
+    (
+        "models/lagrangian.py",
+        "_dissipation forward slope viscous lead velocity _coulomb lead_inertia _sech2",
+        "passive",
+    ),
+    (
+        "models/lagrangian.py",
+        "_add_euler_poincare _bias_and_jet root_frame_jet pullback _velocity_products terms",
+        "network",
+    ),
+    ("models/field.py", "", "network"),
+    ("models/features.py", "", "network"),
+    ("models/kernels.py", "", "network"),
+    ("models/tangent_mlp.py", "", "network"),
+    ("models/ensemble.py", "", "network"),
+    ("models/delan_ensemble.py", "", "network"),
+    ("models/tree.py", "kinematics _frames _paths", "kinematics"),
+    ("systems/forward_kinematics.py", "", "kinematics"),
+    (
+        "models/tree.py",
+        "mass_matrix world_inertia pseudo_inertia inertial armature total_mass",
+        "mass_matrix",
+    ),
+    ("models/tree.py", "bias coriolis gravity _generalized", "bias"),
+    ("models/tree.py", "passive spring spring_stiffness damping", "passive"),
+    ("models/integrators.py", "", "integrator"),
+    ("systems/posarith.py", "integrate_pos", "integrator"),
+    ("models/delan.py", "step accel _clamp_velocity", "integrator"),
+    ("tasks/", "", "cost"),
+    ("objectives/", "", "cost"),
+    ("planners/", "", "planner"),
+)
+PARTS = (
+    "kinematics",
+    "mass_matrix",
+    "bias",
+    "passive",
+    "contact",
+    "solve",
+    "network",
+    "integrator",
+    "cost",
+    "planner",
+    OTHER,
+    PYTHON,
+)
+
+
+def frame_part(name: str) -> str | None:
+    """The part of a profiler's Python frame ``.../mbrl_delan/<file>(<line>): <function>``,
+    or None when no rule names it."""
+    if PACKAGE not in name:
+        return None
+    where = name.rsplit(PACKAGE, 1)[1]
+    path, _, function = where.partition(": ")
+    path = path.split("(", 1)[0]
+    for prefix, functions, part in PART_RULES:
+        if path.startswith(prefix) and (not functions or function in functions.split()):
+            return part
+    return None
+
+
+def event_part(event: FunctionEvent) -> str:
+    """The part of an operator: its innermost enclosing frame that a rule names."""
+    parent = event.cpu_parent
+    while parent is not None:
+        if parent.is_python_function:
+            part = frame_part(parent.name)
+            if part is not None:
+                return part
+        parent = parent.cpu_parent
+    return OTHER
+
+
+def _operators(events: list[FunctionEvent]) -> list[FunctionEvent]:
+    return [event for event in events if not event.is_python_function]
+
+
+def profile_parts(call: Callable[[], object], runs: int = 1) -> dict[str, float]:
+    """Seconds per `call` in each of `PARTS` (module docstring), the wall time and the
+    operators' time each the mean of `runs` calls; `call` should have run once before (its
+    first-call costs are not its parts)."""
+    start = time.perf_counter()
+    for _ in range(runs):
+        call()
+    wall = (time.perf_counter() - start) / runs
+    with profile(activities=[ProfilerActivity.CPU], with_stack=True) as stacked:
+        call()
+    by_part: dict[str, float] = defaultdict(float)
+    for event in _operators(stacked.events()):
+        by_part[event_part(event)] += event.self_cpu_time_total
+    with profile(activities=[ProfilerActivity.CPU]) as plain:
+        for _ in range(runs):
+            call()
+    operators = 1e-6 * sum(e.self_cpu_time_total for e in _operators(plain.events())) / runs
+    stacked_total = sum(by_part.values()) or 1.0
+    seconds = {part: operators * by_part.get(part, 0.0) / stacked_total for part in PARTS}
+    seconds[PYTHON] = max(wall - operators, 0.0)
+    return seconds
