@@ -19,7 +19,7 @@ from mbrl_delan.models.features import QFeatures, rotation_matrix, skew
 from mbrl_delan.models.integrators import integrate
 from mbrl_delan.models.lagrangian import LagrangianDynamics, MechanicsField, MechanicsJet
 from mbrl_delan.models.structure import Structure, rotational_dofs
-from mbrl_delan.systems.posarith import _index_tensors, integrate_pos
+from mbrl_delan.systems.posarith import integrate_pos
 from mbrl_delan.systems.system import FREE, HINGE, JointLayout, load_system
 
 MASS, GRAVITY = 2.0, 9.81
@@ -226,17 +226,22 @@ def test_free_body_energy_conserved_without_gravity_rk4(tmp_path) -> None:
     assert drift.max() < 1e-6
 
 
-def test_position_indices_cached_in_inference_mode_still_serve_autograd() -> None:
+def test_position_arithmetic_in_inference_mode_then_autograd() -> None:
     """The first integrate_pos call of a layout may come from planning (inference mode);
-    fitting later differentiates through the same cached indices."""
+    fitting later differentiates through it."""
     layout = JointLayout(types=(FREE, HINGE), qpos_adr=(0, 7), dof_adr=(0, 6), limited=(False,) * 2)
-    _index_tensors.cache_clear()  # the first call below builds the cached indices
     q = torch.cat([torch.tensor([0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0]), torch.zeros(1)])
     with torch.inference_mode():
         integrate_pos(layout, q, torch.ones(7), 0.1)
     qd = torch.ones(7, requires_grad=True)
     integrate_pos(layout, q, qd, 0.1).sum().backward()
     assert qd.grad is not None and torch.isfinite(qd.grad).all()
+
+
+def test_a_layout_out_of_mujocos_order_is_refused() -> None:
+    layout = JointLayout(types=(HINGE, FREE), qpos_adr=(7, 0), dof_adr=(6, 0), limited=(False,) * 2)
+    with pytest.raises(ValueError, match="out of MuJoCo's order"):
+        integrate_pos(layout, torch.zeros(8), torch.zeros(7), 0.1)
 
 
 def test_known_armature_adds_to_m_and_matches_mujoco(tmp_path) -> None:

@@ -1,21 +1,16 @@
-"""Where a learned model's planning time goes: the eager path's time split into parts.
+"""Where a learned model's planning time goes: the eager path's operator time split into parts.
 
-`profile_parts` runs a call (one replanning cycle of the planner on a model) under
-`torch.profiler` twice:
-
-1. with Python stacks: each operator's self time goes to the part of the innermost package
-   function on its call chain that `PART_RULES` names (helpers that no rule names, such as
-   the quaternion arithmetic, count for their caller);
-2. without stacks: the operators' total self time, which the shares of pass 1 divide.
-
-The wall time of the call without the profiler, less the operators' time of pass 2, is the
-part `python`: the interpreter and the dispatcher between operators. The parts sum to the
-unprofiled wall time. Only CPU time is split; on CUDA the operators' CPU time is their launch.
+`profile_parts` runs a call (one replanning cycle of the planner on a model) once under
+`torch.profiler` with Python stacks: each operator's self time goes to the part of the
+innermost package function on its call chain that `PART_RULES` names (helpers no rule names,
+such as the quaternion arithmetic, count for their caller). The shares are of the operators'
+time: the interpreter's and the dispatcher's time between operators is not split out (the
+profiler's own cost per operator is of its order). Only CPU time is split; on CUDA an
+operator's CPU time is its launch.
 """
 
 from __future__ import annotations
 
-import time
 from collections import defaultdict
 from collections.abc import Callable
 
@@ -23,7 +18,6 @@ from torch.autograd.profiler_util import FunctionEvent
 from torch.profiler import ProfilerActivity, profile
 
 PACKAGE = "mbrl_delan/"
-PYTHON = "python"  # the part outside the operators
 OTHER = "other"  # operators under no function a rule names
 
 # (file under the package, its functions ("": every function of the file), part); the first
@@ -76,7 +70,6 @@ PARTS = (
     "cost",
     "planner",
     OTHER,
-    PYTHON,
 )
 
 
@@ -110,24 +103,14 @@ def _operators(events: list[FunctionEvent]) -> list[FunctionEvent]:
     return [event for event in events if not event.is_python_function]
 
 
-def profile_parts(call: Callable[[], object], runs: int = 1) -> dict[str, float]:
-    """Seconds per `call` in each of `PARTS` (module docstring), the wall time and the
-    operators' time each the mean of `runs` calls; `call` should have run once before (its
-    first-call costs are not its parts)."""
-    start = time.perf_counter()
-    for _ in range(runs):
-        call()
-    wall = (time.perf_counter() - start) / runs
+def profile_parts(call: Callable[[], object]) -> dict[str, float]:
+    """Each of `PARTS`' share of the operators' time in one `call` (module docstring); `call`
+    should have run once before (its first-call costs are not its parts)."""
     with profile(activities=[ProfilerActivity.CPU], with_stack=True) as stacked:
         call()
     by_part: dict[str, float] = defaultdict(float)
-    for event in _operators(stacked.events()):
-        by_part[event_part(event)] += event.self_cpu_time_total
-    with profile(activities=[ProfilerActivity.CPU]) as plain:
-        for _ in range(runs):
-            call()
-    operators = 1e-6 * sum(e.self_cpu_time_total for e in _operators(plain.events())) / runs
-    stacked_total = sum(by_part.values()) or 1.0
-    seconds = {part: operators * by_part.get(part, 0.0) / stacked_total for part in PARTS}
-    seconds[PYTHON] = max(wall - operators, 0.0)
-    return seconds
+    for event in stacked.events():
+        if not event.is_python_function:
+            by_part[event_part(event)] += event.self_cpu_time_total
+    total = sum(by_part.values()) or 1.0
+    return {part: by_part.get(part, 0.0) / total for part in PARTS}

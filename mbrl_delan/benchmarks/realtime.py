@@ -20,9 +20,9 @@ a plugin's too) and each dynamics in `models` (`mujoco`, `delan`, `tree`, `tree_
   `replan_every`, timed as `TimingConfig` says (the median over `repeats` measurements).
 
 With `profile` a learned model's case also yields metric `step_share` per part (field `part`:
-`benchmarks.profile.PARTS`): the share of its eager path's planning time (the same cycle with
-`accel.compile=false`) in that part, with `part_ms_per_control_step` and the eager path's
-`eager_ms_per_control_step` (`benchmarks.profile` says how the time is split).
+`benchmarks.profile.PARTS`): the part's share of the operator time of its eager path (the
+same cycle with `accel.compile=false`), with that path's `eager_ms_per_control_step`
+(`benchmarks.profile` says how the time is split).
 
 With `load` N > 0 every case is timed beside N busy processes (`busy_processes`: each a
 Python loop that keeps one core busy): the planner on a host that others use.
@@ -248,23 +248,20 @@ def model_case(cfg: DictConfig, task: str, bench: BenchSettings, seed: int) -> t
 
 
 def profile_case(cfg: DictConfig, task: str, bench: BenchSettings,
-                 seed: int) -> dict[str, float]:  # fmt: skip
-    """ms per control step of the eager path in each part (`benchmarks.profile`)."""
+                 seed: int) -> tuple[dict[str, float], float]:  # fmt: skip
+    """Each part's share of the eager path's operator time (`benchmarks.profile`), and the
+    eager path's ms per control step (timed as the case, without the profiler)."""
     cycle, length = policy_cycle(cfg, task, bench, seed)
-    cycle()  # first-call costs are not a part
-    seconds = profile_parts(cycle, runs=max(bench.timing.repeats, 1))
-    return {part: 1e3 * value / length for part, value in seconds.items()}
+    timing = time_call(cycle, bench.timing, synchronizer(bench.device))
+    return profile_parts(cycle), 1e3 * timing.seconds_per_call / length
 
 
-def share_records(case: str, device: str, fields: dict[str, Any],
-                  part_ms: dict[str, float]) -> Iterator[BenchRecord]:  # fmt: skip
+def share_records(case: str, device: str, fields: dict[str, Any], shares: dict[str, float],
+                  eager_ms: float) -> Iterator[BenchRecord]:  # fmt: skip
     """The `step_share` records of one profiled case."""
-    eager_ms = sum(part_ms.values())
-    for part, ms in part_ms.items():
-        record = fields | {"part": part, "part_ms_per_control_step": ms,
-                           "eager_ms_per_control_step": eager_ms}  # fmt: skip
-        yield BenchRecord(SUITE, f"{case}-{part}", SHARE_METRIC, ms / eager_ms, "share", device,
-                          record)  # fmt: skip
+    for part, share in shares.items():
+        record = fields | {"part": part, "eager_ms_per_control_step": eager_ms}
+        yield BenchRecord(SUITE, f"{case}-{part}", SHARE_METRIC, share, "share", device, record)
 
 
 def run_realtime_suite(options: RealtimeSuiteConfig, bench: BenchSettings) -> Iterator[BenchRecord]:
@@ -283,15 +280,15 @@ def run_realtime_suite(options: RealtimeSuiteConfig, bench: BenchSettings) -> It
                 else:
                     ms, extra = model_case(cfg, task, bench, rt.seed)
                 load_1min = os.getloadavg()[0]
-                part_ms = None
+                profiled = None
                 if rt.profile and dynamics != "mujoco":
                     eager = case_config(task, dynamics, (*rt.overrides, *EAGER))
-                    part_ms = profile_case(eager, task, bench, rt.seed)
+                    profiled = profile_case(eager, task, bench, rt.seed)
             device = "cpu" if dynamics == "mujoco" else bench.device.type
             case = f"{task}-{dynamics}"
             load_fields = {"load": load.processes, "load_cpu_s": load.cpu_s,
                            "load_1min": load_1min}  # fmt: skip
             yield BenchRecord(SUITE, case, METRIC, ms, "ms", device,
                               fields | load_fields | extra | host)  # fmt: skip
-            if part_ms is not None:
-                yield from share_records(case, device, fields | load_fields | host, part_ms)
+            if profiled is not None:
+                yield from share_records(case, device, fields | load_fields | host, *profiled)

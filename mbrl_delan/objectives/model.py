@@ -206,8 +206,7 @@ class ModelObjectiveFactory(ObjectiveFactory):
         try:
             return self._compiled_loop_returns(q0, qd0, actions, step)
         except torch._dynamo.exc.TorchDynamoException as err:
-            # e.g. the humanoids: the compiler's C++ loop does not yet declare the index
-            # tensors their quaternion arithmetic caches (torch 2.13)
+            # e.g. a plugin's model whose step mutates state outside the loop's body
             self._loop_compiles = False
             reason = str(err).strip().splitlines()[0]
             log.warning("no compiled rollout loop (%s): one compiled call per step", reason)
@@ -217,6 +216,10 @@ class ModelObjectiveFactory(ObjectiveFactory):
         self, q0: Tensor, qd0: Tensor, actions: Tensor, step: Tensor
     ) -> Tensor:
         if self._compiled_loop is None:
+            # one eager step first: what a model builds and caches on its first call (the
+            # tree's constants per dtype) cannot be made inside the loop's traced body
+            self._transition(q0.expand(1, -1).clone(), qd0.expand(1, -1).clone(),
+                             actions[:1, 0], step)  # fmt: skip
             self._compiled_loop = CompiledLoop(self._looped_returns)
         loop = self._compiled_loop
         if self._threads is None:

@@ -29,70 +29,44 @@ _TINY = 1e-300  # below this a vector norm is treated as zero (keeps gradients f
 
 
 @dataclass(frozen=True)
-class _Index:
-    """Index plan of a layout: which coordinates are added linearly, which are quaternions."""
+class _Segment:
+    """A run of coordinates in qpos order: `quat` a quaternion (qpos q0:q1, its body-frame
+    angular velocity qvel v0:v1), else coordinates added linearly (qpos q0:q1, qvel v0:v1)."""
 
-    lin_q: tuple[int, ...]  # qpos indices updated as q + v dt (hinge, slide, free translation)
-    lin_v: tuple[int, ...]  # matching qvel indices
-    quat_q: tuple[tuple[int, int, int, int], ...]  # qpos indices of each quaternion (w, x, y, z)
-    rot_v: tuple[tuple[int, int, int], ...]  # qvel indices of each body-frame angular velocity
-
-    def q_order(self) -> list[int]:
-        """qpos indices in the order [lin, quats flattened]."""
-        return list(self.lin_q) + [i for quat in self.quat_q for i in quat]
-
-    def v_order(self) -> list[int]:
-        """qvel indices in the order [lin, rots flattened]."""
-        return list(self.lin_v) + [i for rot in self.rot_v for i in rot]
+    quat: bool
+    q0: int
+    q1: int
+    v0: int
+    v1: int
 
 
 @functools.lru_cache(maxsize=64)
-def _index_plan(layout: JointLayout) -> _Index:
-    lin_q: list[int] = []
-    lin_v: list[int] = []
-    quat_q: list[tuple[int, int, int, int]] = []
-    rot_v: list[tuple[int, int, int]] = []
+def _segments(layout: JointLayout) -> tuple[_Segment, ...]:
+    """The layout's coordinates as runs of Python slices, in qpos (and qvel) order: the
+    arithmetic below slices and concatenates, so it builds no index tensor (a compiled loop
+    over the horizon cannot declare tensors made while tracing)."""
+    runs: list[_Segment] = []
+
+    def linear(qa: int, va: int, n: int) -> None:
+        last = runs[-1] if runs else None
+        if last is not None and not last.quat and (last.q1, last.v1) == (qa, va):
+            runs[-1] = _Segment(False, last.q0, qa + n, last.v0, va + n)
+        else:
+            runs.append(_Segment(False, qa, qa + n, va, va + n))
+
     for jtype, qa, va in zip(layout.types, layout.qpos_adr, layout.dof_adr, strict=True):
         if jtype == FREE:
-            lin_q += [qa, qa + 1, qa + 2]
-            lin_v += [va, va + 1, va + 2]
+            linear(qa, va, 3)
             qa, va = qa + 3, va + 3
         if jtype in (FREE, BALL):
-            quat_q.append((qa, qa + 1, qa + 2, qa + 3))
-            rot_v.append((va, va + 1, va + 2))
+            runs.append(_Segment(True, qa, qa + 4, va, va + 3))
         else:
-            lin_q.append(qa)
-            lin_v.append(va)
-    return _Index(tuple(lin_q), tuple(lin_v), tuple(quat_q), tuple(rot_v))
-
-
-@functools.lru_cache(maxsize=64)
-def _index_tensors(
-    layout: JointLayout, device: torch.device
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """(lin_q, lin_v, quat_q (K, 4), rot_v (K, 3), inverse q order, inverse v order) on device.
-
-    Built as normal tensors even when first called under `torch.inference_mode` (planning):
-    the cached indices are later used in autograd (fitting), which cannot save inference
-    tensors for backward.
-    """
-    with torch.inference_mode(False):
-        return _build_index_tensors(layout, device)
-
-
-def _build_index_tensors(
-    layout: JointLayout, device: torch.device
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    plan = _index_plan(layout)
-
-    def idx(values: object) -> Tensor:
-        return torch.as_tensor(values, dtype=torch.long, device=device)
-
-    inv_q = torch.argsort(idx(plan.q_order()))
-    inv_v = torch.argsort(idx(plan.v_order()))
-    quat_q = idx(plan.quat_q).reshape(-1, 4)
-    rot_v = idx(plan.rot_v).reshape(-1, 3)
-    return idx(plan.lin_q), idx(plan.lin_v), quat_q, rot_v, inv_q, inv_v
+            linear(qa, va, 1)
+    starts = [(seg.q0, seg.v0) for seg in runs]
+    ends = [(0, 0)] + [(seg.q1, seg.v1) for seg in runs[:-1]]
+    if starts != ends:
+        raise ValueError(f"joint coordinates out of MuJoCo's order: {layout}")
+    return tuple(runs)
 
 
 def quat_mul(a: Tensor, b: Tensor) -> Tensor:
@@ -151,15 +125,14 @@ def integrate_pos(layout: JointLayout, q: Tensor, qd: Tensor, dt: float | Tensor
     """
     if layout.only_scalar_joints:
         return q + qd * dt
-    lin_q, lin_v, quat_q, rot_v, inv_q, _ = _index_tensors(layout, q.device)
     step = qd * dt  # (..., nv)
     batch = torch.broadcast_shapes(q.shape[:-1], step.shape[:-1])
     q, step = q.expand(*batch, q.shape[-1]), step.expand(*batch, step.shape[-1])
-    lin = q[..., lin_q] + step[..., lin_v]  # (..., n_lin)
-    quats = _normalize(q[..., quat_q])  # (..., K, 4)
-    quats = quat_mul(quats, quat_exp(step[..., rot_v]))  # (..., K, 4)
-    out = torch.cat((lin, quats.flatten(-2)), dim=-1)  # (..., nq) in plan order
-    return out[..., inv_q]
+    parts = []
+    for seg in _segments(layout):
+        coords, move = q[..., seg.q0 : seg.q1], step[..., seg.v0 : seg.v1]
+        parts.append(quat_mul(_normalize(coords), quat_exp(move)) if seg.quat else coords + move)
+    return torch.cat(parts, dim=-1)
 
 
 def differentiate_pos(layout: JointLayout, q1: Tensor, q2: Tensor, dt: float | Tensor) -> Tensor:
@@ -169,9 +142,9 @@ def differentiate_pos(layout: JointLayout, q1: Tensor, q2: Tensor, dt: float | T
     """
     if layout.only_scalar_joints:
         return (q2 - q1) / dt
-    lin_q, _, quat_q, _, _, inv_v = _index_tensors(layout, q1.device)
-    lin = q2[..., lin_q] - q1[..., lin_q]  # (..., n_lin)
-    rel = quat_mul(quat_conj(_normalize(q1[..., quat_q])), _normalize(q2[..., quat_q]))
-    rot = quat_log(rel)  # (..., K, 3)
-    out = torch.cat((lin, rot.flatten(-2)), dim=-1)  # (..., nv) in plan order
-    return out[..., inv_v] / dt
+    parts = []
+    for seg in _segments(layout):
+        a, b = q1[..., seg.q0 : seg.q1], q2[..., seg.q0 : seg.q1]
+        parts.append(quat_log(quat_mul(quat_conj(_normalize(a)), _normalize(b))) if seg.quat
+                     else b - a)  # fmt: skip
+    return torch.cat(parts, dim=-1) / dt
