@@ -61,9 +61,15 @@ def test_the_load_generator_keeps_its_processes_busy_inside_its_block() -> None:
     none left running after it."""
     import time
 
+    start = time.perf_counter()
     with busy_processes(2) as load:
         time.sleep(1.5)
+    wall = time.perf_counter() - start
     assert load.processes == 2 and load.cpu_s > 0.3  # busy, even on a shared host (idle: 3 s)
+    assert load.cpu_s <= 2 * wall + 0.1  # their own CPU time only
+    with busy_processes(0) as none:
+        subprocess.run([sys.executable, "-c", "sum(range(10**6))"], check=True)  # a child
+    assert none.cpu_s == 0  # another child's CPU time is not the load's
 
 
 def test_a_profiled_operator_counts_for_the_innermost_function_a_rule_names() -> None:

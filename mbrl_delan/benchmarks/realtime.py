@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import logging
 import os
-import resource
 import subprocess
 import sys
 import time
@@ -130,18 +129,18 @@ class Load:
 def busy_processes(count: int) -> Iterator[Load]:
     """`count` processes that each keep one core busy while the block runs (``python -c
     "while True: pass"``: one thread, no memory traffic), stopped after it; the `Load` it
-    yields holds their CPU seconds once the block is done."""
+    yields holds their CPU seconds once the block is done (each process's own, from
+    `os.wait4`: not the compiler's worker processes that end meanwhile)."""
     load = Load(count)
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     workers = [subprocess.Popen([sys.executable, "-c", BUSY_LOOP]) for _ in range(count)]
     try:
         yield load
     finally:
         for worker in workers:
             worker.kill()
-            worker.wait()
-        after = resource.getrusage(resource.RUSAGE_CHILDREN)
-        load.cpu_s = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+            usage = os.wait4(worker.pid, 0)[2]
+            worker.returncode = -9  # reaped above
+            load.cpu_s += usage.ru_utime + usage.ru_stime
 
 
 class TimedPolicy:
@@ -287,7 +286,7 @@ def run_realtime_suite(options: RealtimeSuiteConfig, bench: BenchSettings) -> It
             device = "cpu" if dynamics == "mujoco" else bench.device.type
             case = f"{task}-{dynamics}"
             load_fields = {"load": load.processes, "load_cpu_s": load.cpu_s,
-                           "load_1min": load_1min}  # fmt: skip
+                           "load_1min": load_1min, "overrides": list(rt.overrides)}  # fmt: skip
             yield BenchRecord(SUITE, case, METRIC, ms, "ms", device,
                               fields | load_fields | extra | host)  # fmt: skip
             if profiled is not None:
