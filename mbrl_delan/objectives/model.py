@@ -216,10 +216,7 @@ class ModelObjectiveFactory(ObjectiveFactory):
         self, q0: Tensor, qd0: Tensor, actions: Tensor, step: Tensor
     ) -> Tensor:
         if self._compiled_loop is None:
-            # one eager step first: what a model builds and caches on its first call (the
-            # tree's constants per dtype) cannot be made inside the loop's traced body
-            self._transition(q0.expand(1, -1).clone(), qd0.expand(1, -1).clone(),
-                             actions[:1, 0], step)  # fmt: skip
+            self._warm_up(q0, qd0, actions[:1, 0], step)
             self._compiled_loop = CompiledLoop(self._looped_returns)
         loop = self._compiled_loop
         if self._threads is None:
@@ -324,6 +321,17 @@ class ModelObjectiveFactory(ObjectiveFactory):
         if self._compiled is None:
             self._compiled = compile_dynamics(self._transition)
         return self._compiled(q, qd, action, step)
+
+    def _warm_up(self, q0: Tensor, qd0: Tensor, action: Tensor, step: Tensor) -> None:
+        """One eager step of one sample before the loop compiles: what the model and the task
+        build and cache on their first call (the tree's constants per dtype) cannot be made
+        inside the loop's traced body. Its draws come from a generator of its own, so the
+        planner's stay as they were."""
+        spare = torch.Generator(device=action.device).manual_seed(0)
+        nxt = self.model.step(q0.expand(1, -1).clone(), qd0.expand(1, -1).clone(), action,
+                              generator=spare)  # fmt: skip
+        self.task.reward_at(nxt.q, nxt.qd, action, step)
+        self.task.terminated_at(nxt.q, nxt.qd, step)
 
     def _transition(self, q: Tensor, qd: Tensor, action: Tensor, step: Tensor) -> Transition:
         nxt = self.model.step(q, qd, action, generator=self.generator)
