@@ -99,10 +99,6 @@ def event_part(event: FunctionEvent) -> str:
     return OTHER
 
 
-def _operators(events: list[FunctionEvent]) -> list[FunctionEvent]:
-    return [event for event in events if not event.is_python_function]
-
-
 def profile_parts(call: Callable[[], object]) -> dict[str, float]:
     """Each of `PARTS`' share of the operators' time in one `call` (module docstring); `call`
     should have run once before (its first-call costs are not its parts)."""
