@@ -78,6 +78,7 @@ def test_a_profiled_operator_counts_for_the_innermost_function_a_rule_names() ->
     assert frame_part("mbrl_delan/models/tree.py(335): kinematics") == "kinematics"
     assert frame_part("mbrl_delan/models/tree.py(350): mass_matrix") == "mass_matrix"
     assert frame_part("mbrl_delan/systems/posarith.py(98): quat_mul") is None  # a helper
+    assert frame_part("mbrl_delan/systems/forward_kinematics.py(268): turn") is None
     assert frame_part("torch/nn/modules/linear.py(120): forward") is None
 
 

@@ -42,8 +42,9 @@ PART_RULES: tuple[tuple[str, str, str], ...] = (
     ("models/tangent_mlp.py", "", "network"),
     ("models/ensemble.py", "", "network"),
     ("models/delan_ensemble.py", "", "network"),
+    # forward kinematics counts for its caller: the model's tree, its contacts, or the cost
     ("models/tree.py", "kinematics _frames _paths", "kinematics"),
-    ("systems/forward_kinematics.py", "", "kinematics"),
+    ("models/delan.py", "_shared_frames", "kinematics"),
     (
         "models/tree.py",
         "mass_matrix world_inertia pseudo_inertia inertial armature total_mass",
