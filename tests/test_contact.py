@@ -60,6 +60,10 @@ def random_state(model: mujoco.MjModel, n: int, height: float, seed: int) -> tup
     return q, qd
 
 
+def _gen(seed: int) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
 def test_points_and_jacobians_match_mujoco(humanoid) -> None:
     model, contact = humanoid
     q, _ = random_state(model, 4, 1.0, seed=0)
@@ -312,22 +316,74 @@ def test_joint_limits_push_back_only_past_a_bound() -> None:
     )
 
 
+def _dense_products(terms: ImplicitTerms, jacobian: torch.Tensor, active: torch.Tensor, dt: float
+                    ) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """J^T (f0 - K J qd) and dt J^T K J with the dense Jacobians `jacobian` (..., P, 3, nv)."""
+    on = active.to(terms.spring.dtype)
+    gain = torch.stack([terms.tangential_gain, terms.tangential_gain, terms.normal_gain], -1)
+    gain = gain * on.unsqueeze(-1)
+    f0 = torch.zeros_like(terms.velocity)
+    f0[..., 2] = terms.spring * on
+    force = torch.einsum("...pkv,...pk->...v", jacobian, f0 - gain * terms.velocity)
+    added = dt * torch.einsum("...pkv,...pk,...pkw->...vw", jacobian, gain, jacobian)
+    return force, added
+
+
+def test_contact_products_by_chain_equal_the_dense_ones(humanoid) -> None:
+    """The humanoid's points grouped by the chains of DoFs that move them (a chain per leg and
+    arm): the generalized force, J^T K J and normal velocities equal those of the dense
+    Jacobians (checked against `mj_jac` above), with points in and out of the solve."""
+    model, contact = humanoid
+    assert len(contact.chains) == 4  # the legs and arms; the trunk's points join a leg
+    q, qd = random_state(model, 8, 0.9, seed=4)
+    dt = 0.0075
+    terms = contact.implicit_terms(q, qd, dt)
+    _, jacobian = contact.kinematics(q)
+    torch.testing.assert_close(terms.velocity, torch.einsum("...pkv,...v->...pk", jacobian, qd))
+    active = (terms.spring > 0) & (torch.rand(terms.spring.shape, generator=_gen(4)) < 0.8)
+    assert bool(active.any())
+    for chained, dense in zip(
+        terms.generalized(active, dt), _dense_products(terms, jacobian, active, dt), strict=True
+    ):
+        torch.testing.assert_close(chained, dense, rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(terms.normal_velocity(qd), terms.velocity[..., 2])
+
+
 def test_joint_terms_equal_their_dense_jacobian_products() -> None:
     """The joint limits' diagonal shortcut gives the dense J^T (f0 - K J qd), dt J^T K J and
     normal velocities of their Jacobian rows, on the humanoid's 17 limited hinges."""
     model = mujoco.MjModel.from_xml_path(str(humanoid_v5_xml()))
     limits = JointLimits.from_mujoco(model).double()
-    generator = torch.Generator().manual_seed(0)
+    generator = _gen(0)
     q = torch.tensor(model.qpos0).repeat(6, 1)
     q[:, 7:] += 1.2 * torch.randn(6, model.nv - 6, generator=generator, dtype=torch.float64)
     qd = torch.randn(6, model.nv, generator=generator, dtype=torch.float64)
     terms = limits.implicit_terms(q, qd, dt=0.0075)
     assert (terms.spring > 0).any() and not (terms.spring > 0).all()
     active = torch.rand(terms.spring.shape, generator=generator) < 0.7
-    dense = ImplicitTerms.generalized(terms, active, 0.0075)
+    rows = torch.nn.functional.one_hot(limits.dofs, model.nv).double()  # (L, nv)
+    jacobian = terms.jacobian * rows.unsqueeze(-2)  # each joint's column at its DoF
+    dense = _dense_products(terms, jacobian, active, 0.0075)
     for fast, slow in zip(terms.generalized(active, 0.0075), dense, strict=True):
         torch.testing.assert_close(fast, slow, rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(terms.normal_velocity(qd), ImplicitTerms.normal_velocity(terms, qd))
+    torch.testing.assert_close(
+        terms.normal_velocity(qd), torch.einsum("...lv,...v->...l", jacobian[..., 2, :], qd)
+    )
+
+
+def test_weights_saved_with_the_points_in_the_mjcf_order_load() -> None:
+    """Weights that hold the points' buffers in the MJCF's order (and the dense mask of the
+    DoFs that move them) load: those come from the MJCF, only the law is restored."""
+    model = mujoco.MjModel.from_xml_path(str(humanoid_v5_xml()))
+    contact = ContactModel.from_mujoco(model)
+    state = {k: v + 0.1 if v.is_floating_point() else v for k, v in contact.state_dict().items()}
+    points = ContactPoints.from_mujoco(model)
+    state |= {"body": torch.tensor(points.body), "offset": torch.zeros(len(points.body), 3),
+              "moves": torch.ones(len(points.body), model.nv)}  # fmt: skip
+    fresh = ContactModel.from_mujoco(model)
+    fresh.load_state_dict(state)
+    torch.testing.assert_close(fresh.log_stiffness, contact.log_stiffness + 0.1)
+    assert torch.equal(fresh.body, contact.body) and torch.equal(fresh.offset, contact.offset)
 
 
 def test_a_hinge_thrown_into_its_limit_gains_no_energy() -> None:
@@ -406,12 +462,17 @@ def test_the_stiff_implicit_solve_in_float32_matches_float64() -> None:
         tangential_gain=torch.full((points,), 1e4, dtype=torch.float64),
         jacobian=jacobian,
         velocity=torch.zeros(points, 3, dtype=torch.float64),
+        columns=torch.arange(nv).expand(points, nv),  # one chain: every DoF moves every point
+        nv=nv,
+        chains=((0, points, nv),),
+        pairs=torch.arange(nv * nv),
     )
     qd = torch.zeros(nv, dtype=torch.float64)
     push = -1e4 * jacobian[:, 2].sum(0)  # presses every point down
     force = push + torch.randn(nv, generator=g, dtype=torch.float64)
     exact = implicit_acceleration([terms], qd, dt, mass, force)
-    f32 = ImplicitTerms(*(t.float() for t in dataclasses.astuple(terms)))
+    floats = ("spring", "normal_gain", "tangential_gain", "jacobian", "velocity")
+    f32 = dataclasses.replace(terms, **{k: getattr(terms, k).float() for k in floats})
     single = implicit_acceleration([f32], qd.float(), dt, mass.float(), force.float()).double()
     assert float((single - exact).norm() / exact.norm()) < 1e-3
     pushes = terms.spring - terms.normal_gain * (jacobian[:, 2] @ (qd + dt * exact)) > 0

@@ -170,14 +170,22 @@ class ContactLaw:
 @dataclass
 class ImplicitTerms:
     """What the linearly implicit step needs at (q, qd), per point: the spring force s
-    (..., P), the normal and tangential damping gains (..., P) of f = f(v+), the Jacobians
-    (..., P, 3, nv) and the points' velocities (..., P, 3)."""
+    (..., P), the normal and tangential damping gains (..., P) of f = f(v+), the points'
+    velocities (..., P, 3) and their Jacobians by columns: `jacobian` (..., P, 3, D) holds
+    point p's columns for the DoFs `columns[p]` (D,) of the `nv` (zero columns where fewer
+    DoFs move it). `chains`: points [start, stop) share their first `width` columns (the
+    DoFs of one chain of bodies from the root), and `pairs` places each chain's
+    (width, width) block in the flattened (nv, nv), so J^T K J skips the other chains' DoFs."""
 
     spring: Tensor
     normal_gain: Tensor
     tangential_gain: Tensor
     jacobian: Tensor
     velocity: Tensor
+    columns: Tensor
+    nv: int
+    chains: tuple[tuple[int, int, int], ...]
+    pairs: Tensor
 
     def generalized(self, active: Tensor, dt: float) -> tuple[Tensor, Tensor]:
         """For the points `active` (..., P): the contact force at the step's start velocity,
@@ -188,21 +196,29 @@ class ImplicitTerms:
         f0 = torch.zeros_like(self.velocity)
         f0 = torch.cat([f0[..., :2], (self.spring * on).unsqueeze(-1)], -1)
         point_force = f0 - gain * self.velocity  # (..., P, 3)
-        force = torch.einsum("...pkv,...pk->...v", self.jacobian, point_force)
-        weighted = self.jacobian * gain.unsqueeze(-1)  # K J, (..., P, 3, nv)
-        added = dt * torch.einsum("...pkv,...pkw->...vw", self.jacobian, weighted)
-        return force, added
+        local = torch.einsum("...pkd,...pk->...pd", self.jacobian, point_force)  # (..., P, D)
+        force = _scatter(local, self.columns, self.nv)
+        weighted = self.jacobian * gain.unsqueeze(-1)  # K J, (..., P, 3, D)
+        blocks = [
+            torch.einsum(
+                "...pkd,...pke->...de",
+                self.jacobian[..., start:stop, :, :width],
+                weighted[..., start:stop, :, :width],
+            ).flatten(-2)
+            for start, stop, width in self.chains
+        ]  # (..., width^2) each
+        added = _scatter(dt * torch.cat(blocks, -1), self.pairs, self.nv * self.nv)
+        return force, added.unflatten(-1, (self.nv, self.nv))
 
     def normal_velocity(self, qd: Tensor) -> Tensor:
         """Each point's normal velocity at generalized velocity qd (..., nv) -> (..., P)."""
-        return torch.einsum("...pv,...v->...p", self.jacobian[..., 2, :], qd)
+        return (self.jacobian[..., 2, :] * _gather(qd, self.columns)).sum(-1)
 
 
 @dataclass
 class JointTerms(ImplicitTerms):
     """`ImplicitTerms` of points that are single DoFs (`dofs` (L,), pushed along `direction`
-    (..., L)), as the joint limits are: the same forces without the dense Jacobian products
-    (the added inertia is diagonal)."""
+    (..., L)), as the joint limits are: the added inertia is diagonal."""
 
     dofs: Tensor
     direction: Tensor
@@ -211,13 +227,22 @@ class JointTerms(ImplicitTerms):
         on = active.to(self.spring.dtype)
         gain = self.normal_gain * on  # (..., L)
         push = self.direction * (self.spring * on - gain * self.velocity[..., 2])
-        zeros = self.spring.new_zeros((*self.spring.shape[:-1], self.jacobian.shape[-1]))
+        zeros = self.spring.new_zeros((*self.spring.shape[:-1], self.nv))
         force = zeros.index_add(-1, self.dofs, push)
         added = torch.diag_embed(zeros.index_add(-1, self.dofs, dt * gain))
         return force, added
 
-    def normal_velocity(self, qd: Tensor) -> Tensor:
-        return self.direction * qd.index_select(-1, self.dofs)
+
+def _gather(x: Tensor, columns: Tensor) -> Tensor:
+    """x's entries at `columns` (C...): (..., n) -> (..., C...)."""
+    return x.index_select(-1, columns.reshape(-1)).unflatten(-1, columns.shape)
+
+
+def _scatter(values: Tensor, index: Tensor, size: int) -> Tensor:
+    """Sums `values` (..., I...) into `size` slots by `index` (I...): (..., size)."""
+    flat = values.flatten(-index.dim())
+    out = flat.new_zeros((*flat.shape[:-1], size))
+    return out.index_add(-1, index.reshape(-1), flat)
 
 
 class ContactModel(nn.Module):
@@ -237,14 +262,30 @@ class ContactModel(nn.Module):
         super().__init__()
         if len(points.body) != len(points.offset) or len(points.body) != len(points.radius):
             raise ValueError("contact points need a body, an offset and a radius each")
-        self.fk, self.points, self.implicit = fk, points, implicit
-        self.register_buffer("offset", torch.tensor(points.offset, dtype=torch.float64))
-        self.register_buffer("radius", torch.tensor(points.radius, dtype=torch.float64))
-        self.register_buffer("body", torch.tensor(points.body, dtype=torch.long))
-        self.register_buffer("group", torch.tensor(points.group, dtype=torch.long))
-        below = [_subtree_mask(fk.parent, b) for b in points.body]  # (P, nbody)
-        mask = [[below[i][b] for b in fk.dof_body] for i in range(len(points.body))]
-        self.register_buffer("moves", torch.tensor(mask, dtype=torch.float64))  # (P, nv)
+        moving = [_dofs_above(fk, b) for b in points.body]
+        order, chains = _chains(moving)
+        points = _reordered(points, order)  # each chain's points together
+        self.fk, self.points, self.implicit, self.nv = fk, points, implicit, len(fk.dof_body)
+        self.chains = tuple((first, stop, len(dofs)) for first, stop, dofs in chains)
+        width = max(len(dofs) for *_, dofs in chains)
+        columns, in_chain = [], []  # per point its chain's DoFs, padded with DoF 0, and its own
+        for first, stop, dofs in chains:
+            for p in order[first:stop]:
+                columns.append(dofs + [0] * (width - len(dofs)))
+                in_chain.append([float(v in moving[p]) for v in dofs] + [0.0] * (width - len(dofs)))
+        pairs = [a * self.nv + b for *_, dofs in chains for a in dofs for b in dofs]
+        buffers = dict(  # from the MJCF: not saved with the weights
+            offset=torch.tensor(points.offset, dtype=torch.float64),  # (P, 3)
+            radius=torch.tensor(points.radius, dtype=torch.float64),  # (P,)
+            body=torch.tensor(points.body, dtype=torch.long),
+            group=torch.tensor(points.group, dtype=torch.long),
+            columns=torch.tensor(columns, dtype=torch.long),  # (P, D)
+            in_chain=torch.tensor(in_chain, dtype=torch.float64),  # (P, D)
+            pairs=torch.tensor(pairs, dtype=torch.long),  # (sum of the chains' D^2,)
+        )
+        for name, value in buffers.items():
+            self.register_buffer(name, value, persistent=False)
+        self.register_load_state_dict_pre_hook(_drop_saved_points)
         self.register_buffer("rotational", torch.tensor(fk.rotational))  # (nv,)
         law = start or ContactLaw.from_physics()
         full = lambda v: torch.full((len(points.groups),), float(v))  # noqa: E731
@@ -275,30 +316,40 @@ class ContactModel(nn.Module):
 
     def forward(self, q: Tensor, qd: Tensor) -> Tensor:
         """The generalized contact force: (..., nq), (..., nv) -> (..., nv)."""
-        position, jacobian = self.kinematics(q)
-        velocity = torch.einsum("...pkv,...v->...pk", jacobian, qd)  # (..., P, 3)
+        position, jacobian = self.chain_kinematics(q)
+        velocity = torch.einsum("...pkd,...pd->...pk", jacobian, _gather(qd, self.columns))
         force = self.point_forces(position, velocity)
-        return torch.einsum("...pkv,...pk->...v", jacobian, force)
+        local = torch.einsum("...pkd,...pk->...pd", jacobian, force)
+        return _scatter(local, self.columns, self.nv)
 
     def contact_state(self, q: Tensor, qd: Tensor) -> ContactState:
         """The points, their velocities and the forces on them at (q, qd)."""
-        position, jacobian = self.kinematics(q)
-        velocity = torch.einsum("...pkv,...v->...pk", jacobian, qd)
+        position, jacobian = self.chain_kinematics(q)
+        velocity = torch.einsum("...pkd,...pd->...pk", jacobian, _gather(qd, self.columns))
         return ContactState(position, velocity, self.point_forces(position, velocity))
 
     def kinematics(self, q: Tensor, frames: Frames | None = None) -> tuple[Tensor, Tensor]:
         """The points (..., P, 3) and their Jacobians (..., P, 3, nv) at q (..., nq):
         dp_i/dt = J_i qd. `frames`: the tree's `ForwardKinematics.dof_axes(q)` where the
         caller has it already."""
+        position, jacobian = self.chain_kinematics(q, frames)
+        dense = jacobian.new_zeros((*jacobian.shape[:-1], self.nv))
+        index = self.columns.unsqueeze(-2).expand(jacobian.shape[-3:])  # (P, 3, D)
+        return position, dense.scatter_add(-1, index.expand_as(jacobian), jacobian)
+
+    def chain_kinematics(self, q: Tensor, frames: Frames | None = None) -> tuple[Tensor, Tensor]:
+        """`kinematics` by columns: the points (..., P, 3) and each one's Jacobian columns
+        (..., P, 3, D) for its DoFs `columns` (P, D), zero past the DoFs that move it."""
         poses, axes = frames or self.fk.dof_axes(q)
         pos = poses.xpos.index_select(-2, self.body)
         mat = poses.xmat.index_select(-3, self.body)
         position = pos + (mat * self.offset.to(q).unsqueeze(-2)).sum(-1)  # (..., P, 3)
-        lever = position.unsqueeze(-2) - axes.anchor.unsqueeze(-3)  # (..., P, nv, 3)
-        axis = axes.axis.unsqueeze(-3).expand_as(lever)
+        anchor, axis = axes.anchor[..., self.columns, :], axes.axis[..., self.columns, :]
+        lever = position.unsqueeze(-2) - anchor  # (..., P, D, 3)
         turn = torch.linalg.cross(axis, lever, dim=-1)
-        columns = torch.where(self.rotational.unsqueeze(-1), turn, axis)  # (..., P, nv, 3)
-        return position, (columns * self.moves.to(q).unsqueeze(-1)).transpose(-1, -2)
+        rotational = self.rotational[self.columns].unsqueeze(-1)  # (P, D, 1)
+        columns = torch.where(rotational, turn, axis) * self.in_chain.to(q).unsqueeze(-1)
+        return position, columns.transpose(-1, -2)  # (..., P, 3, D)
 
     def _spring(self, position: Tensor, law: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
         """Penetration d (at most `MAX_DEPTH`) and spring force s = W k (d / delta)^e (0 without
@@ -330,8 +381,8 @@ class ContactModel(nn.Module):
         s(d - dt v_n+) (1 - c v_n+) ~ s - (dt ds/dd + s c) v_n+, and friction as a damping
         of the slip, mu f_n / sqrt(|v_t|^2 + eps^2) with f_n at the step's start, times -v_t+
         (inside the cone while the slip does not grow)."""
-        position, jacobian = self.kinematics(q, frames)
-        velocity = torch.einsum("...pkv,...v->...pk", jacobian, qd)  # (..., P, 3)
+        position, jacobian = self.chain_kinematics(q, frames)
+        velocity = torch.einsum("...pkd,...pd->...pk", jacobian, _gather(qd, self.columns))
         law = self.point_law(position)
         depth, spring = self._spring(position, law)
         stiffness = law["exponent"] * spring / torch.clamp(depth, min=1e-9)  # ds/dd
@@ -339,7 +390,8 @@ class ContactModel(nn.Module):
         normal_now = spring * torch.clamp(1.0 - law["damping"] * velocity[..., 2], min=0.0)
         speed = torch.sqrt(velocity[..., :2].square().sum(-1) + SLIP_SPEED**2)
         tangential_gain = law["friction"] * normal_now / speed
-        return ImplicitTerms(spring, normal_gain, tangential_gain, jacobian, velocity)
+        return ImplicitTerms(spring, normal_gain, tangential_gain, jacobian, velocity,
+                             self.columns, self.nv, self.chains, self.pairs)  # fmt: skip
 
     def implicit_acceleration(
         self, q: Tensor, qd: Tensor, dt: float, mass_matrix: Tensor, force: Tensor
@@ -398,7 +450,7 @@ class JointLimits(nn.Module):
 
     def implicit_terms(self, q: Tensor, qd: Tensor, dt: float) -> JointTerms:
         """Each joint as a point whose "normal" is its coordinate out of its range (the bound
-        it is nearer to) and that has no tangential part. (..., L)"""
+        it is nearer to), with no tangential part and one Jacobian column, its DoF. (..., L)"""
         pos = q.index_select(-1, self.qpos)
         lower, upper = self.lower.to(q), self.upper.to(q)
         below = pos - lower < upper - pos  # the lower bound is the nearer
@@ -408,14 +460,11 @@ class JointLimits(nn.Module):
         spring = stiffness * depth
         speed = direction * qd.index_select(-1, self.dofs)  # > 0: leaving the bound
         normal_gain = torch.where(depth > 0, dt * stiffness + spring * self.damping, 0.0)
-        nv = qd.shape[-1]
-        rows = torch.nn.functional.one_hot(self.dofs, nv).to(q) * direction.unsqueeze(-1)
-        jacobian = torch.zeros(*rows.shape[:-1], 3, nv, dtype=q.dtype, device=q.device)
-        jacobian = torch.cat([jacobian[..., :2, :], rows.unsqueeze(-2)], -2)  # (..., L, 3, nv)
-        velocity = torch.zeros(*speed.shape, 3, dtype=q.dtype, device=q.device)
-        velocity = torch.cat([velocity[..., :2], speed.unsqueeze(-1)], -1)
-        return JointTerms(spring, normal_gain, torch.zeros_like(spring), jacobian, velocity,
-                          self.dofs, direction)  # fmt: skip
+        zeros = torch.zeros_like(direction)
+        jacobian = torch.stack([zeros, zeros, direction], -1).unsqueeze(-1)  # (..., L, 3, 1)
+        velocity = torch.stack([zeros, zeros, speed], -1)  # (..., L, 3)
+        return JointTerms(spring, normal_gain, zeros, jacobian, velocity, self.dofs.unsqueeze(-1),
+                          qd.shape[-1], (), self.dofs[:0], self.dofs, direction)  # fmt: skip
 
 
 def implicit_acceleration(
@@ -450,6 +499,48 @@ def _solve(
     factor = torch.linalg.cholesky_ex(added * scale.unsqueeze(-1) * scale.unsqueeze(-2)).L
     solved = torch.cholesky_solve((total * scale).unsqueeze(-1), factor).squeeze(-1)
     return solved * scale
+
+
+def _drop_saved_points(
+    module: nn.Module, state: dict[str, Tensor], prefix: str, *_: object
+) -> None:
+    """Weights saved before the points were grouped by chain hold them in the MJCF's order
+    (and a dense mask of the DoFs that move them): the MJCF gives them again, so they go."""
+    for name in ("offset", "radius", "body", "group", "moves"):
+        state.pop(prefix + name, None)
+
+
+def _dofs_above(fk: ForwardKinematics, body: int) -> list[int]:
+    """The DoFs that move `body`: those of it and of its ancestors, in order."""
+    above = _subtree_mask(fk.parent, body)
+    return [v for v, b in enumerate(fk.dof_body) if above[b]]
+
+
+def _chains(moving: list[list[int]]) -> tuple[list[int], list[tuple[int, int, list[int]]]]:
+    """Points grouped by chain: each chain is the DoFs of a point that no other point's
+    DoFs contain (a leaf of the tree that holds points), and every point joins the first chain
+    whose DoFs hold its own. Returns the points in chain order and each chain's
+    (start, stop, DoFs) in that order."""
+    chains = sorted(dict.fromkeys(tuple(dofs) for dofs in moving), key=len, reverse=True)
+    tops: list[tuple[int, ...]] = []
+    for chain in chains:
+        if not any(set(chain) <= set(top) for top in tops):
+            tops.append(chain)
+    member = [next(i for i, top in enumerate(tops) if set(dofs) <= set(top)) for dofs in moving]
+    order = sorted(range(len(moving)), key=lambda p: member[p])
+    chains, start = [], 0
+    for i, top in enumerate(tops):
+        stop = start + member.count(i)
+        chains.append((start, stop, list(top)))
+        start = stop
+    return order, chains
+
+
+def _reordered(points: ContactPoints, order: list[int]) -> ContactPoints:
+    """`points` in `order`."""
+    pick = lambda values: tuple(values[p] for p in order)  # noqa: E731
+    return replace(points, body=pick(points.body), offset=pick(points.offset),
+                   radius=pick(points.radius), group=pick(points.group))  # fmt: skip
 
 
 def _subtree_mask(parent: list[int], body: int) -> list[bool]:
