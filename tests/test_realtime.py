@@ -128,8 +128,9 @@ def test_the_delan_case_plans_with_the_loops_policy() -> None:
     assert cfg.model.name == "delan" and cfg.planner.num_samples == 16
     assert case_config("pendulum", "delan", ()).accel.compile  # the suite's default: compiled
     opts = BenchSettings(torch.device("cpu"), TimingConfig(repeats=1, min_time_s=0.01, warmup=1))
-    ms, timing = model_case(cfg, "pendulum", opts, seed=0)
+    ms, timing, compiled = model_case(cfg, "pendulum", opts, seed=0)
     assert math.isfinite(ms) and ms > 0 and timing["repeats"] == 1
+    assert compiled is None  # eager: nothing compiled, no compile_s
 
 
 def test_realtime_options() -> None:

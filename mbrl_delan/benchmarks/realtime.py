@@ -24,6 +24,12 @@ With `profile` a learned model's case also yields metric `step_share` per part (
 same cycle with `accel.compile=false`), with that path's `eager_ms_per_control_step`
 (`benchmarks.profile` says how the time is split).
 
+A compiled case (`accel.compile=true`) also yields metric `compile_s`: the seconds of its
+first replanning cycle, which compiles, less those of a compiled cycle, with `cached`
+(every graph came from Inductor's on-disk cache: ``TORCHINDUCTOR_CACHE_DIR``, by default
+``/tmp/torchinductor_$USER``, which the loop and its resumed runs read too) and the cache's
+`graph_cache_hits` and `graph_cache_misses` in that cycle.
+
 With `load` N > 0 every case is timed beside N busy processes (`busy_processes`: each a
 Python loop that keeps one core busy): the planner on a host that others use.
 
@@ -77,6 +83,7 @@ log = logging.getLogger(__name__)
 SUITE = "realtime"
 METRIC = "plan_ms_per_control_step"
 SHARE_METRIC = "step_share"
+COMPILE_METRIC = "compile_s"
 EAGER = ("accel.compile=false",)  # the profiled path: every operator seen by the profiler
 # the learned models' planning path: the DeLaN compiled, as the loop runs it with compile on
 MODEL_OVERRIDES = {
@@ -238,12 +245,33 @@ def policy_cycle(cfg: DictConfig, task: str, bench: BenchSettings,
     return control_steps, policy.replan_every
 
 
-def model_case(cfg: DictConfig, task: str, bench: BenchSettings, seed: int) -> tuple[float, dict]:
+def model_case(
+    cfg: DictConfig, task: str, bench: BenchSettings, seed: int
+) -> tuple[float, dict, dict | None]:
     """The loop's policy over an untrained model: ms per control step, timed over whole
-    replanning cycles and divided by their length."""
+    replanning cycles and divided by their length; with `accel.compile`, the first cycle's
+    compile (`compile_s`: its seconds less a compiled cycle's, and whether every graph came
+    from Inductor's on-disk cache), else None."""
     cycle, length = policy_cycle(cfg, task, bench, seed)
-    timing = time_call(cycle, bench.timing, synchronizer(bench.device))
-    return 1e3 * timing.seconds_per_call / length, timing.fields()
+    sync = synchronizer(bench.device)
+    before = graph_cache_counts()
+    start = time.perf_counter()
+    cycle()  # the first plan compiles
+    sync()
+    first_s = time.perf_counter() - start
+    hits, misses = (after - was for after, was in zip(graph_cache_counts(), before, strict=True))
+    timing = time_call(cycle, bench.timing, sync)
+    compiled = None
+    if cfg.accel.get("compile", False):
+        compiled = dict(compile_s=first_s - timing.seconds_per_call, cached=hits > 0 and not misses,
+                        graph_cache_hits=hits, graph_cache_misses=misses)  # fmt: skip
+    return 1e3 * timing.seconds_per_call / length, timing.fields(), compiled
+
+
+def graph_cache_counts() -> tuple[int, int]:
+    """Inductor's on-disk graph cache so far in this process: (hits, misses)."""
+    counters = torch._dynamo.utils.counters["inductor"]
+    return counters["fxgraph_cache_hit"], counters["fxgraph_cache_miss"]
 
 
 def profile_case(cfg: DictConfig, task: str, bench: BenchSettings,
@@ -274,10 +302,11 @@ def run_realtime_suite(options: RealtimeSuiteConfig, bench: BenchSettings) -> It
             log.info("realtime: %s on %s (%s), %d busy processes", dynamics, task, fields,
                      rt.load)  # fmt: skip
             with busy_processes(rt.load) as load:
+                compiled = None
                 if dynamics == "mujoco":
                     ms, extra = mujoco_case(cfg, task, rt.oracle_steps, rt.seed)
                 else:
-                    ms, extra = model_case(cfg, task, bench, rt.seed)
+                    ms, extra, compiled = model_case(cfg, task, bench, rt.seed)
                 load_1min = os.getloadavg()[0]
                 profiled = None
                 if rt.profile and dynamics != "mujoco":
@@ -289,5 +318,9 @@ def run_realtime_suite(options: RealtimeSuiteConfig, bench: BenchSettings) -> It
                            "load_1min": load_1min, "overrides": list(rt.overrides)}  # fmt: skip
             yield BenchRecord(SUITE, case, METRIC, ms, "ms", device,
                               fields | load_fields | extra | host)  # fmt: skip
+            if compiled is not None:
+                seconds = compiled.pop("compile_s")
+                yield BenchRecord(SUITE, case, COMPILE_METRIC, seconds, "s", device,
+                                  fields | load_fields | compiled | host)  # fmt: skip
             if profiled is not None:
                 yield from share_records(case, device, fields | load_fields | host, *profiled)

@@ -265,6 +265,10 @@ class ModelObjectiveFactory(ObjectiveFactory):
 
     def _returns(self, q0: Tensor, qd0: Tensor, actions: Tensor, step: Tensor) -> Tensor:
         batch, horizon, _ = actions.shape
+        if torch.is_inference_mode_enabled() and not actions.is_inference():
+            # a planner's buffer made outside inference mode: its slices would be normal
+            # tensors, on which a compiled transition guards and compiles a second graph
+            actions = actions.clone()
         # the start as the later states are (contiguous): a compiled transition then needs
         # one graph per batch size, not a second for the first step
         q, qd = q0.expand(batch, -1).contiguous(), qd0.expand(batch, -1).contiguous()
@@ -318,7 +322,8 @@ class ModelObjectiveFactory(ObjectiveFactory):
         """
         if not self.compile:
             return self._transition(q, qd, action, step)
-        if self._compiled is None:
+        if self._compiled is None:  # what the first call builds is built before the trace
+            self._warm_up(q[0], qd[0], action[:1], step)
             self._compiled = compile_dynamics(self._transition)
         return self._compiled(q, qd, action, step)
 
