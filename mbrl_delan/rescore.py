@@ -15,7 +15,8 @@ how much of the gap a wider search closes.
 
 JSON on stdout, or in ``out=FILE``: `paired_episodes`, `falls`, `oracle_falls`, `both_stood`,
 `standing_return_ratio` (as the run's summary), the episodes' `returns` and `steps`, the
-record's own `recorded_steps`, `body`, `springs` and `num_samples`.
+record's own `recorded_steps`, `body`, `springs` and `num_samples`; `command`, `git_commit`,
+`dirty` and `host` as every record has them.
 
 Exit codes: 0 done, 2 a folder that is not a finished paired run (one line naming what it
 lacks), a bad option, or ``body=mjcf`` or ``springs=env`` on a model without a tree.
@@ -39,7 +40,7 @@ from mbrl_delan.conf.checks import DTYPES, ConfigError
 from mbrl_delan.conf.loop import build_loop, build_world_model, env_parts
 from mbrl_delan.evaluate import key_value_option, stop_on_input
 from mbrl_delan.models.tree import RigidBodyTree
-from mbrl_delan.provenance import program_name
+from mbrl_delan.provenance import program_name, provenance
 from mbrl_delan.runs import load_run
 from mbrl_delan.training.checkpoint import CheckpointError, RunWriteError, atomic_write
 from mbrl_delan.training.loop import MBRLLoop
@@ -169,7 +170,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         episodes, samples = (_count(options, key) for key in ("episodes", "samples"))
         result = rescore(args.run_dir, episodes, options.get("body", "fitted"),
                          options.get("springs", "fitted"), samples)  # fmt: skip
-        text = json.dumps(result, indent=1)
+        text = json.dumps(result | provenance("mbrl_delan.rescore"), indent=1)
         if "out" in options:
             atomic_write(Path(options["out"]), lambda f: f.write(text.encode()), keep_prev=False)
         else:
