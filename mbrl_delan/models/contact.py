@@ -262,26 +262,17 @@ class ContactModel(nn.Module):
         super().__init__()
         if len(points.body) != len(points.offset) or len(points.body) != len(points.radius):
             raise ValueError("contact points need a body, an offset and a radius each")
-        moving = [_dofs_above(fk, b) for b in points.body]
-        order, chains = _chains(moving)
-        points = _reordered(points, order)  # each chain's points together
+        points, layout = _by_chains(fk, points)  # each chain's points together
         self.fk, self.points, self.implicit, self.nv = fk, points, implicit, len(fk.dof_body)
-        self.chains = tuple((first, stop, len(dofs)) for first, stop, dofs in chains)
-        width = max(len(dofs) for *_, dofs in chains)
-        columns, in_chain = [], []  # per point its chain's DoFs, padded with DoF 0, and its own
-        for first, stop, dofs in chains:
-            for p in order[first:stop]:
-                columns.append(dofs + [0] * (width - len(dofs)))
-                in_chain.append([float(v in moving[p]) for v in dofs] + [0.0] * (width - len(dofs)))
-        pairs = [a * self.nv + b for *_, dofs in chains for a in dofs for b in dofs]
+        self.chains = layout.chains
         buffers = dict(  # from the MJCF: not saved with the weights
             offset=torch.tensor(points.offset, dtype=torch.float64),  # (P, 3)
             radius=torch.tensor(points.radius, dtype=torch.float64),  # (P,)
             body=torch.tensor(points.body, dtype=torch.long),
             group=torch.tensor(points.group, dtype=torch.long),
-            columns=torch.tensor(columns, dtype=torch.long),  # (P, D)
-            in_chain=torch.tensor(in_chain, dtype=torch.float64),  # (P, D)
-            pairs=torch.tensor(pairs, dtype=torch.long),  # (sum of the chains' D^2,)
+            columns=layout.columns,  # (P, D)
+            in_chain=layout.in_chain,  # (P, D)
+            pairs=layout.pairs,  # (sum of the chains' D^2,)
         )
         for name, value in buffers.items():
             self.register_buffer(name, value, persistent=False)
@@ -516,11 +507,21 @@ def _dofs_above(fk: ForwardKinematics, body: int) -> list[int]:
     return [v for v, b in enumerate(fk.dof_body) if above[b]]
 
 
-def _chains(moving: list[list[int]]) -> tuple[list[int], list[tuple[int, int, list[int]]]]:
-    """Points grouped by chain: each chain is the DoFs of a point that no other point's
-    DoFs contain (a leaf of the tree that holds points), and every point joins the first chain
-    whose DoFs hold its own. Returns the points in chain order and each chain's
-    (start, stop, DoFs) in that order."""
+@dataclass(frozen=True)
+class ChainLayout:
+    """Contact points grouped by the chain of DoFs that moves them (`ImplicitTerms`)."""
+
+    chains: tuple[tuple[int, int, int], ...]  # per chain: its points [start, stop), its width
+    columns: Tensor  # (P, D) each point's chain's DoFs, padded with DoF 0
+    in_chain: Tensor  # (P, D) 1 where the column's DoF moves the point
+    pairs: Tensor  # (sum of the chains' width^2,) each chain's block in the flattened (nv, nv)
+
+
+def _by_chains(fk: ForwardKinematics, points: ContactPoints) -> tuple[ContactPoints, ChainLayout]:
+    """The points reordered by chain, and their layout. A chain is the DoFs that move a point
+    and no other point's DoFs contain (a leaf of the tree that holds points); every point
+    joins the first chain whose DoFs hold its own."""
+    moving = [_dofs_above(fk, b) for b in points.body]
     chains = sorted(dict.fromkeys(tuple(dofs) for dofs in moving), key=len, reverse=True)
     tops: list[tuple[int, ...]] = []
     for chain in chains:
@@ -528,19 +529,21 @@ def _chains(moving: list[list[int]]) -> tuple[list[int], list[tuple[int, int, li
             tops.append(chain)
     member = [next(i for i, top in enumerate(tops) if set(dofs) <= set(top)) for dofs in moving]
     order = sorted(range(len(moving)), key=lambda p: member[p])
-    chains, start = [], 0
-    for i, top in enumerate(tops):
-        stop = start + member.count(i)
-        chains.append((start, stop, list(top)))
-        start = stop
-    return order, chains
-
-
-def _reordered(points: ContactPoints, order: list[int]) -> ContactPoints:
-    """`points` in `order`."""
+    width, nv = max(len(top) for top in tops), len(fk.dof_body)
+    pad = lambda row, value: list(row) + [value] * (width - len(row))  # noqa: E731
+    columns = [pad(tops[member[p]], 0) for p in order]
+    in_chain = [pad([float(v in moving[p]) for v in tops[member[p]]], 0.0) for p in order]
+    bounds = [sum(member.count(j) for j in range(i)) for i in range(len(tops) + 1)]
+    layout = ChainLayout(
+        chains=tuple((bounds[i], bounds[i + 1], len(top)) for i, top in enumerate(tops)),
+        columns=torch.tensor(columns, dtype=torch.long),
+        in_chain=torch.tensor(in_chain, dtype=torch.float64),
+        pairs=torch.tensor([a * nv + b for top in tops for a in top for b in top]),
+    )
     pick = lambda values: tuple(values[p] for p in order)  # noqa: E731
-    return replace(points, body=pick(points.body), offset=pick(points.offset),
-                   radius=pick(points.radius), group=pick(points.group))  # fmt: skip
+    points = replace(points, body=pick(points.body), offset=pick(points.offset),
+                     radius=pick(points.radius), group=pick(points.group))  # fmt: skip
+    return points, layout
 
 
 def _subtree_mask(parent: list[int], body: int) -> list[bool]:
