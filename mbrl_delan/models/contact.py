@@ -308,7 +308,7 @@ class ContactModel(nn.Module):
     def forward(self, q: Tensor, qd: Tensor) -> Tensor:
         """The generalized contact force: (..., nq), (..., nv) -> (..., nv)."""
         position, jacobian = self.chain_kinematics(q)
-        velocity = torch.einsum("...pkd,...pd->...pk", jacobian, _gather(qd, self.columns))
+        velocity = self._velocity(jacobian, qd)
         force = self.point_forces(position, velocity)
         local = torch.einsum("...pkd,...pk->...pd", jacobian, force)
         return _scatter(local, self.columns, self.nv)
@@ -316,8 +316,12 @@ class ContactModel(nn.Module):
     def contact_state(self, q: Tensor, qd: Tensor) -> ContactState:
         """The points, their velocities and the forces on them at (q, qd)."""
         position, jacobian = self.chain_kinematics(q)
-        velocity = torch.einsum("...pkd,...pd->...pk", jacobian, _gather(qd, self.columns))
+        velocity = self._velocity(jacobian, qd)
         return ContactState(position, velocity, self.point_forces(position, velocity))
+
+    def _velocity(self, jacobian: Tensor, qd: Tensor) -> Tensor:
+        """The points' velocities J qd from their Jacobian columns (..., P, 3, D). (..., P, 3)"""
+        return torch.einsum("...pkd,...pd->...pk", jacobian, _gather(qd, self.columns))
 
     def kinematics(self, q: Tensor, frames: Frames | None = None) -> tuple[Tensor, Tensor]:
         """The points (..., P, 3) and their Jacobians (..., P, 3, nv) at q (..., nq):
@@ -373,7 +377,7 @@ class ContactModel(nn.Module):
         of the slip, mu f_n / sqrt(|v_t|^2 + eps^2) with f_n at the step's start, times -v_t+
         (inside the cone while the slip does not grow)."""
         position, jacobian = self.chain_kinematics(q, frames)
-        velocity = torch.einsum("...pkd,...pd->...pk", jacobian, _gather(qd, self.columns))
+        velocity = self._velocity(jacobian, qd)
         law = self.point_law(position)
         depth, spring = self._spring(position, law)
         stiffness = law["exponent"] * spring / torch.clamp(depth, min=1e-9)  # ds/dd
